@@ -1,0 +1,12 @@
+# Source this file to use the built workspace: `source scripts/env.sh`.
+# It puts the project venv (the ROS 2 Jazzy prefix) and the colcon install space on the paths.
+_SPH_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]:-$0}")/.." && pwd)"
+export VIRTUAL_ENV="${SPH_VENV:-$_SPH_ROOT/.venv}"
+export PATH="$VIRTUAL_ENV/bin:$PATH"
+export AMENT_PREFIX_PATH="$VIRTUAL_ENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+export LD_LIBRARY_PATH="$VIRTUAL_ENV/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
+if [[ -f "$_SPH_ROOT/install/setup.sh" ]]; then
+  COLCON_CURRENT_PREFIX="$_SPH_ROOT/install" . "$_SPH_ROOT/install/setup.sh"
+fi
+unset _SPH_ROOT

@@ -1,0 +1,1 @@
+"""haptic_omni_driver package."""

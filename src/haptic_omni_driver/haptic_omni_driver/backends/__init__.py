@@ -1,0 +1,1 @@
+"""Device backends: openhaptics (libHD via ctypes), replay (rosbag2 MCAP), scripted."""

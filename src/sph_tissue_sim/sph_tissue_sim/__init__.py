@@ -1,0 +1,1 @@
+"""sph_tissue_sim package."""

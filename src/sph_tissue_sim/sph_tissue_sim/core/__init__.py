@@ -1,0 +1,1 @@
+"""Numerical core of the simulator: numpy + numba only, never rclpy."""
