@@ -1,0 +1,46 @@
+"""Fixtures for real-process ROS 2 tests (shared by every package's tests through pytest.ini)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+import harness
+
+
+@pytest.fixture(scope='module')
+def ros_domain():
+    """Isolate this test module on its own ROS_DOMAIN_ID with localhost-only discovery."""
+    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
+    domain = harness.new_domain_id()
+    os.environ['ROS_DOMAIN_ID'] = str(domain)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+    yield domain
+    for key, value in saved.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
+
+
+@pytest.fixture
+def rclpy_node(ros_domain):
+    """An initialised rclpy context and a probe node; ``node.spin_until(pred, timeout)`` spins it."""
+    import rclpy
+
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('test_probe', context=context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    node.spin_until = lambda predicate, timeout=10.0: harness.spin_until(
+        node, predicate, timeout, executor=executor)
+    node.executor_for_test = executor
+    try:
+        yield node
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
