@@ -7,6 +7,10 @@ export AMENT_PREFIX_PATH="$VIRTUAL_ENV${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
 export LD_LIBRARY_PATH="$VIRTUAL_ENV/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
 if [[ -f "$_SPH_ROOT/install/setup.sh" ]]; then
+  # colcon's setup scripts read unset variables; tolerate them even under `set -u`.
+  case $- in *u*) _SPH_NOUNSET=1; set +u ;; *) _SPH_NOUNSET=0 ;; esac
   COLCON_CURRENT_PREFIX="$_SPH_ROOT/install" . "$_SPH_ROOT/install/setup.sh"
+  [[ $_SPH_NOUNSET == 1 ]] && set -u
+  unset _SPH_NOUNSET
 fi
 unset _SPH_ROOT
