@@ -1,0 +1,263 @@
+"""Scripted backend: synthetic, human-like stylus motion (pure generator + a timed backend).
+
+The script is a sequence of minimum-jerk segments (Flash & Hogan 1985: the position profile
+x(s) = x0 + (x1 - x0)(10 s^3 - 15 s^4 + 6 s^5), s = t/T, which has zero velocity and zero
+acceleration at both ends, the smoothest point-to-point human reach):
+
+    approach  home -> above the target (approach_height along -press_axis)
+    press     -> press_depth below the target surface point, along press_axis
+    hold      stay (hold_time)
+    pull      drag laterally by pull_distance along pull_axis while pressed
+    release   back up above the surface
+    sweep     down to sweep_depth at -sweep_length/2, stroke to +sweep_length/2, up again
+    return    back home
+
+Optional physiological tremor (sum of sinusoids at 8-12 Hz, a few tenths of a millimetre peak) and
+encoder quantisation (the Omni resolves ~0.055 mm) make it look like a real hand on a real device.
+Everything is deterministic for a given seed. Positions are in the device frame ``omni_base``
+(OpenHaptics: x right, y up, z towards the user), metres.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConfigError
+from .base import Backend, BackendSink, Sample
+
+
+def min_jerk(s: np.ndarray | float) -> np.ndarray | float:
+    """Normalised minimum-jerk profile: 0 at s=0, 1 at s=1 (s clipped to [0, 1])."""
+    s = np.clip(s, 0.0, 1.0)
+    return s ** 3 * (10.0 - 15.0 * s + 6.0 * s * s)
+
+
+def min_jerk_derivatives(p0, p1, duration: float, t):
+    """Position, velocity and acceleration of a minimum-jerk move p0 -> p1 in ``duration`` at ``t``.
+
+    Args:
+        p0, p1: (3,) start and end points [m].
+        duration: T [s] > 0.
+        t: time(s) [s] since the start (scalar or (M,)); clipped to [0, T].
+
+    Returns:
+        (pos, vel, acc), each (M, 3) (or (3,) for scalar t).
+    """
+    p0, p1 = np.asarray(p0, float), np.asarray(p1, float)
+    t = np.asarray(t, float)
+    s = np.clip(t / duration, 0.0, 1.0)[..., None]
+    d = p1 - p0
+    pos = p0 + d * (10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5)
+    vel = d * (30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4) / duration
+    acc = d * (60 * s - 180 * s ** 2 + 120 * s ** 3) / duration ** 2
+    return pos, vel, acc
+
+
+@dataclass
+class Segment:
+    """One minimum-jerk move (a hold is a move to the same point)."""
+
+    name: str
+    start: np.ndarray
+    end: np.ndarray
+    duration: float
+    button1: bool = False
+
+
+@dataclass
+class ScriptConfig:
+    """Parameters of the script (device frame, SI units)."""
+
+    home: list = field(default_factory=lambda: [0.0, 0.06, 0.0])     # [m] start/end point
+    target: list = field(default_factory=lambda: [0.0, 0.0, 0.0])    # [m] surface point to press
+    press_axis: list = field(default_factory=lambda: [0.0, -1.0, 0.0])  # pressing direction
+    pull_axis: list = field(default_factory=lambda: [1.0, 0.0, 0.0])    # lateral pull direction
+    approach_height: float = 0.01   # [m] above the surface before pressing
+    press_depth: float = 0.008      # [m] indentation below the surface point
+    pull_distance: float = 0.01     # [m] lateral drag while pressed
+    sweep_depth: float = 0.003      # [m] indentation during the sweep
+    sweep_length: float = 0.04      # [m] length of the sweep stroke
+    approach_time: float = 1.0      # [s]
+    press_time: float = 0.8         # [s]
+    hold_time: float = 1.0          # [s]
+    pull_time: float = 0.8          # [s]
+    release_time: float = 0.6       # [s]
+    sweep_time: float = 2.0         # [s] for the stroke (descent/ascent take release_time each)
+    return_time: float = 1.0        # [s]
+    tremor_amplitude: float = 1.5e-4  # [m] peak per axis; 0 = no tremor
+    tremor_band: tuple = (8.0, 12.0)  # [Hz]
+    quantisation: float = 0.0       # [m] encoder resolution; 0 = continuous
+    seed: int = 0
+
+    def validate(self) -> 'ScriptConfig':
+        """Raise :class:`ConfigError` on inconsistent values; return self."""
+        for name in ('home', 'target', 'press_axis', 'pull_axis'):
+            vec = np.asarray(getattr(self, name), float)
+            if vec.shape != (3,) or not np.all(np.isfinite(vec)):
+                raise ConfigError(f'{name} must be 3 finite numbers, got {getattr(self, name)!r}')
+        for name in ('press_axis', 'pull_axis'):
+            if np.linalg.norm(np.asarray(getattr(self, name), float)) < 1e-9:
+                raise ConfigError(f'{name} must not be the zero vector')
+        for name in ('approach_height', 'press_depth', 'pull_distance', 'sweep_depth', 'sweep_length',
+                     'tremor_amplitude', 'quantisation'):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and 0.0 <= value <= 0.2):
+                raise ConfigError(f'{name} must be in [0, 0.2] m, got {value}')
+        for name in ('approach_time', 'press_time', 'hold_time', 'pull_time', 'release_time',
+                     'sweep_time', 'return_time'):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and 0.01 <= value <= 600.0):
+                raise ConfigError(f'{name} must be in [0.01, 600] s, got {value}')
+        lo, hi = self.tremor_band
+        if not (0.0 < lo <= hi < 100.0):
+            raise ConfigError(f'tremor_band must be 0 < low <= high < 100 Hz, got {self.tremor_band}')
+        return self
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+def build_script(cfg: ScriptConfig) -> list[Segment]:
+    """The press/hold/pull/release/sweep script as a list of minimum-jerk segments."""
+    cfg.validate()
+    home, target = np.asarray(cfg.home, float), np.asarray(cfg.target, float)
+    down, lateral = _unit(cfg.press_axis), _unit(cfg.pull_axis)
+    above = target - cfg.approach_height * down
+    pressed = target + cfg.press_depth * down
+    pulled = pressed + cfg.pull_distance * lateral
+    released = pulled - (cfg.press_depth + cfg.approach_height) * down
+    sweep_a = target - 0.5 * cfg.sweep_length * lateral
+    sweep_b = target + 0.5 * cfg.sweep_length * lateral
+    segs = [
+        Segment('approach', home, above, cfg.approach_time),
+        Segment('press', above, pressed, cfg.press_time),
+        Segment('hold', pressed, pressed, cfg.hold_time, True),
+        Segment('pull', pressed, pulled, cfg.pull_time, True),
+        Segment('release', pulled, released, cfg.release_time),
+        Segment('sweep', released, sweep_a - cfg.approach_height * down, cfg.release_time),
+        Segment('sweep', sweep_a - cfg.approach_height * down, sweep_a + cfg.sweep_depth * down,
+                cfg.release_time),
+        Segment('sweep', sweep_a + cfg.sweep_depth * down, sweep_b + cfg.sweep_depth * down,
+                cfg.sweep_time),
+        Segment('sweep', sweep_b + cfg.sweep_depth * down, sweep_b - cfg.approach_height * down,
+                cfg.release_time),
+        Segment('return', sweep_b - cfg.approach_height * down, home, cfg.return_time),
+    ]
+    return segs
+
+
+def script_duration(segments: list[Segment]) -> float:
+    """Total duration [s] of a script."""
+    return float(sum(s.duration for s in segments))
+
+
+def tremor(t: np.ndarray, amplitude: float, band=(8.0, 12.0), seed: int = 0,
+           n_components: int = 3) -> np.ndarray:
+    """Physiological tremor [m], (M, 3): per axis a sum of sinusoids with frequencies in ``band``.
+
+    The components' amplitudes add up to ``amplitude``, so the peak never exceeds it.
+    """
+    t = np.atleast_1d(np.asarray(t, float))
+    if amplitude <= 0.0:
+        return np.zeros((t.size, 3))
+    rng = np.random.default_rng(seed)
+    freqs = rng.uniform(band[0], band[1], size=(3, n_components))
+    phases = rng.uniform(0.0, 2 * np.pi, size=(3, n_components))
+    weights = rng.uniform(0.5, 1.0, size=(3, n_components))
+    weights *= amplitude / weights.sum(axis=1, keepdims=True)
+    arg = 2 * np.pi * freqs[None] * t[:, None, None] + phases[None]
+    return np.sum(weights[None] * np.sin(arg), axis=2)
+
+
+def quantise(positions: np.ndarray, resolution: float) -> np.ndarray:
+    """Round positions to the encoder resolution [m] (no-op for resolution 0)."""
+    if resolution <= 0.0:
+        return positions
+    return np.round(positions / resolution) * resolution
+
+
+def sample_script(segments: list[Segment], t) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Noise-free positions (M, 3), button1 (M,) and phase names at times ``t`` [s] from the start.
+
+    Times past the end hold the last point.
+    """
+    t = np.atleast_1d(np.asarray(t, float))
+    starts = np.cumsum([0.0] + [s.duration for s in segments])
+    idx = np.clip(np.searchsorted(starts, t, side='right') - 1, 0, len(segments) - 1)
+    pos = np.empty((t.size, 3))
+    buttons = np.zeros(t.size, bool)
+    for k, seg in enumerate(segments):
+        mask = idx == k
+        if np.any(mask):
+            pos[mask] = min_jerk_derivatives(seg.start, seg.end, seg.duration, t[mask] - starts[k])[0]
+            buttons[mask] = seg.button1
+    return pos, buttons, [segments[i].name for i in idx]
+
+
+def generate_trajectory(cfg: ScriptConfig, rate: float = 1000.0, loops: int = 1):
+    """The whole script sampled at ``rate`` [Hz] with tremor and quantisation.
+
+    Returns:
+        (t (M,) [s], positions (M, 3) [m], button1 (M,) bool, phases list[str]).
+    """
+    if not (np.isfinite(rate) and 1.0 <= rate <= 10000.0):
+        raise ConfigError(f'rate must be in [1, 10000] Hz, got {rate}')
+    segs = build_script(cfg)
+    total = script_duration(segs)
+    n = int(round(total * rate * loops)) + 1
+    t = np.arange(n) / rate
+    pos, buttons, phases = sample_script(segs, np.mod(t, total) if loops > 1 else t)
+    pos = pos + tremor(t, cfg.tremor_amplitude, cfg.tremor_band, cfg.seed)
+    return t, quantise(pos, cfg.quantisation), buttons, phases
+
+
+class ScriptedBackend(Backend):
+    """Plays the script in real time at ``rate`` Hz (wall clock stamps), optionally looping."""
+
+    name = 'scripted'
+
+    def __init__(self, cfg: ScriptConfig, rate: float = 1000.0, loop: bool = True,
+                 clock_ns=time.time_ns) -> None:
+        super().__init__()
+        if not (np.isfinite(rate) and 1.0 <= rate <= 10000.0):
+            raise ConfigError(f'rate must be in [1, 10000] Hz, got {rate}')
+        self.cfg = cfg.validate()
+        self.segments = build_script(cfg)
+        self.duration = script_duration(self.segments)
+        self.rate = rate
+        self.loop = loop
+        self.clock_ns = clock_ns
+        self.source = f'script(seed={cfg.seed}, {self.duration:.2f} s)'
+
+    def run(self, sink: BackendSink) -> None:
+        period = 1.0 / self.rate
+        t0 = time.monotonic()
+        k = 0
+        loops = 0
+        while not self.stopping:
+            t = k * period
+            if not self.loop and t > self.duration + 1e-9:
+                break
+            ts = np.mod(t, self.duration) if self.loop else t
+            pos, buttons, phases = sample_script(self.segments, ts)
+            p = pos[0] + tremor(t, self.cfg.tremor_amplitude, self.cfg.tremor_band, self.cfg.seed)[0]
+            p = quantise(p, self.cfg.quantisation)
+            sink.on_sample(Sample(self.clock_ns(), p, buttons=(bool(buttons[0]), False),
+                                  phase=phases[0]))
+            loops = int(t // self.duration)
+            k += 1
+            # Absolute deadlines: no drift, and a late tick is not followed by a burst.
+            delay = t0 + k * period - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            elif delay < -0.1:
+                t0 = time.monotonic() - k * period
+        if self.stopping:
+            return  # shut down from outside: no summary
+        sink.on_finished(f'script finished: {k} poses, {loops + 1} pass(es) of {self.duration:.2f} s',
+                         0)

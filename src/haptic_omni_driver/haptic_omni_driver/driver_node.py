@@ -1,0 +1,375 @@
+"""omni_driver: the ROS 2 node that speaks for the haptic device.
+
+Publishes ``omni/pose`` (geometry_msgs/PoseStamped, stylus tip in ``omni_base``, metres) and
+``omni/state`` (tissue_msgs/DeviceState, at ``state_rate`` and on every change), subscribes
+``omni/force_feedback`` (geometry_msgs/WrenchStamped) and passes every force command through the
+safety chain (:mod:`haptic_omni_driver.safety`) before it reaches the device. Backends (parameter
+``backend``): ``openhaptics`` (libHD), ``replay`` (rosbag2 MCAP bag), ``scripted`` (synthetic motion).
+
+Exit codes: 0 normal (Ctrl-C, or end of replay/script with exit_on_end), 1 bad input or device
+failure (missing/corrupt bag, libHD absent, ...), 2 invalid parameters, 3 lockstep reply timeout
+with lockstep_timeout_action abort.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped, WrenchStamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from tissue_msgs.msg import DeviceState
+
+from .backends.base import Backend, Sample
+from .errors import ConfigError, DriverError
+from .params import DRIVER_PARAMS, check_choice, declare_all
+from .safety import ForceSafety, SafetyConfig
+
+EXIT_OK, EXIT_INPUT, EXIT_PARAMS = 0, 1, 2
+SAFETY_PARAMS = ('force_limit', 'ramp_time', 'watchdog_timeout', 'max_command_lag',
+                 'accept_empty_frame')
+
+
+def make_backend(p: dict) -> Backend:
+    """Construct the backend selected by the parameters (raises DriverError on bad input)."""
+    kind = p['backend']
+    if kind == 'replay':
+        from .backends.replay import ReplayBackend
+
+        return ReplayBackend(p['bag'], p['pose_topic_in_bag'], p['state_topic_in_bag'],
+                             p['replay_mode'], p['rate'], p['loop'], p['lockstep_timeout'],
+                             p['lockstep_timeout_action'], p['lockstep_max_resends'])
+    if kind == 'scripted':
+        from .backends.scripted import ScriptConfig, ScriptedBackend
+
+        names = ('home', 'target', 'press_axis', 'pull_axis', 'approach_height', 'press_depth',
+                 'pull_distance', 'sweep_depth', 'sweep_length', 'approach_time', 'press_time',
+                 'hold_time', 'pull_time', 'release_time', 'sweep_time', 'return_time',
+                 'tremor_amplitude', 'quantisation', 'seed')
+        cfg = ScriptConfig(**{n: (list(p[n]) if isinstance(p[n], (list, tuple, np.ndarray))
+                                  else p[n]) for n in names})
+        return ScriptedBackend(cfg, p['publish_rate'], p['loop'])
+    if kind == 'openhaptics':
+        from .backends.openhaptics import OpenHapticsBackend
+
+        return OpenHapticsBackend(p['library'], p['device_name'], p['require_calibration'])
+    raise ConfigError(f'unknown backend {kind!r}')
+
+
+class OmniDriver(Node):
+    """Haptic device node: backend -> omni/pose, omni/force_feedback -> safety -> device."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('omni_driver', **kwargs)
+        self.p = declare_all(self, DRIVER_PARAMS)
+        p = self.p
+        self.safety = ForceSafety(self._safety_config(p))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.finished = threading.Event()
+        self.exit_code = EXIT_OK
+        self._lockstep = p['backend'] == 'replay' and p['replay_mode'] == 'lockstep'
+
+        # Backend first: a bad bag or a missing libHD fails before anything is advertised.
+        self.backend = make_backend(p)
+        if self.backend.name == 'openhaptics':
+            dev_max = getattr(self.backend, 'max_force', None)
+            if dev_max and p['force_limit'] > dev_max:
+                self.get_logger().warn(f'force_limit {p["force_limit"]} N above the device '
+                                       f'nominal max {dev_max} N: using {dev_max} N')
+                cfg = self._safety_config(p)
+                cfg.force_limit = dev_max
+                self.safety.set_config(cfg)
+
+        if self._lockstep:
+            qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                             history=HistoryPolicy.KEEP_LAST)
+        else:
+            qos = QoSProfile(depth=p['qos_depth'], history=HistoryPolicy.KEEP_LAST,
+                             reliability=ReliabilityPolicy.RELIABLE if p['reliable']
+                             else ReliabilityPolicy.BEST_EFFORT)
+        self.pose_pub = self.create_publisher(PoseStamped, 'omni/pose', qos)
+        self.state_pub = self.create_publisher(DeviceState, 'omni/state', 10)
+        self.force_sub = self.create_subscription(WrenchStamped, 'omni/force_feedback',
+                                                  self._on_force, qos)
+        self.diag_pub = None
+        if p['diagnostics_rate'] > 0:
+            self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+            self.create_timer(1.0 / p['diagnostics_rate'], self._publish_diagnostics)
+        self.create_timer(1.0 / p['state_rate'], self._publish_state)
+
+        self._state_lock = threading.Lock()
+        self._buttons = (False, False)
+        self._last_flags = None
+        self._reply_cond = threading.Condition()
+        self._replies: set[int] = set()
+        self._pose_msg = PoseStamped()
+        self._pose_msg.header.frame_id = p['frame_id']
+        self.n_poses = 0
+        self.n_commands = 0
+        self._rejected_logged = 0
+        self._servo_thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._t_start = time.monotonic()
+
+    # -- parameters ----------------------------------------------------------------------------
+    @staticmethod
+    def _safety_config(p: dict) -> SafetyConfig:
+        return SafetyConfig(p['force_limit'], p['ramp_time'], p['watchdog_timeout'],
+                            p['max_command_lag'], p['frame_id'], p['accept_empty_frame'])
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        new = dict(self.p)
+        for param in params:
+            if param.name in DRIVER_PARAMS:
+                err = check_choice(DRIVER_PARAMS, param.name, param.value)
+                if err:
+                    return SetParametersResult(successful=False, reason=err)
+                new[param.name] = param.value
+        if any(param.name in SAFETY_PARAMS for param in params):
+            try:
+                self.safety.set_config(self._safety_config(new))
+            except ConfigError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+            self.get_logger().info('safety parameters updated: force_limit %.3f N, ramp_time %.3f '
+                                   's, watchdog_timeout %.3f s' % (new['force_limit'],
+                                                                   new['ramp_time'],
+                                                                   new['watchdog_timeout']))
+        self.p = new
+        return SetParametersResult(successful=True)
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the backend (and the virtual servo loop for backends without a device)."""
+        b = self.backend
+        self.get_logger().info(
+            f'ready: backend {b.name}, source {b.source}, force_limit '
+            f'{self.safety.config.force_limit:g} N, watchdog {self.safety.config.watchdog_timeout:g}'
+            f' s, pose QoS {"reliable" if self._lockstep or self.p["reliable"] else "best effort"}'
+            + (', lockstep' if self._lockstep else ''))
+        if not b.has_device:
+            self._servo_thread = threading.Thread(target=self._virtual_servo, daemon=True,
+                                                  name='virtual_servo')
+            self._servo_thread.start()
+        b.start(self)
+
+    def shutdown(self) -> None:
+        """Stop the backend and the servo loop (force zeroed on the device)."""
+        self._stop.set()
+        with self._reply_cond:
+            self._reply_cond.notify_all()
+        self.backend.stop()
+        if self._servo_thread is not None:
+            self._servo_thread.join(1.0)
+
+    def _virtual_servo(self) -> None:
+        period = 1.0 / self.p['servo_rate']
+        t0, k = time.monotonic(), 0
+        while not self._stop.is_set():
+            self.servo()
+            k += 1
+            delay = t0 + k * period - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            elif delay < -0.1:
+                t0, k = time.monotonic(), 0
+
+    # -- BackendSink ---------------------------------------------------------------------------
+    def on_sample(self, sample: Sample) -> None:
+        """Publish one pose (called from the backend / servo thread)."""
+        if sample.raw is not None:
+            self.pose_pub.publish(sample.raw)
+        else:
+            msg = self._pose_msg
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(sample.stamp_ns),
+                                                                    1_000_000_000)
+            pos, q = msg.pose.position, msg.pose.orientation
+            pos.x, pos.y, pos.z = (float(v) for v in sample.position)
+            q.x, q.y, q.z, q.w = (float(v) for v in sample.orientation)
+            self.pose_pub.publish(msg)
+        self.n_poses += 1
+        self.safety.note_pose(sample.stamp_ns * 1e-9)
+        if sample.buttons is not None and sample.buttons != self._buttons:
+            self._buttons = sample.buttons
+            self._publish_state()
+
+    def servo(self) -> np.ndarray:
+        """One safety tick: the force the device renders now; state published on flag changes."""
+        now = time.monotonic()
+        force = self.safety.output(now)
+        status = self.safety.status(now)
+        flags = status.flags()
+        if flags != self._last_flags:
+            old = self._last_flags
+            self._last_flags = flags
+            if old is not None:
+                self._log_flag_change(old, flags, status)
+            self._publish_state()
+        return force
+
+    def _log_flag_change(self, old, new, status) -> None:
+        log = self.get_logger()
+        if new[2] and not old[2]:
+            log.warn('watchdog: no valid force command for %.1f ms (timeout %.1f ms): force zeroed'
+                     % (status.command_age * 1e3, self.safety.config.watchdog_timeout * 1e3))
+        if old[2] and not new[2]:
+            log.info('watchdog: force commands resumed, ramping up over %.3f s'
+                     % self.safety.config.ramp_time)
+        if new[0] and not old[0] and not old[2]:
+            log.info('force output enabled (first valid command), ramping up over %.3f s'
+                     % self.safety.config.ramp_time)
+        if new[1] and not old[1]:
+            log.warn('force command above %.3f N: clamped' % self.safety.config.force_limit)
+
+    def wait_for_reply(self, stamp_ns: int, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._reply_cond:
+            while stamp_ns not in self._replies:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._stop.is_set():
+                    return False
+                self._reply_cond.wait(remaining)
+            self._replies.discard(stamp_ns)
+            return True
+
+    def wait_for_subscribers(self) -> bool:
+        need = self.p['wait_for_subscribers']
+        if self._lockstep:
+            need = max(need, 1)
+        logged = False
+        while not self._stop.is_set():
+            ok = self.pose_pub.get_subscription_count() >= need
+            if ok and self._lockstep:
+                ok = self.force_sub.get_publisher_count() >= 1
+            if ok:
+                return True
+            if not logged:
+                self.get_logger().info(
+                    f'waiting for {need} subscriber(s) on {self.pose_pub.topic_name}'
+                    + (f' and a publisher on {self.force_sub.topic_name}' if self._lockstep else ''))
+                logged = True
+            self._stop.wait(0.01)
+        return False
+
+    def on_finished(self, summary: str, exit_code: int) -> None:
+        if exit_code == 0:
+            self.get_logger().info(summary)
+        else:
+            self.get_logger().error(summary)
+        if exit_code != 0 or self.p['exit_on_end']:
+            self.exit_code = exit_code
+            self.finished.set()
+
+    def log(self, level: str, text: str) -> None:
+        getattr(self.get_logger(), {'warn': 'warn', 'error': 'error', 'info': 'info'}.get(
+            level, 'debug'))(text)
+
+    # -- ROS callbacks -------------------------------------------------------------------------
+    def _on_force(self, msg: WrenchStamped) -> None:
+        now = time.monotonic()
+        self.n_commands += 1
+        f = msg.wrench.force
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        result = self.safety.command((f.x, f.y, f.z), msg.header.frame_id, now, stamp_ns * 1e-9)
+        if not result.accepted:
+            self._rejected_logged += 1
+            reason = {'nan': 'non-finite component',
+                      'frame': f'frame {msg.header.frame_id!r} is not {self.p["frame_id"]!r}',
+                      'stale': 'stale (answers an old pose)'}[result.reason]
+            self.get_logger().warn(f'rejected force command ({reason}): ({f.x}, {f.y}, {f.z})',
+                                   throttle_duration_sec=1.0)
+        if self._lockstep:
+            with self._reply_cond:
+                if len(self._replies) > 10000:
+                    self._replies.clear()
+                self._replies.add(stamp_ns)
+                self._reply_cond.notify_all()
+
+    def _publish_state(self) -> None:
+        now = time.monotonic()
+        status = self.safety.status(now)
+        msg = DeviceState()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.p['frame_id']
+        msg.button1, msg.button2 = (bool(b) for b in self._buttons)
+        msg.force_enabled = bool(status.force_enabled)
+        msg.force_clamped = bool(status.force_clamped)
+        msg.watchdog_tripped = bool(status.watchdog_tripped)
+        msg.calibrated = bool(self.backend.calibrated)
+        fx, fy, fz = (float(v) for v in status.commanded_force)
+        msg.commanded_force.x, msg.commanded_force.y, msg.commanded_force.z = fx, fy, fz
+        msg.force_limit = float(self.safety.config.force_limit)
+        msg.command_age = float(status.command_age)
+        msg.rejected_commands = int(status.rejected_commands)
+        msg.backend = self.backend.name
+        msg.source = str(self.backend.source)
+        with self._state_lock:
+            self.state_pub.publish(msg)
+
+    def _publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        status = self.safety.status(now)
+        elapsed = max(now - self._t_start, 1e-9)
+        d = DiagnosticStatus(name=f'{self.get_name()}: haptic device', hardware_id=str(
+            self.backend.source))
+        if status.watchdog_tripped:
+            d.level, d.message = DiagnosticStatus.WARN, 'watchdog tripped: force zeroed'
+        elif not self.backend.calibrated:
+            d.level, d.message = DiagnosticStatus.WARN, 'device not calibrated'
+        else:
+            d.level, d.message = DiagnosticStatus.OK, 'ok'
+        d.values = [KeyValue(key=k, value=str(v)) for k, v in (
+            ('backend', self.backend.name), ('poses published', self.n_poses),
+            ('mean pose rate [Hz]', f'{self.n_poses / elapsed:.1f}'),
+            ('force commands', self.n_commands), ('rejected commands', status.rejected_commands),
+            ('watchdog trips', self.safety.trip_count), ('force enabled', status.force_enabled),
+            ('commanded force [N]', np.round(status.commanded_force, 4).tolist()))]
+        arr = DiagnosticArray(status=[d])
+        arr.header.stamp = self.get_clock().now().to_msg()
+        self.diag_pub.publish(arr)
+
+
+def main(args=None) -> int:
+    """Entry point of ``omni_driver``; returns the exit code."""
+    rclpy.init(args=args)
+    node = None
+    code = EXIT_OK
+    try:
+        try:
+            node = OmniDriver()
+        except ConfigError as exc:
+            rclpy.logging.get_logger('omni_driver').fatal(f'error: {exc}')
+            return EXIT_PARAMS
+        except DriverError as exc:
+            rclpy.logging.get_logger('omni_driver').fatal(f'error: {exc}')
+            return EXIT_INPUT
+        from rclpy.experimental import EventsExecutor
+
+        executor = EventsExecutor()
+        executor.add_node(node)
+        try:
+            node.start()
+        except DriverError as exc:
+            node.get_logger().fatal(f'error: {exc}')
+            return EXIT_INPUT
+        while rclpy.ok() and not node.finished.is_set():
+            executor.spin_once(timeout_sec=0.1)
+        code = node.exit_code
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.shutdown()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())

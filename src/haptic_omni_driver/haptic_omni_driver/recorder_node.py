@@ -1,0 +1,152 @@
+"""omni_record: record omni/pose, omni/force_feedback and omni/state into a rosbag2 MCAP bag.
+
+Messages are recorded as the CDR bytes received (raw subscriptions), with their receive time as log
+time, the offered QoS of the publishers and the RIHS01 type hashes, as ``ros2 bag record`` does;
+the replay backend plays them back byte-identically. The bag is finalised on Ctrl-C (SIGINT), at
+``duration`` or after ``max_messages``.
+
+    ros2 run haptic_omni_driver omni_record --ros-args -p output:=session1
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from . import bagio
+from .errors import ConfigError, DriverError
+from .params import RECORDER_PARAMS, declare_all
+
+#: message types of the topics this recorder knows (by last name component)
+KNOWN_TYPES = {
+    'pose': ('geometry_msgs.msg', 'PoseStamped', bagio.POSE_TYPE),
+    'force_feedback': ('geometry_msgs.msg', 'WrenchStamped', bagio.WRENCH_TYPE),
+    'state': ('tissue_msgs.msg', 'DeviceState', bagio.STATE_TYPE),
+}
+
+
+def _qos_to_rosbags(info_qos):
+    """rosbags Qos of an rclpy QoSProfile (what the publisher offers)."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                    QosTime)
+
+    def t(d):
+        ns = d.nanoseconds
+        return QosTime(ns // 1_000_000_000, ns % 1_000_000_000)
+
+    return Qos(QosHistory(int(info_qos.history)), int(info_qos.depth),
+               QosReliability(int(info_qos.reliability)), QosDurability(int(info_qos.durability)),
+               t(info_qos.deadline), t(info_qos.lifespan), QosLiveliness(int(info_qos.liveliness)),
+               t(info_qos.liveliness_lease_duration),
+               bool(info_qos.avoid_ros_namespace_conventions))
+
+
+class OmniRecorder(Node):
+    """Raw subscriptions -> :class:`bagio.BagWriter`."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('omni_record', **kwargs)
+        self.p = declare_all(self, RECORDER_PARAMS)
+        p = self.p
+        out = p['output'] or time.strftime('omni_%Y%m%d_%H%M%S')
+        self.path = Path(out).expanduser().resolve()
+        self.finished = threading.Event()
+        self._lock = threading.Lock()
+        self._t_first: float | None = None
+        self._t_created = time.monotonic()
+        self.writer = bagio.BagWriter(self.path, p['metadata_version'])  # BagError if it exists
+        rel = ReliabilityPolicy.RELIABLE if p['reliable'] else ReliabilityPolicy.BEST_EFFORT
+        self._subs = []
+        for topic in p['topics']:
+            key = topic.rstrip('/').rsplit('/', 1)[-1]
+            if key not in KNOWN_TYPES:
+                raise ConfigError(f'cannot record {topic!r}: known topics end in '
+                                  f'{", ".join(KNOWN_TYPES)}')
+            module, cls, msgtype = KNOWN_TYPES[key]
+            msg_cls = getattr(__import__(module, fromlist=[cls]), cls)
+            reliability = ReliabilityPolicy.RELIABLE if key == 'state' else rel
+            qos = QoSProfile(depth=p['qos_depth'], history=HistoryPolicy.KEEP_LAST,
+                             reliability=reliability, durability=DurabilityPolicy.VOLATILE)
+            sub = self.create_subscription(msg_cls, topic, self._callback(len(self._subs), msgtype),
+                                           qos, raw=True)
+            self._subs.append(sub)
+        self.get_logger().info(f'recording {", ".join(s.topic_name for s in self._subs)} to '
+                               f'{self.path}')
+        if p['duration'] > 0:
+            self.create_timer(0.05, self._check_duration)
+
+    def _callback(self, index: int, msgtype: str):
+        def record(data: bytes) -> None:
+            topic = self._subs[index].topic_name
+            stamp = self.get_clock().now().nanoseconds
+            with self._lock:
+                if self.finished.is_set():
+                    return
+                if topic not in self.writer.counts:
+                    self.writer.add_topic(topic, msgtype, self._offered_qos(topic))
+                self.writer.write(topic, msgtype, stamp, data)
+                if self._t_first is None:
+                    self._t_first = time.monotonic()
+                if 0 < self.p['max_messages'] <= self.writer.count:
+                    self.finished.set()
+        return record
+
+    def _offered_qos(self, topic: str) -> list:
+        """The publishers' offered QoS profiles, as rosbag2 stores them."""
+        try:
+            infos = self.get_publishers_info_by_topic(topic)
+            profiles = [_qos_to_rosbags(i.qos_profile) for i in infos]
+        except Exception:  # noqa: BLE001 - QoS metadata is informative only
+            profiles = []
+        return profiles or [bagio.qos_profile()]
+
+    def _check_duration(self) -> None:
+        start = self._t_first if self.p['wait_for_topics'] else self._t_created
+        if start is not None and time.monotonic() - start >= self.p['duration']:
+            self.finished.set()
+
+    def close(self) -> None:
+        """Finalise the bag (metadata.yaml + MCAP summary)."""
+        with self._lock:
+            self.finished.set()
+            self.writer.close()
+        counts = ', '.join(f'{t}: {n}' for t, n in self.writer.counts.items()) or 'nothing'
+        self.get_logger().info(f'bag closed: {self.writer.count} messages ({counts}) in {self.path}')
+
+
+def main(args=None) -> int:
+    """Entry point of ``omni_record``; returns the exit code (1 on bad output path/topics)."""
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        try:
+            node = OmniRecorder()
+        except DriverError as exc:
+            rclpy.logging.get_logger('omni_record').fatal(f'error: {exc}')
+            return 2 if isinstance(exc, ConfigError) else 1
+        from rclpy.experimental import EventsExecutor
+
+        executor = EventsExecutor()
+        executor.add_node(node)
+        while rclpy.ok() and not node.finished.is_set():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())
