@@ -1,0 +1,93 @@
+"""Pure tests of the scripted motion generator (minimum jerk, script, tremor, quantisation)."""
+
+import numpy as np
+import pytest
+
+from haptic_omni_driver.backends.scripted import (ScriptConfig, build_script, generate_trajectory,
+                                                  min_jerk, min_jerk_derivatives, quantise,
+                                                  sample_script, script_duration, tremor)
+from haptic_omni_driver.errors import ConfigError
+
+
+def test_min_jerk_boundary_conditions():
+    p0, p1, T = np.array([0.0, 0.05, 0.0]), np.array([0.01, -0.002, 0.003]), 0.8
+    for t, pos_exp in ((0.0, p0), (T, p1)):
+        pos, vel, acc = min_jerk_derivatives(p0, p1, T, t)
+        assert pos == pytest.approx(p0 if t == 0 else p1, abs=1e-15)
+        assert vel == pytest.approx(np.zeros(3), abs=1e-15)
+        assert acc == pytest.approx(np.zeros(3), abs=1e-12)
+    # midpoint: half way, peak speed 1.875 * distance / T (the known minimum-jerk value)
+    pos, vel, acc = min_jerk_derivatives(p0, p1, T, T / 2)
+    assert pos == pytest.approx((p0 + p1) / 2)
+    assert np.linalg.norm(vel) == pytest.approx(1.875 * np.linalg.norm(p1 - p0) / T)
+    assert acc == pytest.approx(np.zeros(3), abs=1e-12)
+
+
+def test_min_jerk_derivatives_match_finite_differences():
+    p0, p1, T = np.zeros(3), np.array([0.02, 0.0, -0.01]), 1.3
+    t = np.linspace(0.05, 1.25, 25)
+    h = 1e-6
+    pos_p = min_jerk_derivatives(p0, p1, T, t + h)[0]
+    pos_m = min_jerk_derivatives(p0, p1, T, t - h)[0]
+    _, vel, acc = min_jerk_derivatives(p0, p1, T, t)
+    assert vel == pytest.approx((pos_p - pos_m) / (2 * h), rel=1e-6, abs=1e-9)
+    vel_p = min_jerk_derivatives(p0, p1, T, t + h)[1]
+    vel_m = min_jerk_derivatives(p0, p1, T, t - h)[1]
+    assert acc == pytest.approx((vel_p - vel_m) / (2 * h), rel=1e-5, abs=1e-7)
+    assert min_jerk(0.0) == 0.0 and min_jerk(1.0) == 1.0 and min_jerk(0.5) == pytest.approx(0.5)
+
+
+def test_script_reaches_press_depth_and_returns_home_continuously():
+    cfg = ScriptConfig(tremor_amplitude=0.0, press_depth=0.008, target=[0.01, 0.0, 0.02])
+    segs = build_script(cfg)
+    assert [s.name for s in segs][:5] == ['approach', 'press', 'hold', 'pull', 'release']
+    # segments chain: each starts where the previous ended
+    for a, b in zip(segs, segs[1:]):
+        assert np.allclose(a.end, b.start)
+    t, pos, buttons, phases = generate_trajectory(cfg, rate=1000.0)
+    assert t[-1] == pytest.approx(script_duration(segs))
+    assert pos[0] == pytest.approx(cfg.home) and pos[-1] == pytest.approx(cfg.home)
+    assert pos[:, 1].min() == pytest.approx(-0.008, abs=1e-9)  # deepest point: press depth
+    hold = [i for i, ph in enumerate(phases) if ph == 'hold']
+    assert np.allclose(pos[hold], [0.01, -0.008, 0.02]) and buttons[hold].all()
+    # no jumps: the speed never exceeds the minimum-jerk peak 1.875 d/T of the fastest segment
+    peak = max(1.875 * np.linalg.norm(s.end - s.start) / s.duration for s in segs)
+    assert np.max(np.linalg.norm(np.diff(pos, axis=0), axis=1)) <= peak * 1e-3 * (1 + 1e-9)
+
+
+def test_tremor_is_bounded_in_band_and_deterministic():
+    t = np.arange(0, 4.0, 0.001)
+    a = tremor(t, 1.5e-4, (8.0, 12.0), seed=3)
+    assert np.abs(a).max() <= 1.5e-4 + 1e-15
+    assert np.array_equal(a, tremor(t, 1.5e-4, (8.0, 12.0), seed=3))
+    assert not np.array_equal(a, tremor(t, 1.5e-4, (8.0, 12.0), seed=4))
+    spec = np.abs(np.fft.rfft(a[:, 0]))
+    freqs = np.fft.rfftfreq(t.size, 0.001)
+    assert 8.0 <= freqs[np.argmax(spec)] <= 12.0
+
+
+def test_quantisation_rounds_to_resolution():
+    q = quantise(np.array([[1.23e-4, -0.9e-4, 0.0]]), 5.5e-5)
+    assert q / 5.5e-5 == pytest.approx(np.round(q / 5.5e-5))
+    assert q[0] == pytest.approx([1.1e-4, -1.1e-4, 0.0])
+
+
+def test_generated_trajectory_is_deterministic_with_seed():
+    cfg = ScriptConfig(seed=11)
+    a = generate_trajectory(cfg, 500.0)[1]
+    b = generate_trajectory(ScriptConfig(seed=11), 500.0)[1]
+    assert np.array_equal(a, b)
+
+
+def test_sample_script_holds_last_point_after_end():
+    segs = build_script(ScriptConfig(tremor_amplitude=0.0))
+    pos, _, _ = sample_script(segs, [script_duration(segs) + 5.0])
+    assert pos[0] == pytest.approx(segs[-1].end)
+
+
+@pytest.mark.parametrize('kw', [dict(press_depth=-0.001), dict(hold_time=0.0),
+                                dict(press_axis=[0, 0, 0]), dict(target=[0, 0]),
+                                dict(tremor_band=(12.0, 8.0))])
+def test_invalid_script_config_is_rejected(kw):
+    with pytest.raises(ConfigError):
+        build_script(ScriptConfig(**kw))
