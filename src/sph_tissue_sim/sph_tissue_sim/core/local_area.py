@@ -1,0 +1,219 @@
+"""Dynamic local interaction area (paper sec. 4, eqs. 17-21) with viscoelastic release.
+
+Around the contact particle ``c`` (reference distance ``d``):
+
+    d < Dr = k1 h                                 -> interaction area, full SPH      (region 1)
+    Tr_(i-1) <= d < Tr_i,  Tr_i = Dr + (i/2) h     -> transmission layer i            (region 1 + i)
+                                                     a = w(i) a_c, w(i) = (N+1-i)/(N+1)
+    beyond                                        -> still                            (region 0)
+
+``k1 = clamp(k1_gain * |f_ext|, k1_min, k1_max)`` with ``f_ext`` the previous frame's contact force
+[N] (eq. 18 has k1 = f_ext / 2). The area follows the tool every frame. Particles that leave the
+area (or all of them once contact ends) stay *active* and are solved with full SPH until their
+displacement and speed are below tolerances, so the tissue recovers instead of freezing dented.
+Everything here costs O(area + active): the area comes from the reference cell grid.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .neighbours import query_ball
+
+
+@njit(cache=True)
+def local_prepare(X, x, fixed, offsets, indices,
+                  origin, cell, dims, cell_start, cell_particles,
+                  in_active, active_list, n_active, region, in_area, stamp, stamp_val,
+                  contact_idx, Dr, layer_dr, n_layers,
+                  cand_centre, cand_radius,
+                  sph_list, layer_list, layer_w, stress_list, cand_list, tmp, layer_counts):
+    """Build the index sets of one local frame.
+
+    Returns ``(n_active, n_sph, n_lp, n_stress, n_cand, n_interaction, n_relaxing)``;
+    ``layer_counts[i-1]`` receives the particle count of layer i.
+    """
+    for t in range(n_active):
+        region[active_list[t]] = 0
+    for l in range(layer_counts.shape[0]):
+        layer_counts[l] = 0
+    # 1. the interaction area and transmission layers around the contact particle
+    if contact_idx >= 0:
+        radius = Dr + n_layers * layer_dr
+        nq = query_ball(X[contact_idx], radius, X, origin, cell, dims, cell_start, cell_particles, tmp)
+        nq = min(nq, tmp.shape[0])
+        for q in range(nq):
+            j = tmp[q]
+            if fixed[j]:
+                continue
+            d0 = X[j, 0] - X[contact_idx, 0]
+            d1 = X[j, 1] - X[contact_idx, 1]
+            d2 = X[j, 2] - X[contact_idx, 2]
+            d = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if d < Dr:
+                reg = 1
+            else:
+                layer = 1 + int((d - Dr) / layer_dr)
+                if layer > n_layers:
+                    continue
+                reg = 1 + layer
+            region[j] = reg
+            in_area[j] = 1
+            if in_active[j] == 0:
+                in_active[j] = 1
+                active_list[n_active] = j
+                n_active += 1
+    # 2. particles the tool may touch this frame: solved fully; fixed ones only feel the contact
+    n_cand = 0
+    nq = query_ball(cand_centre, cand_radius, X, origin, cell, dims, cell_start, cell_particles, tmp)
+    nq = min(nq, tmp.shape[0])
+    for q in range(nq):
+        j = tmp[q]
+        if fixed[j]:
+            cand_list[n_cand] = j
+            n_cand += 1
+            continue
+        region[j] = 1
+        in_area[j] = 1
+        if in_active[j] == 0:
+            in_active[j] = 1
+            active_list[n_active] = j
+            n_active += 1
+    # 3. split the active set: full SPH (interaction + relaxing) and kinematic layers
+    n_sph = 0
+    n_lp = 0
+    n_interaction = 0
+    n_relaxing = 0
+    for t in range(n_active):
+        j = active_list[t]
+        cand_list[n_cand] = j
+        n_cand += 1
+        reg = region[j]
+        if reg >= 2:
+            layer_list[n_lp] = j
+            layer_w[n_lp] = (n_layers + 2.0 - reg) / (n_layers + 1.0)
+            layer_counts[reg - 2] += 1
+            n_lp += 1
+        else:
+            sph_list[n_sph] = j
+            n_sph += 1
+            if in_area[j] == 1:
+                n_interaction += 1
+            else:
+                n_relaxing += 1
+                region[j] = 1
+    # 4. stress set: the fully solved particles and all their reference neighbours
+    n_stress = 0
+    for t in range(n_sph):
+        i = sph_list[t]
+        if stamp[i] != stamp_val:
+            stamp[i] = stamp_val
+            stress_list[n_stress] = i
+            n_stress += 1
+        for k in range(offsets[i], offsets[i + 1]):
+            j = indices[k]
+            if stamp[j] != stamp_val:
+                stamp[j] = stamp_val
+                stress_list[n_stress] = j
+                n_stress += 1
+    return n_active, n_sph, n_lp, n_stress, n_cand, n_interaction, n_relaxing
+
+
+@njit(cache=True)
+def local_release(X, x, v, in_active, active_list, n_active, region, in_area, disp_tol, vel_tol):
+    """Drop relaxed particles outside the area from the active set; returns the new count.
+
+    A released particle stops (v = 0) where it is; its displacement is below ``disp_tol``.
+    """
+    d2tol = disp_tol * disp_tol
+    v2tol = vel_tol * vel_tol
+    m = 0
+    for t in range(n_active):
+        j = active_list[t]
+        keep = True
+        if in_area[j] == 0:
+            d0 = x[j, 0] - X[j, 0]; d1 = x[j, 1] - X[j, 1]; d2 = x[j, 2] - X[j, 2]
+            s2 = v[j, 0] * v[j, 0] + v[j, 1] * v[j, 1] + v[j, 2] * v[j, 2]
+            if d0 * d0 + d1 * d1 + d2 * d2 < d2tol and s2 < v2tol:
+                keep = False
+        in_area[j] = 0
+        if keep:
+            active_list[m] = j
+            m += 1
+        else:
+            in_active[j] = 0
+            region[j] = 0
+            v[j, 0] = 0.0; v[j, 1] = 0.0; v[j, 2] = 0.0
+    return m
+
+
+@njit(cache=True)
+def active_stats(x, X, v, idx, n, mass):
+    """Max displacement [m] and kinetic energy [J] over ``idx[:n]``."""
+    md2 = 0.0
+    ke = 0.0
+    for t in range(n):
+        i = idx[t]
+        d0 = x[i, 0] - X[i, 0]; d1 = x[i, 1] - X[i, 1]; d2 = x[i, 2] - X[i, 2]
+        dd = d0 * d0 + d1 * d1 + d2 * d2
+        if dd > md2:
+            md2 = dd
+        ke += 0.5 * mass * (v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2])
+    return math.sqrt(md2), ke
+
+
+@njit(cache=True)
+def detect_local(X, x, active_list, n_active, origin, cell, dims, cell_start, cell_particles,
+                 tool, reach, margin, tmp):
+    """Deepest-overlap particle at ``tool`` in local mode, O(active + cells near the tool), or -1.
+
+    Inactive particles sit within ``margin`` of their reference position, so the reference grid
+    finds them; active ones (possibly far from home) are checked directly.
+    """
+    best = -1
+    best_d = 0.0
+    nq = query_ball(tool, reach + margin, X, origin, cell, dims, cell_start, cell_particles, tmp)
+    nq = min(nq, tmp.shape[0])
+    for q in range(nq + n_active):
+        j = tmp[q] if q < nq else active_list[q - nq]
+        d0 = x[j, 0] - tool[0]
+        d1 = x[j, 1] - tool[1]
+        d2 = x[j, 2] - tool[2]
+        overlap = reach - math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if overlap > best_d:
+            best_d = overlap
+            best = j
+    return best
+
+
+@njit(cache=True)
+def save_state(x, v, lists_a, na, lists_b, nb, buf_x, buf_v):
+    """Copy positions/velocities of ``lists_a[:na]`` and ``lists_b[:nb]`` into buffers."""
+    for t in range(na):
+        i = lists_a[t]
+        for a in range(3):
+            buf_x[t, a] = x[i, a]
+            buf_v[t, a] = v[i, a]
+    for t in range(nb):
+        i = lists_b[t]
+        for a in range(3):
+            buf_x[na + t, a] = x[i, a]
+            buf_v[na + t, a] = v[i, a]
+
+
+@njit(cache=True)
+def restore_state(x, v, lists_a, na, lists_b, nb, buf_x, buf_v):
+    """Inverse of :func:`save_state`."""
+    for t in range(na):
+        i = lists_a[t]
+        for a in range(3):
+            x[i, a] = buf_x[t, a]
+            v[i, a] = buf_v[t, a]
+    for t in range(nb):
+        i = lists_b[t]
+        for a in range(3):
+            x[i, a] = buf_x[na + t, a]
+            v[i, a] = buf_v[na + t, a]

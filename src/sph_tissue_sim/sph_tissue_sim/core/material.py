@@ -1,0 +1,167 @@
+"""Kelvin-Voigt viscoelastic material (paper eqs. 1-3, generalised to E, nu).
+
+Deviatoric and volumetric parts each have a spring and a dashpot in parallel:
+
+    S_ab    = 2 G e_ab + 2 eta_shear de_ab/dt            (deviatoric stress)
+    sigma_kk = 3 K eps_kk + 3 eta_bulk deps_kk/dt         (trace of the stress)
+
+The paper writes ``S = E e + eta de/dt`` and ``sigma_kk = E eps_kk + eta deps_kk/dt``, which is the
+special case ``2G = 3K = E`` (nu = 0), ``2 eta_shear = 3 eta_bulk = eta``: :meth:`Material.paper_preset`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Material:
+    """Isotropic Kelvin-Voigt solid.
+
+    Attributes:
+        E: Young's modulus [Pa] (> 0).
+        nu: Poisson's ratio [-], 0 <= nu < 0.5 (explicit time steps shrink as nu -> 0.5).
+        eta_shear: shear viscosity [Pa s] (>= 0), the dashpot of the deviatoric part.
+        eta_bulk: volumetric viscosity [Pa s] (>= 0), the dashpot of the trace part.
+        rho: density [kg/m^3] (> 0).
+        name: label for logs.
+    """
+
+    E: float
+    nu: float
+    eta_shear: float
+    eta_bulk: float
+    rho: float
+    name: str = 'custom'
+
+    def __post_init__(self) -> None:
+        for key in ('E', 'nu', 'eta_shear', 'eta_bulk', 'rho'):
+            value = getattr(self, key)
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ConfigError(f'material {self.name}: {key} must be a finite number, got {value!r}')
+        if self.E <= 0.0:
+            raise ConfigError(f'material {self.name}: E must be > 0 Pa, got {self.E}')
+        if self.rho <= 0.0:
+            raise ConfigError(f'material {self.name}: rho must be > 0 kg/m^3, got {self.rho}')
+        if not 0.0 <= self.nu < 0.4999:
+            raise ConfigError(f'material {self.name}: nu must be in [0, 0.4999), got {self.nu}')
+        if self.eta_shear < 0.0 or self.eta_bulk < 0.0:
+            raise ConfigError(f'material {self.name}: viscosities must be >= 0 Pa s, got '
+                              f'eta_shear={self.eta_shear}, eta_bulk={self.eta_bulk}')
+
+    @property
+    def G(self) -> float:
+        """Shear modulus [Pa]: E / (2 (1 + nu))."""
+        return self.E / (2.0 * (1.0 + self.nu))
+
+    @property
+    def K(self) -> float:
+        """Bulk modulus [Pa]: E / (3 (1 - 2 nu))."""
+        return self.E / (3.0 * (1.0 - 2.0 * self.nu))
+
+    @property
+    def lame_lambda(self) -> float:
+        """First Lame parameter [Pa]: K - 2G/3."""
+        return self.K - 2.0 * self.G / 3.0
+
+    @property
+    def wave_speed(self) -> float:
+        """P-wave speed [m/s]: sqrt((K + 4G/3) / rho), the CFL speed."""
+        return math.sqrt((self.K + 4.0 * self.G / 3.0) / self.rho)
+
+    @property
+    def eta_longitudinal(self) -> float:
+        """Viscosity of a 1D longitudinal motion [Pa s]: eta_bulk + 4/3 eta_shear (viscous dt bound)."""
+        return self.eta_bulk + 4.0 * self.eta_shear / 3.0
+
+    @property
+    def retardation_time(self) -> float:
+        """Shear retardation time eta_shear / G [s] (creep time constant)."""
+        return self.eta_shear / self.G
+
+    @classmethod
+    def paper_preset(cls, E: float, eta: float, rho: float = 1060.0) -> 'Material':
+        """The paper's eq. 3: both moduli E and one viscosity eta, i.e. nu = 0 (2G = 3K = E)."""
+        return cls(E=float(E), nu=0.0, eta_shear=float(eta) / 2.0, eta_bulk=float(eta) / 3.0,
+                   rho=float(rho), name='paper')
+
+    @classmethod
+    def from_shear(cls, G: float, nu: float, eta_shear: float, eta_bulk: float | None = None,
+                   rho: float = 1060.0, name: str = 'custom') -> 'Material':
+        """Build from the shear modulus; ``eta_bulk`` defaults to the same retardation time (K tau)."""
+        if not (math.isfinite(G) and G > 0.0):
+            raise ConfigError(f'material {name}: G must be > 0 Pa, got {G}')
+        if not 0.0 <= nu < 0.4999:
+            raise ConfigError(f'material {name}: nu must be in [0, 0.4999), got {nu}')
+        E = 2.0 * G * (1.0 + nu)
+        if eta_bulk is None:
+            K = E / (3.0 * (1.0 - 2.0 * nu))
+            eta_bulk = K * eta_shear / G
+        return cls(E=E, nu=float(nu), eta_shear=float(eta_shear), eta_bulk=float(eta_bulk),
+                   rho=float(rho), name=name)
+
+    def with_viscosity_scale(self, factor: float) -> 'Material':
+        """A copy with both viscosities multiplied by ``factor``."""
+        return Material(self.E, self.nu, self.eta_shear * factor, self.eta_bulk * factor, self.rho,
+                        self.name)
+
+
+DEFAULT_MATERIALS_YAML = Path(__file__).resolve().parents[2] / 'config' / 'materials.yaml'
+
+
+def load_material(yaml_path: str | Path | None = None, name: str = 'liver') -> Material:
+    """Load material ``name`` from a YAML file (default: the package's ``config/materials.yaml``).
+
+    Each entry gives ``rho`` and either (``E``, ``nu``) or (``G``, ``nu``), plus ``eta_shear`` and
+    optionally ``eta_bulk`` [Pa s] (default: same retardation time as the shear part); or
+    ``preset: paper`` with ``E``, ``eta``, ``rho``.
+
+    Raises:
+        ConfigError: missing file, unknown name or invalid values.
+    """
+    import yaml
+
+    path = Path(yaml_path) if yaml_path is not None else DEFAULT_MATERIALS_YAML
+    if not path.is_file():
+        # installed layout: share/sph_tissue_sim/config/materials.yaml
+        raise ConfigError(f'material file not found: {path}')
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f'{path}: invalid YAML: {exc}') from exc
+    mats = data.get('materials', data)
+    if name not in mats:
+        raise ConfigError(f'{path}: no material {name!r}; available: {sorted(mats)}')
+    entry = dict(mats[name])
+    try:
+        if entry.get('preset') == 'paper':
+            mat = Material.paper_preset(float(entry['E']), float(entry['eta']), float(entry.get('rho', 1060.0)))
+            return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name)
+        nu = float(entry['nu'])
+        rho = float(entry['rho'])
+        eta_s = float(entry['eta_shear'])
+        eta_b = entry.get('eta_bulk')
+        if 'G' in entry:
+            return Material.from_shear(float(entry['G']), nu, eta_s,
+                                       None if eta_b is None else float(eta_b), rho, name)
+        E = float(entry['E'])
+        if eta_b is None:
+            G = E / (2.0 * (1.0 + nu))
+            eta_b = E / (3.0 * (1.0 - 2.0 * nu)) * eta_s / G
+        return Material(E, nu, eta_s, float(eta_b), rho, name)
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        raise ConfigError(f'{path}: material {name!r} is incomplete or invalid: {exc!r}') from exc
+
+
+def liver_default() -> Material:
+    """The liver defaults of ``config/materials.yaml`` (G = 1.8 kPa, nu = 0.45, 3 Pa s, 1060 kg/m^3)."""
+    try:
+        return load_material(None, 'liver')
+    except ConfigError:
+        return Material.from_shear(1800.0, 0.45, 3.0, None, 1060.0, 'liver')

@@ -1,0 +1,511 @@
+"""One solver for every scheme and mode: ``Solver(model, material, config).step(tool_pos, dt)``.
+
+Schemes (index order = ``SimMetrics.SCHEME_*``): ``paper`` (updated-Lagrangian SPH, eqs. 11-16),
+``tlsph`` (total-Lagrangian SPH, the default) and ``mass_spring`` (the paper's Table 1 baseline).
+Modes (``SimMetrics.MODE_*``): ``global`` (every free particle) and ``local`` (the paper's dynamic
+local interaction area, see :mod:`.local_area`).
+
+A frame of ``dt`` seconds is split into sub-steps bounded by the CFL, viscous and contact limits;
+the tool moves linearly from its previous to its new position across the sub-steps, and the force
+returned is the mean reaction of the tissue on the tool over the frame, clamped to ``force_limit``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from .contact import clamp_force, deepest_contact
+from .errors import ConfigError, ModelError, SimError
+from .integrate import SCHEME_MASS_SPRING, SCHEME_TLSPH, run_frame, substep_bounds, substeps_for
+from .kernel import SUPPORT
+from .local_area import (active_stats, detect_local, local_prepare, local_release, restore_state,
+                         save_state)
+from .material import Material
+from .models import TissueModel
+from .neighbours import CellGrid, find_neighbours
+from .tlsph import reference_pairs, tlsph_von_mises
+
+SCHEMES = ('paper', 'tlsph', 'mass_spring')
+MODES = ('global', 'local')
+
+
+class InvalidInput(SimError, ValueError):
+    """A step input (tool position, dt) is non-finite or absurd; the state was not changed."""
+
+
+@dataclass
+class SolverConfig:
+    """Solver settings (SI units).
+
+    Attributes:
+        scheme: ``tlsph`` (default), ``paper`` or ``mass_spring``.
+        mode: ``global`` or ``local``.
+        h_ratio: smoothing length h / particle spacing (support 2h).
+        k1_gain: k1 = k1_gain * f_ext [1/N] (paper eq. 18: 0.5).
+        k1_min, k1_max: clamp of k1 (Dr = k1 h); k1_min keeps the area non-empty without force.
+        n_layers: transmission layers N (paper eqs. 20-21), 0..8.
+        tool_radius: radius of the tool-tip sphere [m].
+        contact_stiffness: penalty stiffness per contacted particle [N/m].
+        contact_damping_ratio: contact dashpot as a fraction of critical for one particle [-].
+        force_limit: clamp of the force norm sent to the device [N] (Omni peak 3.3 N).
+        cfl: Courant number C of the sub-step bounds.
+        max_substeps: cap per frame (if reached, simulated time lags the wall clock; reported).
+        relax_disp_tol: a particle outside the area is released when its displacement is below this [m]
+        relax_vel_tol: ... and its speed below this [m/s].
+        hourglass: Ganzenmueller hourglass coefficient alpha [-] (tlsph).
+        velocity_limit: a speed above this [m/s] is treated as a blow-up (state restored, SimError).
+        max_tool_distance: tool positions farther than this from the model centre are rejected [m].
+        spring_radius: mass-spring neighbour radius in particle spacings.
+        contact_particle_radius: contact radius of a particle in spacings; the tool touches a particle
+            when their centres are closer than tool_radius + this * spacing. 0.5 is the geometric
+            surface; larger values spread the tool load over more particles so that a tool smaller
+            than the spacing cannot slip between surface particles (default 1.0).
+    """
+
+    scheme: str = 'tlsph'
+    mode: str = 'local'
+    h_ratio: float = 1.3
+    k1_gain: float = 0.5
+    k1_min: float = 1.0
+    k1_max: float = 6.0
+    n_layers: int = 2
+    tool_radius: float = 0.005
+    contact_stiffness: float = 300.0
+    contact_damping_ratio: float = 1.0
+    force_limit: float = 3.3
+    cfl: float = 0.3
+    max_substeps: int = 64
+    relax_disp_tol: float = 2e-4
+    relax_vel_tol: float = 2e-3
+    hourglass: float = 1.0
+    velocity_limit: float = 50.0
+    max_tool_distance: float = 10.0
+    spring_radius: float = 1.5
+    contact_particle_radius: float = 1.0
+
+    def validate(self) -> 'SolverConfig':
+        """Check ranges; raises :class:`ConfigError` naming the bad field. Returns self."""
+        if self.scheme not in SCHEMES:
+            raise ConfigError(f'scheme must be one of {SCHEMES}, got {self.scheme!r}')
+        if self.mode not in MODES:
+            raise ConfigError(f'mode must be one of {MODES}, got {self.mode!r}')
+        for f in fields(self):
+            val = getattr(self, f.name)
+            if f.name in ('scheme', 'mode'):
+                continue
+            if not isinstance(val, (int, float)) or isinstance(val, bool) or not math.isfinite(val):
+                raise ConfigError(f'{f.name} must be a finite number, got {val!r}')
+        positive = ('h_ratio', 'k1_min', 'k1_max', 'tool_radius', 'contact_stiffness', 'force_limit',
+                    'cfl', 'relax_disp_tol', 'relax_vel_tol', 'velocity_limit', 'max_tool_distance',
+                    'spring_radius', 'contact_particle_radius')
+        for name in positive:
+            if getattr(self, name) <= 0.0:
+                raise ConfigError(f'{name} must be > 0, got {getattr(self, name)}')
+        for name in ('k1_gain', 'contact_damping_ratio', 'hourglass'):
+            if getattr(self, name) < 0.0:
+                raise ConfigError(f'{name} must be >= 0, got {getattr(self, name)}')
+        if not 0.2 <= self.h_ratio <= 4.0:
+            raise ConfigError(f'h_ratio must be in [0.2, 4] particle spacings, got {self.h_ratio}')
+        if self.k1_min > self.k1_max:
+            raise ConfigError(f'k1_min ({self.k1_min}) must be <= k1_max ({self.k1_max})')
+        if int(self.n_layers) != self.n_layers or not 0 <= self.n_layers <= 8:
+            raise ConfigError(f'n_layers must be an integer in [0, 8], got {self.n_layers}')
+        if int(self.max_substeps) != self.max_substeps or not 1 <= self.max_substeps <= 100000:
+            raise ConfigError(f'max_substeps must be an integer in [1, 100000], got {self.max_substeps}')
+        if self.cfl > 1.0:
+            raise ConfigError(f'cfl must be <= 1, got {self.cfl}')
+        self.n_layers = int(self.n_layers)
+        self.max_substeps = int(self.max_substeps)
+        return self
+
+    @property
+    def scheme_index(self) -> int:
+        return SCHEMES.index(self.scheme)
+
+    @property
+    def mode_index(self) -> int:
+        return MODES.index(self.mode)
+
+
+@dataclass
+class StepResult:
+    """Outcome of one :meth:`Solver.step` (tissue frame, SI units)."""
+
+    force: np.ndarray                 # (3,) [N] reaction of the tissue on the tool, clamped
+    force_raw: np.ndarray             # (3,) [N] before clamping
+    clamped: bool
+    contact_index: int                # -1 without contact
+    penetration: float                # [m] overlap of the deepest contacted particle
+    substeps: int
+    substep_dt: float                 # [s]
+    n_interaction: int
+    n_layer: np.ndarray               # (n_layers,) int
+    n_relaxing: int
+    max_displacement: float           # [m]
+    kinetic_energy: float             # [J]
+    wall_time: float                  # [s]
+    substeps_capped: bool = False     # the frame needed more than max_substeps (time lagged)
+    k1: float = 0.0                   # interaction radius factor used (local mode)
+    n_active: int = 0                 # particles integrated this frame
+
+
+class Solver:
+    """Viscoelastic tissue simulator for one :class:`TissueModel`.
+
+    Args:
+        model: reference configuration (positions, spacing, fixed mask).
+        material: Kelvin-Voigt material.
+        config: solver settings (validated here).
+
+    Raises:
+        ModelError: empty model.
+        ConfigError: bad settings, or a smoothing length too small for any particle to have
+            a neighbour.
+    """
+
+    def __init__(self, model: TissueModel, material: Material, config: SolverConfig | None = None) -> None:
+        if model is None or len(model.positions) == 0:
+            raise ModelError('the model has no particles')
+        if not isinstance(material, Material):
+            raise ConfigError(f'material must be a Material, got {type(material).__name__}')
+        self.config = (config or SolverConfig()).validate()
+        self.model = model
+        self.n = model.n_particles
+        self.h = self.config.h_ratio * model.spacing
+        self.volume = model.particle_volume
+        self.X = np.ascontiguousarray(model.positions, dtype=np.float64)
+        self.fixed = np.ascontiguousarray(model.fixed, dtype=np.bool_)
+        self.free_idx = np.flatnonzero(~self.fixed).astype(np.int32)
+        self.all_idx = np.arange(self.n, dtype=np.int32)
+        self.centre = self.X.mean(axis=0)
+        self.contact_reach = self.config.tool_radius + self.config.contact_particle_radius * model.spacing
+        self.extent = float(np.linalg.norm(self.X.max(axis=0) - self.X.min(axis=0)))
+        self._setup_neighbours()
+        self._alloc()
+        self.material = material
+        self.set_material(material)
+        self.reset()
+
+    # ------------------------------------------------------------------ set-up
+    def _setup_neighbours(self) -> None:
+        support = SUPPORT * self.h
+        self.grid = CellGrid(self.X, support)
+        self.offsets, self.indices = find_neighbours(self.X, support)
+        counts = np.diff(self.offsets)
+        if counts.max() == 0:
+            raise ConfigError(f'smoothing length h = {self.h:.3g} m is too small: no particle has a '
+                              f'neighbour within 2h (spacing {self.model.spacing:.3g} m)')
+        self.dw, self.w0, self.Linv = reference_pairs(self.X, self.offsets, self.indices, self.h,
+                                                      self.volume)
+        # mass-spring: springs to reference neighbours within spring_radius spacings
+        s = self.model.spacing
+        self.s_offsets, self.s_indices = find_neighbours(self.X, self.config.spring_radius * s * 1.0001)
+        rows = np.repeat(np.arange(self.n), np.diff(self.s_offsets))
+        self.s_rest = np.linalg.norm(self.X[self.s_indices] - self.X[rows], axis=1)
+
+    def _alloc(self) -> None:
+        n = self.n
+        self.x = self.X.copy()
+        self.v = np.zeros((n, 3))
+        self.acc = np.zeros((n, 3))
+        self.F = np.zeros((n, 3, 3))
+        self.F[:] = np.eye(3)
+        self.Fd = np.zeros((n, 3, 3))
+        self.A = np.zeros((n, 3, 3))
+        self.region_arr = np.zeros(n, dtype=np.int8)
+        self.in_active = np.zeros(n, dtype=np.int8)
+        self.in_area = np.zeros(n, dtype=np.int8)
+        self.stamp = np.zeros(n, dtype=np.int64)
+        self.stamp_val = 0
+        self.active_list = np.zeros(n, dtype=np.int32)
+        self.sph_list = np.zeros(n, dtype=np.int32)
+        self.layer_list = np.zeros(n, dtype=np.int32)
+        self.layer_w = np.zeros(n)
+        self.stress_list = np.zeros(n, dtype=np.int32)
+        self.cand_list = np.zeros(2 * n, dtype=np.int32)
+        self.tmp = np.zeros(n, dtype=np.int32)
+        self.buf_x = np.zeros((n, 3))
+        self.buf_v = np.zeros((n, 3))
+        self.react = np.zeros(3)
+        self.fbuf = np.zeros(3)
+        self.layer_counts = np.zeros(max(self.config.n_layers, 1), dtype=np.int64)
+        self.n_stress_last = 0
+
+    def set_material(self, material: Material) -> None:
+        """Change the material (takes effect at the next step; sub-step bounds are recomputed)."""
+        if not isinstance(material, Material):
+            raise ConfigError(f'material must be a Material, got {type(material).__name__}')
+        self.material = material
+        cfg = self.config
+        self.mass = material.rho * self.volume
+        self.inv_mass = 1.0 / self.mass
+        self.contact_damping = cfg.contact_damping_ratio * 2.0 * math.sqrt(cfg.contact_stiffness * self.mass)
+        s = self.model.spacing
+        # mass-spring stiffness calibrated on a cubic lattice (face + edge springs, k_d = k_f / 2):
+        # E = 1.8 k_f / s; other lengths scale as (s / L0)^2
+        self.s_k = material.E * s / 1.8 * (s / np.maximum(self.s_rest, 1e-12)) ** 2
+        vol2 = self.volume ** 2
+        self.hg_k = cfg.hourglass * material.E * vol2
+        self.hg_c = cfg.hourglass * material.eta_longitudinal * vol2
+        c = material.wave_speed
+        if cfg.scheme == 'mass_spring':
+            kmax = float(np.max(np.add.reduceat(self.s_k, self.s_offsets[:-1]))) if len(self.s_k) else 0.0
+            c = max(c, math.sqrt(max(kmax, 1e-30) / self.mass) * s)
+        self.dt_bounds = substep_bounds(self.h, c, material.rho, material.eta_longitudinal,
+                                        self.mass, cfg.contact_stiffness, cfg.cfl)
+        if cfg.contact_damping_ratio > 0.0:
+            # explicit dashpot: dt < 2 m / c; keep a factor 2 margin
+            self.dt_bounds['contact_damping'] = self.mass / self.contact_damping
+        self.dt_max = min(self.dt_bounds.values())
+
+    def reset(self) -> None:
+        """Back to the reference configuration at rest, sim time 0, no active area."""
+        self.x[:] = self.X
+        self.v[:] = 0.0
+        self.acc[:] = 0.0
+        self.F[:] = np.eye(3)
+        self.Fd[:] = 0.0
+        self.A[:] = 0.0
+        self.region_arr[:] = 0
+        self.in_active[:] = 0
+        self.in_area[:] = 0
+        self.n_active = 0
+        self.sim_time = 0.0
+        self.f_prev = 0.0
+        self.tool_prev: np.ndarray | None = None
+        self.last_result: StepResult | None = None
+        self.n_stress_last = 0
+        if self.config.mode == 'global':
+            self.region_arr[self.free_idx] = 1
+
+    # ------------------------------------------------------------------ state
+    @property
+    def positions(self) -> np.ndarray:
+        """(N, 3) current positions [m] (the live array: read, do not modify)."""
+        return self.x
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """(N, 3) current velocities [m/s] (the live array)."""
+        return self.v
+
+    @property
+    def region(self) -> np.ndarray:
+        """(N,) int8: 0 still, 1 interaction (full solve), 1 + i transmission layer i."""
+        return self.region_arr
+
+    @property
+    def n_particles(self) -> int:
+        return self.n
+
+    @property
+    def smoothing_length(self) -> float:
+        return self.h
+
+    def displacement(self) -> np.ndarray:
+        """(N,) displacement norms |x - X| [m]."""
+        return np.linalg.norm(self.x - self.X, axis=1)
+
+    def von_mises(self) -> np.ndarray:
+        """(N,) von Mises stress [Pa] of the last computed stress state (0 where none was computed)."""
+        out = np.zeros(self.n)
+        m = self.material
+        if self.config.scheme == 'tlsph':
+            if self.config.mode == 'global':
+                idx, n = self.all_idx, self.n
+            else:
+                idx, n = self.stress_list, self.n_stress_last
+            tlsph_von_mises(self.F, self.Fd, m.G, m.K, m.eta_shear, m.eta_bulk, idx, n, out)
+        elif self.config.scheme == 'paper' and hasattr(self, '_paper'):
+            out[:] = self._paper.von_mises()
+        else:
+            # mass-spring: a strain measure from the neighbour displacement field times E
+            d = self.x - self.X
+            rows = np.repeat(np.arange(self.n), np.diff(self.s_offsets))
+            strain = np.abs(np.linalg.norm(self.x[self.s_indices] - self.x[rows], axis=1) / self.s_rest - 1.0)
+            out[:] = m.E * np.maximum.reduceat(strain, self.s_offsets[:-1]) if len(strain) else 0.0
+            del d
+        return out
+
+    # ------------------------------------------------------------------ stepping
+    def _check_inputs(self, tool_pos, dt) -> np.ndarray | None:
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInput(f'dt must be a number, got {dt!r}') from exc
+        if not (math.isfinite(dt) and 0.0 < dt <= 1.0):
+            raise InvalidInput(f'dt must be in (0, 1] s, got {dt}')
+        if tool_pos is None:
+            return None
+        try:
+            tool = np.asarray(tool_pos, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInput(f'tool position must be 3 numbers, got {tool_pos!r}') from exc
+        if not np.all(np.isfinite(tool)):
+            raise InvalidInput(f'tool position is not finite: {tool}')
+        if np.linalg.norm(tool - self.centre) > self.config.max_tool_distance:
+            raise InvalidInput(f'tool position {tool} is more than {self.config.max_tool_distance} m '
+                               f'from the tissue')
+        return tool.copy()
+
+    def step(self, tool_pos, dt: float) -> StepResult:
+        """Advance the tissue by ``dt`` seconds with the tool tip at ``tool_pos`` (tissue frame, m).
+
+        ``tool_pos=None`` means no tool. Raises :class:`InvalidInput` (state untouched) for
+        non-finite/absurd inputs and :class:`SimError` (state restored) if the step went unstable.
+        """
+        t0 = time.perf_counter()
+        tool = self._check_inputs(tool_pos, dt)
+        dt = float(dt)
+        cfg = self.config
+        n_sub, sub_dt, capped = substeps_for(dt, self.dt_max, cfg.max_substeps)
+        tool_on = tool is not None
+        tool1 = tool if tool_on else self.centre.copy()
+        tool0 = self.tool_prev if (tool_on and self.tool_prev is not None) else tool1
+        reach = self.contact_reach
+        if cfg.scheme == 'paper':
+            res = self._paper_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
+        elif cfg.mode == 'global':
+            res = self._global_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
+        else:
+            res = self._local_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
+        force_raw = self.react.copy()
+        force, clamped = clamp_force(force_raw, cfg.force_limit)
+        self.f_prev = float(np.linalg.norm(force))
+        self.tool_prev = tool1 if tool_on else None
+        self.sim_time += n_sub * sub_dt
+        result = StepResult(force=force, force_raw=force_raw, clamped=clamped, substeps=n_sub,
+                            substep_dt=sub_dt, wall_time=time.perf_counter() - t0,
+                            substeps_capped=capped, **res)
+        self.last_result = result
+        return result
+
+    def _sticky_contact(self, tool: np.ndarray, reach: float) -> int:
+        """Keep the previous contact particle while the tool still touches it.
+
+        The interaction area is centred on the contact particle; letting it hop between equally
+        deep neighbours every frame would re-centre the area and release kinematically moved layer
+        particles into full SPH far from equilibrium.
+        """
+        prev = self.last_result.contact_index if self.last_result is not None else -1
+        if prev >= 0:
+            d = self.x[prev] - tool
+            if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] < reach * reach:
+                return prev
+        return -1
+
+    def _scheme_arrays(self):
+        if self.config.scheme == 'mass_spring':
+            return SCHEME_MASS_SPRING, self.s_offsets, self.s_indices, self.s_k, self.s_rest
+        return SCHEME_TLSPH, self.offsets, self.indices, self.dw, self.w0
+
+    def _run(self, lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt):
+        m = self.material
+        sid, off, idx, dw, w0 = self._scheme_arrays()
+        (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
+        overlap, ok = run_frame(
+            sid, self.X, self.x, self.v, self.acc, self.fixed, self.inv_mass, self.volume,
+            off, idx, dw, w0, self.Linv, self.F, self.Fd, self.A,
+            m.G, m.K, m.eta_shear, m.eta_bulk, self.hg_k, self.hg_c, m.retardation_time,
+            stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand, contact,
+            tool0, tool1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,
+            n_sub, sub_dt, dt, self.config.velocity_limit, self.react, self.fbuf)
+        return overlap, ok
+
+    def _global_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
+        contact = self._sticky_contact(tool1, reach) if tool_on else -1
+        if tool_on and contact < 0:
+            contact = deepest_contact(self.x, self.all_idx, self.n, tool1, reach)
+        self.buf_x[:] = self.x
+        self.buf_v[:] = self.v
+        lists = (self.all_idx, self.n, self.free_idx, len(self.free_idx), self.layer_list, self.layer_w, 0,
+                 self.all_idx, self.n)
+        overlap, ok = self._run(lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt)
+        if not ok:
+            self.x[:] = self.buf_x
+            self.v[:] = self.buf_v
+            self.react[:] = 0.0
+            raise SimError(f'{self.config.scheme} global step went unstable (non-finite or speed > '
+                           f'{self.config.velocity_limit} m/s); state restored')
+        md, ke = active_stats(self.x, self.X, self.v, self.free_idx, len(self.free_idx), self.mass)
+        self.n_stress_last = self.n
+        return dict(contact_index=int(contact), penetration=float(max(overlap, 0.0)),
+                    n_interaction=len(self.free_idx), n_layer=np.zeros(self.config.n_layers, dtype=np.int64),
+                    n_relaxing=0, max_displacement=float(md), kinetic_energy=float(ke), k1=0.0,
+                    n_active=len(self.free_idx))
+
+    def _local_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
+        cfg = self.config
+        g = self.grid
+        margin = cfg.relax_disp_tol
+        if tool_on:
+            contact = self._sticky_contact(tool1, reach)
+        if tool_on and contact < 0:
+            contact = detect_local(self.X, self.x, self.active_list, self.n_active, g.origin, g.cell, g.dims,
+                                   g.cell_start, g.cell_particles, tool1, reach, margin, self.tmp)
+        if tool_on:
+            cand_centre = 0.5 * (tool0 + tool1)
+            cand_radius = 0.5 * float(np.linalg.norm(tool1 - tool0)) + reach + margin
+        else:
+            contact = -1
+            cand_centre = self.centre
+            cand_radius = -1.0
+        k1 = min(max(cfg.k1_gain * self.f_prev, cfg.k1_min), cfg.k1_max)
+        Dr = k1 * self.h
+        self.stamp_val += 1
+        (self.n_active, n_sph, n_lp, n_stress, n_cand, n_inter, n_relax) = local_prepare(
+            self.X, self.x, self.fixed, self.offsets, self.indices,
+            g.origin, g.cell, g.dims, g.cell_start, g.cell_particles,
+            self.in_active, self.active_list, self.n_active, self.region_arr, self.in_area,
+            self.stamp, self.stamp_val, contact, Dr, 0.5 * self.h, cfg.n_layers,
+            cand_centre, cand_radius, self.sph_list, self.layer_list, self.layer_w, self.stress_list,
+            self.cand_list, self.tmp, self.layer_counts)
+        save_state(self.x, self.v, self.sph_list, n_sph, self.layer_list, n_lp, self.buf_x, self.buf_v)
+        lists = (self.stress_list, n_stress, self.sph_list, n_sph, self.layer_list, self.layer_w, n_lp,
+                 self.cand_list, n_cand)
+        overlap, ok = self._run(lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt)
+        if not ok:
+            restore_state(self.x, self.v, self.sph_list, n_sph, self.layer_list, n_lp, self.buf_x, self.buf_v)
+            self.react[:] = 0.0
+            raise SimError(f'{cfg.scheme} local step went unstable (non-finite or speed > '
+                           f'{cfg.velocity_limit} m/s); state restored')
+        self.n_stress_last = n_stress
+        n_active_frame = self.n_active
+        md, ke = active_stats(self.x, self.X, self.v, self.active_list, self.n_active, self.mass)
+        self.n_active = local_release(self.X, self.x, self.v, self.in_active, self.active_list, self.n_active,
+                                      self.region_arr, self.in_area, cfg.relax_disp_tol, cfg.relax_vel_tol)
+        return dict(contact_index=int(contact), penetration=float(max(overlap, 0.0)),
+                    n_interaction=int(n_inter), n_layer=self.layer_counts[:cfg.n_layers].copy(),
+                    n_relaxing=int(n_relax), max_displacement=float(md), kinetic_energy=float(ke),
+                    k1=float(k1), n_active=int(n_active_frame))
+
+    def _paper_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
+        raise ConfigError("scheme 'paper' is not available yet")
+
+
+def warmup(scheme: str | None = None) -> float:
+    """Compile every numba kernel on a tiny block (numba caches to disk); returns seconds taken."""
+    from .models import make_block
+
+    t0 = time.perf_counter()
+    schemes = SCHEMES if scheme is None else (scheme,)
+    model = make_block(4, 4, 4, spacing=0.005)
+    mat = Material.from_shear(1800.0, 0.45, 3.0)
+    for sch in schemes:
+        for mode in MODES:
+            try:
+                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode))
+            except ConfigError:
+                continue
+            top = model.positions[:, 2].max()
+            for k in range(3):
+                try:
+                    solver.step(np.array([0.01, 0.01, top + 0.005 - 0.001 * k]), 1e-3)
+                except ConfigError:
+                    break
+            solver.von_mises()
+    return time.perf_counter() - t0

@@ -1,0 +1,281 @@
+"""Total-Lagrangian SPH (the default scheme) with Kelvin-Voigt stress and hourglass control.
+
+Reference neighbours and kernel gradients are fixed (no per-step search). With the reference
+gradient ``DWIJ0 = dW/dr(R0) / R0 * (X_i - X_j)`` and the Bonet-Lok shape matrix
+
+    L_i = sum_j V_j (X_j - X_i) (x) DWIJ0,         corrected gradient  L_i^-T DWIJ0
+
+the deformation gradient and its rate are (exact for linear fields, also at free surfaces)
+
+    F_i = [sum_j V_j (x_j - x_i) (x) DWIJ0] L_i^-1,   dF_i/dt = [sum_j V_j (v_j - v_i) (x) DWIJ0] L_i^-1.
+
+Kelvin-Voigt: an elastic spring (compressible neo-Hookean, which is exactly ``2G e + K tr(eps) I``
+for small strains and stays stable under large compression) in parallel with dashpots on the
+Green-Lagrange strain rate ``dE/dt = (dF^T F + F^T dF)/2``:
+
+    P = G (F - F^-T) + (K - 2G/3) ln(J) F^-T  +  F [eta_bulk tr(dE/dt) I + 2 eta_shear dev(dE/dt)].
+
+Forces follow from the discrete energy ``sum_i V_i psi(F_i)`` (momentum conserving, pairwise):
+
+    f_i = sum_j V_i V_j (P_i L_i^-T + P_j L_j^-T) DWIJ0.
+
+Hourglass (zero-energy mode) control after Ganzenmueller (CMAME 2015): the pair error
+``eps_ij = (F_i + F_j)/2 X_ij - x_ij`` gives a bond-wise spring and dashpot
+``f_i -= alpha V_i V_j W0_ij / R0^2 * (E eps_ij + eta deps_ij/dt)``, zero for any linear deformation
+(Ganzenmueller projects eps on the bond; the vector form is cheaper and equally antisymmetric).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .kernel import kernel_dwdr, kernel_w
+
+
+def reference_pairs(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float,
+                    volume: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-pair ``dW/dr(R0)/R0`` and ``W(R0)/R0^2``, and per-particle ``L_i^-1`` (identity fallback)."""
+    dw, w0, L = _pair_terms(X, offsets, indices, h, volume)
+    Linv = np.empty_like(L)
+    det = np.linalg.det(L)
+    ok = np.abs(det) > 1e-6
+    Linv[ok] = np.linalg.inv(L[ok])
+    # particles with too few neighbours for a correction: plain (normalised) SPH gradient
+    Linv[~ok] = np.eye(3)
+    cond = np.ones(len(L))
+    if ok.any():
+        cond[ok] = np.linalg.cond(L[ok])
+    bad = cond > 1e4
+    Linv[bad] = np.eye(3)
+    return dw, w0, Linv
+
+
+@njit(cache=True)
+def _pair_terms(X, offsets, indices, h, volume):
+    n = X.shape[0]
+    nnz = indices.shape[0]
+    dw = np.empty(nnz)
+    w0 = np.empty(nnz)
+    L = np.zeros((n, 3, 3))
+    for i in range(n):
+        for k in range(offsets[i], offsets[i + 1]):
+            j = indices[k]
+            d0 = X[i, 0] - X[j, 0]
+            d1 = X[i, 1] - X[j, 1]
+            d2 = X[i, 2] - X[j, 2]
+            r = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            f = kernel_dwdr(r, h) / r
+            dw[k] = f
+            w0[k] = kernel_w(r, h) / (r * r)
+            g0 = f * d0
+            g1 = f * d1
+            g2 = f * d2
+            # (X_j - X_i) (x) g
+            L[i, 0, 0] -= volume * d0 * g0
+            L[i, 0, 1] -= volume * d0 * g1
+            L[i, 0, 2] -= volume * d0 * g2
+            L[i, 1, 0] -= volume * d1 * g0
+            L[i, 1, 1] -= volume * d1 * g1
+            L[i, 1, 2] -= volume * d1 * g2
+            L[i, 2, 0] -= volume * d2 * g0
+            L[i, 2, 1] -= volume * d2 * g1
+            L[i, 2, 2] -= volume * d2 * g2
+    return dw, w0, L
+
+
+@njit(cache=True, fastmath=True)
+def tlsph_stress_one(i, X, x, v, offsets, indices, dw, Linv, volume, G, K, eta_s, eta_v, F, Fd, A):
+    """F_i, dF_i/dt and ``A_i = V^2 P_i L_i^-T`` for particle ``i`` (writes rows of F, Fd, A)."""
+    a00 = 0.0; a01 = 0.0; a02 = 0.0; a10 = 0.0; a11 = 0.0; a12 = 0.0; a20 = 0.0; a21 = 0.0; a22 = 0.0
+    b00 = 0.0; b01 = 0.0; b02 = 0.0; b10 = 0.0; b11 = 0.0; b12 = 0.0; b20 = 0.0; b21 = 0.0; b22 = 0.0
+    xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
+    vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
+    Xi0 = X[i, 0]; Xi1 = X[i, 1]; Xi2 = X[i, 2]
+    for k in range(offsets[i], offsets[i + 1]):
+        j = indices[k]
+        f = dw[k] * volume
+        g0 = f * (Xi0 - X[j, 0])
+        g1 = f * (Xi1 - X[j, 1])
+        g2 = f * (Xi2 - X[j, 2])
+        d0 = x[j, 0] - xi0; d1 = x[j, 1] - xi1; d2 = x[j, 2] - xi2
+        e0 = v[j, 0] - vi0; e1 = v[j, 1] - vi1; e2 = v[j, 2] - vi2
+        a00 += d0 * g0; a01 += d0 * g1; a02 += d0 * g2
+        a10 += d1 * g0; a11 += d1 * g1; a12 += d1 * g2
+        a20 += d2 * g0; a21 += d2 * g1; a22 += d2 * g2
+        b00 += e0 * g0; b01 += e0 * g1; b02 += e0 * g2
+        b10 += e1 * g0; b11 += e1 * g1; b12 += e1 * g2
+        b20 += e2 * g0; b21 += e2 * g1; b22 += e2 * g2
+    Li = Linv[i]
+    Fm = F[i]
+    Fdm = Fd[i]
+    # F = a @ Linv, Fd = b @ Linv
+    for c in range(3):
+        l0 = Li[0, c]; l1 = Li[1, c]; l2 = Li[2, c]
+        Fm[0, c] = a00 * l0 + a01 * l1 + a02 * l2
+        Fm[1, c] = a10 * l0 + a11 * l1 + a12 * l2
+        Fm[2, c] = a20 * l0 + a21 * l1 + a22 * l2
+        Fdm[0, c] = b00 * l0 + b01 * l1 + b02 * l2
+        Fdm[1, c] = b10 * l0 + b11 * l1 + b12 * l2
+        Fdm[2, c] = b20 * l0 + b21 * l1 + b22 * l2
+    # Green-Lagrange strain E = (F^T F - I)/2 and its rate (Fd^T F + F^T Fd)/2, as scalars
+    # (no temporaries: this runs for every particle every sub-step)
+    f00 = Fm[0, 0]; f01 = Fm[0, 1]; f02 = Fm[0, 2]
+    f10 = Fm[1, 0]; f11 = Fm[1, 1]; f12 = Fm[1, 2]
+    f20 = Fm[2, 0]; f21 = Fm[2, 1]; f22 = Fm[2, 2]
+    h00 = Fdm[0, 0]; h01 = Fdm[0, 1]; h02 = Fdm[0, 2]
+    h10 = Fdm[1, 0]; h11 = Fdm[1, 1]; h12 = Fdm[1, 2]
+    h20 = Fdm[2, 0]; h21 = Fdm[2, 1]; h22 = Fdm[2, 2]
+    e00 = 0.5 * (f00 * f00 + f10 * f10 + f20 * f20 - 1.0)
+    e11 = 0.5 * (f01 * f01 + f11 * f11 + f21 * f21 - 1.0)
+    e22 = 0.5 * (f02 * f02 + f12 * f12 + f22 * f22 - 1.0)
+    e01 = 0.5 * (f00 * f01 + f10 * f11 + f20 * f21)
+    e02 = 0.5 * (f00 * f02 + f10 * f12 + f20 * f22)
+    e12 = 0.5 * (f01 * f02 + f11 * f12 + f21 * f22)
+    r00 = h00 * f00 + h10 * f10 + h20 * f20
+    r11 = h01 * f01 + h11 * f11 + h21 * f21
+    r22 = h02 * f02 + h12 * f12 + h22 * f22
+    r01 = 0.5 * (h00 * f01 + h10 * f11 + h20 * f21 + f00 * h01 + f10 * h11 + f20 * h21)
+    r02 = 0.5 * (h00 * f02 + h10 * f12 + h20 * f22 + f00 * h02 + f10 * h12 + f20 * h22)
+    r12 = 0.5 * (h01 * f02 + h11 * f12 + h21 * f22 + f01 * h02 + f11 * h12 + f21 * h22)
+    # viscous part: Kelvin-Voigt dashpots on the Green-Lagrange strain rate, P_v = F S_v
+    lam_v = (eta_v - 2.0 * eta_s / 3.0) * (r00 + r11 + r22)
+    s00 = 2.0 * eta_s * r00 + lam_v
+    s11 = 2.0 * eta_s * r11 + lam_v
+    s22 = 2.0 * eta_s * r22 + lam_v
+    s01 = 2.0 * eta_s * r01
+    s02 = 2.0 * eta_s * r02
+    s12 = 2.0 * eta_s * r12
+    # elastic part: compressible neo-Hookean P_e = G (F - F^-T) + lambda ln(J) F^-T, which equals
+    # the linear spring 2G e + K tr(eps) for small strains and, unlike St. Venant-Kirchhoff, does
+    # not collapse under strong compression (a point-like tool squeezes single particles)
+    c00 = f11 * f22 - f12 * f21; c01 = f12 * f20 - f10 * f22; c02 = f10 * f21 - f11 * f20
+    c10 = f02 * f21 - f01 * f22; c11 = f00 * f22 - f02 * f20; c12 = f01 * f20 - f00 * f21
+    c20 = f01 * f12 - f02 * f11; c21 = f02 * f10 - f00 * f12; c22 = f00 * f11 - f01 * f10
+    J = f00 * c00 + f01 * c01 + f02 * c02
+    if J < 0.05:
+        J = 0.05  # inverted or crushed particle: keep pushing it back out
+    lam = K - 2.0 * G / 3.0
+    t = (lam * math.log(J) - G) / J      # F^-T = cof(F) / J
+    # P = F S_v + G F + t cof(F)
+    p00 = f00 * s00 + f01 * s01 + f02 * s02 + G * f00 + t * c00
+    p01 = f00 * s01 + f01 * s11 + f02 * s12 + G * f01 + t * c01
+    p02 = f00 * s02 + f01 * s12 + f02 * s22 + G * f02 + t * c02
+    p10 = f10 * s00 + f11 * s01 + f12 * s02 + G * f10 + t * c10
+    p11 = f10 * s01 + f11 * s11 + f12 * s12 + G * f11 + t * c11
+    p12 = f10 * s02 + f11 * s12 + f12 * s22 + G * f12 + t * c12
+    p20 = f20 * s00 + f21 * s01 + f22 * s02 + G * f20 + t * c20
+    p21 = f20 * s01 + f21 * s11 + f22 * s12 + G * f21 + t * c21
+    p22 = f20 * s02 + f21 * s12 + f22 * s22 + G * f22 + t * c22
+    # A = V^2 P Linv^T
+    Am = A[i]
+    v2 = volume * volume
+    for q in range(3):
+        l0 = Li[q, 0]; l1 = Li[q, 1]; l2 = Li[q, 2]
+        Am[0, q] = v2 * (p00 * l0 + p01 * l1 + p02 * l2)
+        Am[1, q] = v2 * (p10 * l0 + p11 * l1 + p12 * l2)
+        Am[2, q] = v2 * (p20 * l0 + p21 * l1 + p22 * l2)
+
+
+@njit(cache=True, fastmath=True)
+def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, F, Fd, A, hg_k, hg_c, out):
+    """Internal force on particle ``i`` (gather over its reference neighbours) into ``out`` (3,).
+
+    ``hgw[k] = W(R0) / R0^2`` per pair; ``hg_k`` [Pa m^6] = alpha E V^2 and ``hg_c`` [Pa s m^6] =
+    alpha eta V^2 scale the hourglass bonds: ``f_i -= hgw (hg_k eps_ij + hg_c deps_ij/dt)`` with
+    ``eps_ij = (F_i + F_j)/2 (X_j - X_i) - (x_j - x_i)``. The vector form (no projection on the
+    bond, so no square root) is antisymmetric in i, j and zero for rigid motions and linear fields.
+    """
+    f0 = 0.0; f1 = 0.0; f2 = 0.0
+    Ai = A[i]
+    Xi0 = X[i, 0]; Xi1 = X[i, 1]; Xi2 = X[i, 2]
+    for k in range(offsets[i], offsets[i + 1]):
+        j = indices[k]
+        Aj = A[j]
+        # DWIJ0 = dw * (X_i - X_j)
+        d = dw[k]
+        g0 = d * (Xi0 - X[j, 0]); g1 = d * (Xi1 - X[j, 1]); g2 = d * (Xi2 - X[j, 2])
+        f0 += (Ai[0, 0] + Aj[0, 0]) * g0 + (Ai[0, 1] + Aj[0, 1]) * g1 + (Ai[0, 2] + Aj[0, 2]) * g2
+        f1 += (Ai[1, 0] + Aj[1, 0]) * g0 + (Ai[1, 1] + Aj[1, 1]) * g1 + (Ai[1, 2] + Aj[1, 2]) * g2
+        f2 += (Ai[2, 0] + Aj[2, 0]) * g0 + (Ai[2, 1] + Aj[2, 1]) * g1 + (Ai[2, 2] + Aj[2, 2]) * g2
+    if hg_k > 0.0 or hg_c > 0.0:
+        # hourglass: error of each bond against the pair's mean linear map, a spring + dashpot
+        Fi = F[i]; Fdi = Fd[i]
+        xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
+        vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
+        for k in range(offsets[i], offsets[i + 1]):
+            j = indices[k]
+            Fj = F[j]; Fdj = Fd[j]
+            X0 = X[j, 0] - Xi0; X1 = X[j, 1] - Xi1; X2 = X[j, 2] - Xi2
+            p0 = 0.5 * ((Fi[0, 0] + Fj[0, 0]) * X0 + (Fi[0, 1] + Fj[0, 1]) * X1 + (Fi[0, 2] + Fj[0, 2]) * X2) - (x[j, 0] - xi0)
+            p1 = 0.5 * ((Fi[1, 0] + Fj[1, 0]) * X0 + (Fi[1, 1] + Fj[1, 1]) * X1 + (Fi[1, 2] + Fj[1, 2]) * X2) - (x[j, 1] - xi1)
+            p2 = 0.5 * ((Fi[2, 0] + Fj[2, 0]) * X0 + (Fi[2, 1] + Fj[2, 1]) * X1 + (Fi[2, 2] + Fj[2, 2]) * X2) - (x[j, 2] - xi2)
+            q0 = 0.5 * ((Fdi[0, 0] + Fdj[0, 0]) * X0 + (Fdi[0, 1] + Fdj[0, 1]) * X1 + (Fdi[0, 2] + Fdj[0, 2]) * X2) - (v[j, 0] - vi0)
+            q1 = 0.5 * ((Fdi[1, 0] + Fdj[1, 0]) * X0 + (Fdi[1, 1] + Fdj[1, 1]) * X1 + (Fdi[1, 2] + Fdj[1, 2]) * X2) - (v[j, 1] - vi1)
+            q2 = 0.5 * ((Fdi[2, 0] + Fdj[2, 0]) * X0 + (Fdi[2, 1] + Fdj[2, 1]) * X1 + (Fdi[2, 2] + Fdj[2, 2]) * X2) - (v[j, 2] - vi2)
+            c = hgw[k]
+            f0 -= c * (hg_k * p0 + hg_c * q0)
+            f1 -= c * (hg_k * p1 + hg_c * q1)
+            f2 -= c * (hg_k * p2 + hg_c * q2)
+    out[0] = f0
+    out[1] = f1
+    out[2] = f2
+
+
+@njit(cache=True)
+def _matmul3(a, b, out):
+    for p in range(3):
+        for q in range(3):
+            out[p, q] = a[p, 0] * b[0, q] + a[p, 1] * b[1, q] + a[p, 2] * b[2, q]
+
+
+@njit(cache=True)
+def _det3(a):
+    return (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+            - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+            + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+
+
+@njit(cache=True)
+def tlsph_von_mises(F, Fd, G, K, eta_s, eta_v, idx, n, out):
+    """Von Mises stress [Pa] of the Cauchy stress ``sigma = F S F^T / J`` for ``idx[:n]`` into ``out``."""
+    S = np.empty((3, 3))
+    FS = np.empty((3, 3))
+    E = np.empty((3, 3))
+    Ed = np.empty((3, 3))
+    sig = np.empty((3, 3))
+    for t in range(n):
+        i = idx[t]
+        Fi = F[i]
+        Fdi = Fd[i]
+        for p in range(3):
+            for q in range(3):
+                s = 0.0
+                r = 0.0
+                for k in range(3):
+                    s += Fi[k, p] * Fi[k, q]
+                    r += Fdi[k, p] * Fi[k, q] + Fi[k, p] * Fdi[k, q]
+                E[p, q] = 0.5 * s
+                Ed[p, q] = 0.5 * r
+            E[p, p] -= 0.5
+        trE = E[0, 0] + E[1, 1] + E[2, 2]
+        trEd = Ed[0, 0] + Ed[1, 1] + Ed[2, 2]
+        for p in range(3):
+            for q in range(3):
+                S[p, q] = 2.0 * G * E[p, q] + 2.0 * eta_s * Ed[p, q]
+            S[p, p] += (K - 2.0 * G / 3.0) * trE + (eta_v - 2.0 * eta_s / 3.0) * trEd
+        J = _det3(Fi)
+        if abs(J) < 1e-9:
+            J = 1e-9
+        _matmul3(Fi, S, FS)
+        for p in range(3):
+            for q in range(3):
+                sig[p, q] = (FS[p, 0] * Fi[q, 0] + FS[p, 1] * Fi[q, 1] + FS[p, 2] * Fi[q, 2]) / J
+        tr = (sig[0, 0] + sig[1, 1] + sig[2, 2]) / 3.0
+        d0 = sig[0, 0] - tr
+        d1 = sig[1, 1] - tr
+        d2 = sig[2, 2] - tr
+        out[i] = math.sqrt(1.5 * (d0 * d0 + d1 * d1 + d2 * d2
+                                  + 2.0 * (sig[0, 1] ** 2 + sig[0, 2] ** 2 + sig[1, 2] ** 2)))

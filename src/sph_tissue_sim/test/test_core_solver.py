@@ -1,0 +1,162 @@
+"""Solver behaviour: contact, bad input, boundary conditions, momentum, local-area bookkeeping."""
+
+import numpy as np
+import pytest
+
+from sph_tissue_sim.core.errors import ConfigError, ModelError, SimError
+from sph_tissue_sim.core.material import Material
+from sph_tissue_sim.core.models import TissueModel, make_block
+from sph_tissue_sim.core.solver import (MODES, SCHEMES, InvalidInput, Solver, SolverConfig, StepResult,
+                                        warmup)
+
+LIVER = Material.from_shear(1800.0, 0.45, 3.0)
+
+
+def _block(fix='bottom', n=(8, 8, 5), spacing=0.0075):
+    return make_block(*n, spacing=spacing, fix=fix)
+
+
+def _press(solver, depth, frames=300, dt=1e-3):
+    """Lower the tool onto the top centre of the block to ``depth`` [m] below first touch."""
+    X = solver.model.positions
+    top = X[:, 2].max()
+    centre = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean() + 5e-4, top + solver.contact_reach])
+    res = None
+    for k in range(frames):
+        d = depth * min(1.0, (k + 1) / (0.7 * frames))
+        res = solver.step(centre - np.array([0.0, 0.0, d]), dt)
+    return res
+
+
+def test_scheme_and_mode_order_matches_simmetrics_constants():
+    assert SCHEMES == ('paper', 'tlsph', 'mass_spring')
+    assert MODES == ('global', 'local')
+
+
+def test_warmup_compiles_and_returns_seconds():
+    assert warmup('tlsph') >= 0.0
+
+
+@pytest.mark.parametrize('mode', MODES)
+def test_pressing_pushes_tissue_down_and_tissue_pushes_tool_up(mode):
+    solver = Solver(_block(), LIVER, SolverConfig(mode=mode))
+    res = _press(solver, 0.004)
+    assert isinstance(res, StepResult)
+    assert res.contact_index >= 0
+    assert res.force[2] > 0.02                      # reaction points out of the tissue
+    assert abs(res.force[2]) > 3 * np.hypot(res.force[0], res.force[1])
+    assert res.max_displacement > 0.002
+    assert np.all(np.isfinite(solver.positions))
+    moved_down = solver.positions[res.contact_index, 2] < solver.model.positions[res.contact_index, 2]
+    assert moved_down
+
+
+def test_fixed_particles_never_move():
+    model = _block()
+    solver = Solver(model, LIVER, SolverConfig(mode='global'))
+    _press(solver, 0.006, frames=200)
+    assert np.array_equal(solver.positions[model.fixed], model.positions[model.fixed])
+
+
+def test_force_is_clamped_to_the_device_limit_and_finite():
+    solver = Solver(_block(), LIVER, SolverConfig(mode='global', force_limit=0.05, contact_stiffness=300.0))
+    res = _press(solver, 0.008, frames=200)
+    assert res.clamped
+    assert np.linalg.norm(res.force) == pytest.approx(0.05, rel=1e-9)
+    assert np.linalg.norm(res.force_raw) > 0.05
+
+
+@pytest.mark.parametrize('bad', [np.array([np.nan, 0.0, 0.0]), np.array([0.0, np.inf, 0.0]),
+                                 np.array([1e3, 0.0, 0.0]), 'not a position', np.zeros(2)])
+def test_bad_tool_position_raises_invalid_input_and_leaves_state_untouched(bad):
+    solver = Solver(_block(), LIVER, SolverConfig(mode='local'))
+    _press(solver, 0.003, frames=50)
+    x, v, t = solver.positions.copy(), solver.velocities.copy(), solver.sim_time
+    with pytest.raises(InvalidInput):
+        solver.step(bad, 1e-3)
+    assert isinstance(InvalidInput('x'), ValueError) and isinstance(InvalidInput('x'), SimError)
+    assert np.array_equal(solver.positions, x) and np.array_equal(solver.velocities, v)
+    assert solver.sim_time == t
+
+
+@pytest.mark.parametrize('dt', [0.0, -1e-3, float('nan'), 5.0])
+def test_bad_dt_raises_invalid_input(dt):
+    solver = Solver(_block(), LIVER)
+    with pytest.raises(InvalidInput):
+        solver.step(None, dt)
+
+
+@pytest.mark.parametrize('kwargs', [dict(scheme='fem'), dict(mode='half'), dict(h_ratio=-1.0),
+                                    dict(k1_min=3.0, k1_max=2.0), dict(n_layers=-1), dict(cfl=0.0),
+                                    dict(tool_radius=float('nan')), dict(max_substeps=0)])
+def test_invalid_config_raises_config_error(kwargs):
+    with pytest.raises(ConfigError):
+        SolverConfig(**kwargs).validate()
+
+
+def test_smoothing_length_too_small_for_any_neighbour_raises_config_error():
+    # support 2h = 0.8 spacing: no lattice neighbour inside
+    with pytest.raises(ConfigError, match='too small'):
+        Solver(_block(), LIVER, SolverConfig(h_ratio=0.4))
+
+
+def test_empty_model_raises_model_error():
+    with pytest.raises(ModelError):
+        TissueModel('empty', np.zeros((0, 3)), 0.01, np.zeros(0, dtype=bool))
+
+
+def test_internal_forces_conserve_linear_momentum():
+    solver = Solver(_block(fix='none', n=(6, 5, 4)), LIVER, SolverConfig(mode='global'))
+    rng = np.random.default_rng(0)
+    solver.velocities[:] = rng.normal(0.0, 0.02, solver.velocities.shape)
+    p0 = solver.velocities.sum(axis=0) * solver.mass
+    scale = np.abs(solver.velocities).sum() * solver.mass
+    for _ in range(200):
+        solver.step(None, 1e-3)
+    p1 = solver.velocities.sum(axis=0) * solver.mass
+    assert np.all(np.abs(p1 - p0) < 1e-10 * scale)
+    assert solver.displacement().max() > 1e-4  # the body did deform
+
+
+def test_local_mode_releases_particles_after_they_relax():
+    solver = Solver(_block(n=(10, 10, 5)), LIVER, SolverConfig(mode='local'))
+    res = _press(solver, 0.004, frames=200)
+    assert res.n_interaction > 0 and res.n_layer.sum() > 0
+    assert res.n_active < solver.n_particles // 2      # the area, not the model
+    region = solver.region
+    assert set(np.unique(region)) <= {0, 1, 2, 3}
+    assert (region == 1).sum() >= res.n_interaction
+    for _ in range(1500):
+        res = solver.step(None, 1e-3)
+        if solver.n_active == 0:
+            break
+    assert solver.n_active == 0
+    assert res.contact_index == -1 and np.all(res.force == 0.0)
+    assert solver.displacement().max() < 2 * solver.config.relax_disp_tol
+    assert np.all(solver.region == 0)
+
+
+def test_reset_restores_reference_configuration():
+    solver = Solver(_block(), LIVER, SolverConfig(mode='local'))
+    _press(solver, 0.004, frames=100)
+    solver.reset()
+    assert np.array_equal(solver.positions, solver.model.positions)
+    assert not solver.velocities.any() and solver.sim_time == 0.0 and not solver.region.any()
+
+
+def test_von_mises_is_zero_at_rest_and_positive_under_the_tool():
+    solver = Solver(_block(), LIVER, SolverConfig(mode='global'))
+    solver.step(None, 1e-3)
+    assert np.max(solver.von_mises()) < 1e-6
+    res = _press(solver, 0.004, frames=150)
+    vm = solver.von_mises()
+    assert vm.shape == (solver.n_particles,) and np.all(np.isfinite(vm))
+    assert vm[res.contact_index] > 10.0
+
+
+def test_substeps_respect_the_cfl_bound():
+    solver = Solver(_block(), LIVER)
+    res = solver.step(None, 1e-3)
+    c = LIVER.wave_speed
+    assert res.substep_dt <= solver.config.cfl * solver.smoothing_length / c + 1e-15
+    assert res.substeps * res.substep_dt == pytest.approx(1e-3)
