@@ -114,6 +114,7 @@ class OmniDriver(Node):
         self.n_poses = 0
         self.n_commands = 0
         self._rejected_logged = 0
+        self._reject_log_time: dict[str, float] = {}
         self._servo_thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._t_start = time.monotonic()
@@ -282,8 +283,12 @@ class OmniDriver(Node):
             reason = {'nan': 'non-finite component',
                       'frame': f'frame {msg.header.frame_id!r} is not {self.p["frame_id"]!r}',
                       'stale': 'stale (answers an old pose)'}[result.reason]
-            self.get_logger().warn(f'rejected force command ({reason}): ({f.x}, {f.y}, {f.z})',
-                                   throttle_duration_sec=1.0)
+            # At most one line per reason and second: a flood of bad commands must not flood the log.
+            last = self._reject_log_time.get(result.reason, -1e9)
+            if now - last >= 1.0:
+                self._reject_log_time[result.reason] = now
+                self.get_logger().warn(f'rejected force command ({reason}): ({f.x}, {f.y}, {f.z}); '
+                                       f'{self.safety.status(now).rejected_commands} rejected so far')
         if self._lockstep:
             with self._reply_cond:
                 if len(self._replies) > 10000:
