@@ -41,7 +41,8 @@ DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
     'loop': (False, 'replay/scripted: start again at the end', None, True),
     'exit_on_end': (False, 'replay/scripted (loop false): exit with code 0 at the end instead of '
                            'idling', None, True),
-    'wait_for_subscribers': (0, 'replay: wait for this many omni/pose subscribers before starting',
+    'wait_for_subscribers': (0, 'replay/scripted: wait for this many omni/pose subscribers before '
+                                'starting',
                              (0, 100), True),
     # -- replay ---------------------------------------------------------------------------------
     'bag': ('', 'replay: rosbag2 bag folder (metadata.yaml + .mcap)', None, True),

@@ -285,3 +285,60 @@ def test_recorder_replay_round_trip_is_byte_identical(rclpy_node, tmp_path):
         assert rclpy_node.spin_until(lambda: len(got) >= 300 or not proc.alive(), 30)
         assert proc.wait(10) == 0
     assert got == a_raw
+
+
+# -- scripted and parameters ----------------------------------------------------------------------
+def test_scripted_publishes_the_script_at_rate_then_exits(rclpy_node):
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from haptic_omni_driver.backends.scripted import ScriptConfig, generate_trajectory
+
+    times = dict(approach_time=0.2, press_time=0.2, hold_time=0.2, pull_time=0.2,
+                 release_time=0.1, sweep_time=0.2, return_time=0.2)
+    poses = []
+    rclpy_node.create_subscription(PoseStamped, 'omni/pose', poses.append,
+                                   QoSProfile(depth=2000, reliability=ReliabilityPolicy.BEST_EFFORT))
+    with driver({'backend': 'scripted', 'exit_on_end': True, 'tremor_amplitude': 0.0,
+                 'wait_for_subscribers': 1, **times}) as proc:
+        t0 = time.monotonic()
+        assert rclpy_node.spin_until(lambda: not proc.alive(), 30)
+        wall = time.monotonic() - t0
+        assert proc.wait(5) == 0
+        assert re.search(r'script finished: \d+ poses', proc.output())
+    _, ref, _, _ = generate_trajectory(ScriptConfig(tremor_amplitude=0.0, **times), 1000.0)
+    got = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in poses])
+    assert len(poses) >= 0.8 * len(ref)  # best effort at 1 kHz into a Python probe: a few may drop
+    assert got[:, 1].min() == pytest.approx(-0.008, abs=2e-5)  # reached the press depth
+    assert np.abs(got - ref[:, None, :]).sum(axis=2).min(axis=0).max() < 1e-9  # on the path
+    stamps = np.array([stamp_ns(p.header) for p in poses]) * 1e-9
+    assert (stamps[-1] - stamps[0]) == pytest.approx((ref.shape[0] - 1) / 1000.0, rel=0.1)
+    assert wall < 10
+
+
+def test_safety_parameters_change_at_run_time_and_bad_values_are_refused(rclpy_node):
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    watch = StateWatch(rclpy_node)
+    with driver({'backend': 'scripted', 'loop': True}) as proc:
+        proc.wait_for_output(r'ready:', 30)
+        client = AsyncParameterClient(rclpy_node, 'omni_driver')
+        assert client.wait_for_services(10)
+
+        def call(params):
+            fut = client.set_parameters(params)
+            assert rclpy_node.spin_until(fut.done, 10)
+            return fut.result().results
+
+        ok, = call([Parameter('force_limit', value=0.3)])
+        assert ok.successful
+        assert rclpy_node.spin_until(lambda: any(m.force_limit == pytest.approx(0.3)
+                                                 for _, m in watch.msgs), 5)
+        too_high, = call([Parameter('force_limit', value=3.5)])
+        bad_wd, = call([Parameter('watchdog_timeout', value=0.5)])
+        ro, = call([Parameter('backend', value='replay')])
+        assert not too_high.successful and not bad_wd.successful and not ro.successful
+        n0 = len(watch.msgs)
+        assert rclpy_node.spin_until(lambda: len(watch.msgs) > n0 + 3, 5)
+        assert watch.msgs[-1][1].force_limit == pytest.approx(0.3)

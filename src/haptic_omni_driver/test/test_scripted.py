@@ -91,3 +91,20 @@ def test_sample_script_holds_last_point_after_end():
 def test_invalid_script_config_is_rejected(kw):
     with pytest.raises(ConfigError):
         build_script(ScriptConfig(**kw))
+
+
+def test_script_bag_replays_the_generated_trajectory_with_buttons(tmp_path):
+    from haptic_omni_driver.backends.replay import load_replay
+    from haptic_omni_driver.backends.scripted import write_script_bag
+
+    cfg = ScriptConfig(seed=5, approach_time=0.1, press_time=0.1, hold_time=0.1, pull_time=0.1,
+                       release_time=0.1, sweep_time=0.1, return_time=0.1)
+    write_script_bag(tmp_path / 'b', cfg, rate=500.0, t0_ns=2_000_000_000)
+    events = load_replay(tmp_path / 'b')
+    poses = [e.sample for e in events if e.sample is not None]
+    t, pos, buttons, _ = generate_trajectory(cfg, 500.0)
+    assert len(poses) == t.size
+    assert np.array([p.position for p in poses]) == pytest.approx(pos, abs=0)
+    assert [p.stamp_ns for p in poses] == [2_000_000_000 + 2_000_000 * k for k in range(t.size)]
+    pressed = [e.buttons[0] for e in events if e.buttons is not None]
+    assert any(pressed) and not pressed[0]

@@ -235,6 +235,8 @@ class ScriptedBackend(Backend):
         self.source = f'script(seed={cfg.seed}, {self.duration:.2f} s)'
 
     def run(self, sink: BackendSink) -> None:
+        if not sink.wait_for_subscribers():
+            return
         period = 1.0 / self.rate
         t0 = time.monotonic()
         k = 0
@@ -261,3 +263,41 @@ class ScriptedBackend(Backend):
             return  # shut down from outside: no summary
         sink.on_finished(f'script finished: {k} poses, {loops + 1} pass(es) of {self.duration:.2f} s',
                          0)
+
+
+def script_messages(cfg: ScriptConfig, rate: float = 1000.0, t0_ns: int = 1_700_000_000_000_000_000,
+                    loops: int = 1, frame_id: str = 'omni_base', state_rate: float = 100.0) -> list:
+    """The script as bag messages ``[(topic, msgtype, log_time_ns, rosbags_msg), ...]``.
+
+    Poses on ``/omni/pose`` at ``rate`` (header stamp = log time = ``t0_ns`` + t) and, if
+    ``state_rate`` > 0, DeviceState on ``/omni/state`` carrying the script's button1 (no force
+    fields: a scripted session has no device). Feed the result to :func:`bagio.write_bag`.
+    """
+    from .. import bagio
+
+    types = bagio.typestore().types
+    Time, Header = types['builtin_interfaces/msg/Time'], types['std_msgs/msg/Header']
+    Pose, Point, Quat = (types['geometry_msgs/msg/Pose'], types['geometry_msgs/msg/Point'],
+                         types['geometry_msgs/msg/Quaternion'])
+    PoseStamped, State = types[bagio.POSE_TYPE], types[bagio.STATE_TYPE]
+    Vec = types['geometry_msgs/msg/Vector3']
+    t, pos, buttons, _ = generate_trajectory(cfg, rate, loops)
+    out = []
+    state_every = max(1, int(round(rate / state_rate))) if state_rate > 0 else 0
+    for k in range(t.size):
+        stamp = int(t0_ns + round(t[k] * 1e9))
+        header = Header(Time(*divmod(stamp, 1_000_000_000)), frame_id)
+        out.append(('/omni/pose', bagio.POSE_TYPE, stamp,
+                    PoseStamped(header, Pose(Point(*map(float, pos[k])), Quat(0.0, 0.0, 0.0, 1.0)))))
+        if state_every and k % state_every == 0:
+            out.append(('/omni/state', bagio.STATE_TYPE, stamp, State(
+                header, bool(buttons[k]), False, False, False, False, True, Vec(0.0, 0.0, 0.0),
+                0.0, -1.0, 0, 'scripted', f'script(seed={cfg.seed})')))
+    return out
+
+
+def write_script_bag(path, cfg: ScriptConfig, rate: float = 1000.0, **kw):
+    """Write the script to a new rosbag2 MCAP bag folder (see :func:`script_messages`)."""
+    from .. import bagio
+
+    return bagio.write_bag(path, script_messages(cfg, rate, **kw))
