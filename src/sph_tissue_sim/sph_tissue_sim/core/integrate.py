@@ -49,11 +49,12 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
               stress_list, n_stress, sph_list, n_sph, layer_list, layer_w, n_lp,
               cand, n_cand, contact_idx,
               tool0, tool1, tool_on, reach, k_c, c_c,
-              n_sub, dt, frame_dt, v_limit, react, fbuf):
+              n_sub, dt, frame_dt, v_limit, react, fbuf, ext_idx, ext_force, n_ext):
     """Advance ``n_sub`` sub-steps; returns ``(last overlap [m], ok)``.
 
     ``react`` (3,) receives the mean reaction force on the tool over the sub-steps [N].
     ``ok`` is False if a velocity became non-finite or exceeded ``v_limit`` (caller restores state).
+    ``ext_force[t]`` [N] is a constant external load on free particle ``ext_idx[t]`` (``t < n_ext``).
     """
     react[0] = 0.0; react[1] = 0.0; react[2] = 0.0
     tool = np.empty(3)
@@ -84,6 +85,11 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
                 acc[i, 0] = fbuf[0] * inv_mass
                 acc[i, 1] = fbuf[1] * inv_mass
                 acc[i, 2] = fbuf[2] * inv_mass
+        for t in range(n_ext):
+            i = ext_idx[t]
+            if not fixed[i]:
+                for a in range(3):
+                    acc[i, a] += ext_force[t, a] * inv_mass
         # contact (pushes the tissue, reaction on the tool)
         if tool_on:
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0

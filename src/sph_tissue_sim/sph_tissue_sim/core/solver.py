@@ -234,6 +234,27 @@ class Solver:
         self.fbuf = np.zeros(3)
         self.layer_counts = np.zeros(max(self.config.n_layers, 1), dtype=np.int64)
         self.n_stress_last = 0
+        self.ext_idx = np.zeros(0, dtype=np.int32)
+        self.ext_force = np.zeros((0, 3))
+
+    def set_external_forces(self, indices, forces) -> None:
+        """Constant external loads [N] on particles (e.g. a traction on a face); replaces previous ones.
+
+        Applied every sub-step to free particles of the fully solved set (all free particles in
+        global mode; in local mode only to particles that are active). ``indices=[]`` clears them.
+        """
+        idx = np.ascontiguousarray(indices, dtype=np.int32).reshape(-1)
+        f = np.ascontiguousarray(forces, dtype=np.float64).reshape(-1, 3)
+        if len(f) == 1 and len(idx) > 1:
+            f = np.repeat(f, len(idx), axis=0)
+        if len(idx) != len(f):
+            raise ConfigError(f'{len(idx)} indices but {len(f)} forces')
+        if len(idx) and (idx.min() < 0 or idx.max() >= self.n):
+            raise ConfigError('external force index out of range')
+        if not np.all(np.isfinite(f)):
+            raise ConfigError('external forces must be finite')
+        self.ext_idx = idx
+        self.ext_force = f
 
     def set_material(self, material: Material) -> None:
         """Change the material (takes effect at the next step; sub-step bounds are recomputed)."""
@@ -413,7 +434,8 @@ class Solver:
             m.G, m.K, m.eta_shear, m.eta_bulk, self.hg_k, self.hg_c, m.retardation_time,
             stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand, contact,
             tool0, tool1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,
-            n_sub, sub_dt, dt, self.config.velocity_limit, self.react, self.fbuf)
+            n_sub, sub_dt, dt, self.config.velocity_limit, self.react, self.fbuf,
+            self.ext_idx, self.ext_force, len(self.ext_idx))
         return overlap, ok
 
     def _global_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
