@@ -271,7 +271,12 @@ class Solver:
         self.s_k = material.E * s / 1.8 * (s / np.maximum(self.s_rest, 1e-12)) ** 2
         vol2 = self.volume ** 2
         self.hg_k = cfg.hourglass * material.E * vol2
-        self.hg_c = cfg.hourglass * material.eta_longitudinal * vol2
+        # the hourglass dashpot uses the viscous analogue of E (9 eta_b eta_s / (3 eta_b + eta_s)),
+        # so hourglass bonds creep with the material's own retardation time (eta_longitudinal
+        # would give them (K + 4G/3)/E times that and slow the creep of non-linear fields)
+        eta_s, eta_b = material.eta_shear, material.eta_bulk
+        eta_e = 9.0 * eta_b * eta_s / (3.0 * eta_b + eta_s) if eta_b + eta_s > 0.0 else 0.0
+        self.hg_c = cfg.hourglass * eta_e * vol2
         c = material.wave_speed
         if cfg.scheme == 'mass_spring':
             kmax = float(np.max(np.add.reduceat(self.s_k, self.s_offsets[:-1]))) if len(self.s_k) else 0.0
