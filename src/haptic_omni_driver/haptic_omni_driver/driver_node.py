@@ -22,6 +22,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -168,6 +169,11 @@ class OmniDriver(Node):
         self.backend.stop()
         if self._servo_thread is not None:
             self._servo_thread.join(1.0)
+
+    def flush(self, timeout: float = 5.0) -> None:
+        """Wait until reliable subscribers acknowledged every pose, so exiting at the end loses none."""
+        if not self.pose_pub.wait_for_all_acked(Duration(seconds=timeout)):
+            self.get_logger().warn(f'not every pose was acknowledged within {timeout:g} s')
 
     def _virtual_servo(self) -> None:
         period = 1.0 / self.p['servo_rate']
@@ -366,6 +372,8 @@ def main(args=None) -> int:
         while rclpy.ok() and not node.finished.is_set():
             executor.spin_once(timeout_sec=0.1)
         code = node.exit_code
+        if node.finished.is_set() and code == EXIT_OK:
+            node.flush()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

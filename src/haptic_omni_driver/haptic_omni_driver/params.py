@@ -103,6 +103,8 @@ RECORDER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
     'duration': (0.0, '[s] stop after this long (0 = until Ctrl-C)', (0.0, 1e6), True),
     'max_messages': (0, 'stop after this many messages (0 = unlimited)', (0, 2 ** 31 - 1), True),
     'wait_for_topics': (True, 'start the duration clock at the first message', None, True),
+    'progress_period': (5.0, '[s] log the message counts this often while they change (0 = off)',
+                        (0.0, 3600.0), True),
     'metadata_version': (9, 'rosbag2 metadata version (8 = Humble/Iron readers, 9 = Jazzy)', (8, 9),
                          True),
 }

@@ -81,6 +81,9 @@ class OmniRecorder(Node):
                                f'{self.path}')
         if p['duration'] > 0:
             self.create_timer(0.05, self._check_duration)
+        self._logged_count = 0
+        if p['progress_period'] > 0:
+            self.create_timer(p['progress_period'], self._log_progress)
 
     def _callback(self, index: int, msgtype: str):
         def record(data: bytes) -> None:
@@ -112,13 +115,24 @@ class OmniRecorder(Node):
         if start is not None and time.monotonic() - start >= self.p['duration']:
             self.finished.set()
 
+    def _counts(self) -> str:
+        return ', '.join(f'{t}: {n}' for t, n in self.writer.counts.items()) or 'nothing'
+
+    def _log_progress(self) -> None:
+        with self._lock:
+            if self.writer.count == self._logged_count:
+                return
+            self._logged_count = self.writer.count
+            counts = self._counts()
+        self.get_logger().info(f'recorded {self._logged_count} messages ({counts})')
+
     def close(self) -> None:
         """Finalise the bag (metadata.yaml + MCAP summary)."""
         with self._lock:
             self.finished.set()
             self.writer.close()
-        counts = ', '.join(f'{t}: {n}' for t, n in self.writer.counts.items()) or 'nothing'
-        self.get_logger().info(f'bag closed: {self.writer.count} messages ({counts}) in {self.path}')
+        self.get_logger().info(f'bag closed: {self.writer.count} messages ({self._counts()}) in '
+                               f'{self.path}')
 
 
 def main(args=None) -> int:
