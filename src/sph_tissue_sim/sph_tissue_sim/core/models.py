@@ -6,7 +6,9 @@ benchmarks can select it from a parameter.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -93,6 +95,65 @@ def _fixed_layers(pos: np.ndarray, spacing: float, fix: str, layers: int) -> np.
     if axis is None:
         raise ModelError(f"fix must be 'bottom', 'left' or 'none', got {fix!r}")
     return pos[:, axis] < pos[:, axis].min() + layers * spacing - 1e-12
+
+
+def fit_spacing(count_at: Callable[[float], int], n_target: int, volume: float,
+                tol: float = 0.02, max_iter: int = 60) -> tuple[float, int]:
+    """Lattice spacing whose particle count is closest to ``n_target`` (bisection on log spacing).
+
+    ``count_at(s)`` is the number of lattice points inside the body at spacing ``s``; it falls
+    roughly as ``volume / s**3`` but in steps, so the search keeps the best spacing seen and stops
+    once the count is within ``tol / 4`` of the target (or the bracket has collapsed).
+
+    Args:
+        count_at: particle count at a spacing [m].
+        n_target: wanted particle count (>= 1).
+        volume: estimate of the body's volume [m^3] (sets the starting bracket).
+        tol: relative count tolerance the caller will accept.
+        max_iter: bisection steps.
+
+    Returns:
+        (spacing, count) of the best spacing found.
+
+    Raises:
+        ModelError: bad target or volume, or no spacing brackets the target.
+    """
+    if int(n_target) != n_target or n_target < 1:
+        raise ModelError(f'particle count must be a positive integer, got {n_target!r}')
+    if not (math.isfinite(volume) and volume > 0.0):
+        raise ModelError(f'body volume must be positive, got {volume}')
+    n_target = int(n_target)
+    s0 = (volume / n_target) ** (1.0 / 3.0)
+    best = (math.inf, s0, 0)
+
+    def probe(s: float) -> int:
+        nonlocal best
+        c = int(count_at(s))
+        if abs(c - n_target) < best[0]:
+            best = (abs(c - n_target), s, c)
+        return c
+
+    lo, hi = 0.8 * s0, 1.25 * s0           # count(lo) >= n >= count(hi)
+    for _ in range(30):
+        if probe(lo) >= n_target:
+            break
+        lo *= 0.8
+    else:
+        raise ModelError(f'no lattice spacing gives {n_target} particles (body too thin?)')
+    for _ in range(30):
+        if probe(hi) <= n_target:
+            break
+        hi *= 1.25
+    good = max(1.0, 0.25 * tol * n_target)
+    for _ in range(max_iter):
+        if best[0] <= good or hi / lo < 1.0 + 1e-9:
+            break
+        mid = math.sqrt(lo * hi)
+        if probe(mid) > n_target:
+            lo = mid
+        else:
+            hi = mid
+    return best[1], best[2]
 
 
 def make_model(kind: str, **kwargs) -> TissueModel:
