@@ -1,0 +1,114 @@
+"""The core benchmark runs end to end in --quick mode and writes sane CSV/PNG/TXT/JSON outputs.
+
+Timing values are never asserted (speed is reported by the benchmark, not tested); only that every
+measured configuration produced finite, positive numbers and consistent bookkeeping.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / 'benchmarks' / 'bench_core.py'
+
+
+def _load_bench():
+    spec = importlib.util.spec_from_file_location('bench_core', BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules['bench_core'] = mod         # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope='module')
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp('bench')
+    proc = subprocess.run([sys.executable, str(BENCH), '--quick', '--out', str(out)],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    with open(out / 'bench_core_quick.csv', newline='') as fh:
+        rows = list(csv.DictReader(fh))
+    return out, proc, rows
+
+
+def _num(row, key):
+    return float(row[key]) if row.get(key) not in (None, '') else math.nan
+
+
+def test_quick_benchmark_writes_csv_png_txt_and_json(quick_run):
+    out, proc, rows = quick_run
+    png = (out / 'bench_core_quick.png').read_bytes()
+    assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 20_000
+    text = (out / 'bench_core_quick.txt').read_text()
+    for title in ('Table 1', 'Table 2', 'Table 3', 'Table 4', 'Table 5', 'Scaling', 'Memory', 'Targets'):
+        assert title in text and title in proc.stdout
+    meta = json.loads((out / 'bench_core_quick.json').read_text())
+    assert meta['meta']['numba_warmup_s'] >= 0.0 and meta['targets']
+    assert {r['table'] for r in rows} >= {'1', '2', '3', '4', '5', 'scaling', 'area', 'memory', 'targets'}
+
+
+def test_every_tlsph_case_is_measured_with_finite_positive_numbers(quick_run):
+    _, _, rows = quick_run
+    timed = [r for r in rows if r['table'] != 'memory']
+    assert all(r['status'] == 'ok' for r in timed if r['scheme'] in ('tlsph', 'mass_spring'))
+    for r in timed:
+        if r['status'] != 'ok':
+            assert r['scheme'] == 'paper'       # only the paper scheme may be n/a or unstable
+            continue
+        for key in ('step_ms', 'step_p90_ms', 'substep_us', 'ns_per_particle_substep', 'first_frame_ms'):
+            assert math.isfinite(_num(r, key)) and _num(r, key) > 0.0, (r['label'], key)
+        assert _num(r, 'step_p90_ms') >= _num(r, 'step_ms')
+        assert _num(r, 'substeps') >= 1 and int(r['frames']) >= 3
+        assert 1 <= _num(r, 'n_active') <= int(r['n_particles'])
+        if r['mode'] == 'global':
+            assert _num(r, 'n_stress') == int(r['n_particles'])
+
+
+def test_local_cases_integrate_fewer_particles_than_global_ones(quick_run):
+    _, _, rows = quick_run
+    glob = {(r['n_target'], r['h_paper']): _num(r, 'n_active') for r in rows
+            if r['table'] == '2' and r['scheme'] == 'tlsph'}
+    loc = {(r['n_target'], r['h_paper']): _num(r, 'n_active') for r in rows
+           if r['table'] == '3' and r['scheme'] == 'tlsph'}
+    assert glob and glob.keys() == loc.keys()
+    assert all(loc[k] < glob[k] for k in glob)
+
+
+def test_wider_interaction_area_and_more_layers_activate_more_particles(quick_run):
+    _, _, rows = quick_run
+    area = sorted((_num(r, 'k1'), _num(r, 'n_active')) for r in rows if r['table'] == 'area')
+    assert [a[0] for a in area] == [1.0, 2.0, 3.0, 4.0]
+    assert all(b[1] > a[1] for a, b in zip(area, area[1:]))
+    layers = sorted((int(r['n_layers']), _num(r, 'n_active')) for r in rows
+                    if r['table'] == '5' and r['scheme'] == 'tlsph')
+    assert all(b[1] >= a[1] for a, b in zip(layers, layers[1:])) and layers[-1][1] > layers[0][1]
+
+
+def test_memory_phases_report_resident_set_size(quick_run):
+    _, _, rows = quick_run
+    mem = [r for r in rows if r['table'] == 'memory']
+    assert len(mem) >= 4 and all(r['status'] == 'ok' for r in mem)
+    assert all(_num(r, 'peak_rss_mb') >= _num(r, 'rss_mb') > 10.0 for r in mem)
+
+
+def test_paper_smoothing_lengths_map_to_one_physical_length_anchored_at_3670():
+    bench = _load_bench()
+    from sph_tissue_sim.core.solver import SolverConfig
+
+    models = bench.Models('liver')
+    anchor = bench.h_ratio_for(models, 3670, 0.3)
+    assert anchor == pytest.approx(SolverConfig().h_ratio)
+    # one paper length unit is one physical length: h/s scales with h and inversely with spacing
+    for n in (289, 1289):
+        for h in (0.3, 0.8):
+            hr = bench.h_ratio_for(models, n, h)
+            assert hr * models.get(n).spacing == pytest.approx(h / 0.3 * anchor * models.get(3670).spacing)
+            assert hr > 0.5                     # 2h > spacing: every particle keeps neighbours
