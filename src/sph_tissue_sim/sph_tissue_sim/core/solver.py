@@ -27,6 +27,7 @@ from .local_area import (active_stats, detect_local, local_prepare, local_releas
 from .material import Material
 from .models import TissueModel
 from .neighbours import CellGrid, find_neighbours
+from .paper import PaperScheme
 from .tlsph import reference_pairs, tlsph_von_mises
 
 SCHEMES = ('paper', 'tlsph', 'mass_spring')
@@ -64,6 +65,8 @@ class SolverConfig:
             when their centres are closer than tool_radius + this * spacing. 0.5 is the geometric
             surface; larger values spread the tool load over more particles so that a tool smaller
             than the spacing cannot slip between surface particles (default 1.0).
+        paper_momentum: momentum equation of the ``paper`` scheme: 14 (the paper's eq. 14,
+            default) or 12 (eq. 12, symmetric stiffness at free surfaces); see :mod:`.paper`.
     """
 
     scheme: str = 'tlsph'
@@ -86,6 +89,7 @@ class SolverConfig:
     max_tool_distance: float = 10.0
     spring_radius: float = 1.5
     contact_particle_radius: float = 1.0
+    paper_momentum: int = 14
 
     def validate(self) -> 'SolverConfig':
         """Check ranges; raises :class:`ConfigError` naming the bad field. Returns self."""
@@ -118,6 +122,9 @@ class SolverConfig:
             raise ConfigError(f'max_substeps must be an integer in [1, 100000], got {self.max_substeps}')
         if self.cfl > 1.0:
             raise ConfigError(f'cfl must be <= 1, got {self.cfl}')
+        if self.paper_momentum not in (12, 14):
+            raise ConfigError(f'paper_momentum must be 12 or 14 (paper eq. 12 or 14), got {self.paper_momentum}')
+        self.paper_momentum = int(self.paper_momentum)
         self.n_layers = int(self.n_layers)
         self.max_substeps = int(self.max_substeps)
         return self
@@ -188,6 +195,8 @@ class Solver:
         self._alloc()
         self.material = material
         self.set_material(material)
+        if self.config.scheme == 'paper':
+            self._paper = PaperScheme(self)
         self.reset()
 
     # ------------------------------------------------------------------ set-up
@@ -307,6 +316,8 @@ class Solver:
         self.n_stress_last = 0
         if self.config.mode == 'global':
             self.region_arr[self.free_idx] = 1
+        if hasattr(self, '_paper'):
+            self._paper.reset()
 
     # ------------------------------------------------------------------ state
     @property
@@ -430,6 +441,8 @@ class Solver:
         return SCHEME_TLSPH, self.offsets, self.indices, self.dw, self.w0
 
     def _run(self, lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt):
+        if self.config.scheme == 'paper':
+            return self._paper.run(lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt)
         m = self.material
         sid, off, idx, dw, w0 = self._scheme_arrays()
         (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
@@ -511,7 +524,10 @@ class Solver:
                     k1=float(k1), n_active=int(n_active_frame))
 
     def _paper_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
-        raise ConfigError("scheme 'paper' is not available yet")
+        # same bookkeeping as tlsph; _run hands the frame to paper.PaperScheme
+        if self.config.mode == 'global':
+            return self._global_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
+        return self._local_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
 
 
 def warmup(scheme: str | None = None) -> float:

@@ -1,0 +1,520 @@
+"""The paper's updated-Lagrangian SPH (eqs. 11-16, summation density eq. 15): the ``paper`` scheme.
+
+Every sub-step works in the CURRENT configuration ``x`` (displacement ``u = x - X``):
+
+1. neighbour search on a cell grid (cell size 2h) over the current positions (sec. 3.2), O(N),
+   CSR lists. This per-step rebuild is what the total-Lagrangian scheme avoids; it is kept here
+   because it is the paper's method (and its cost).
+2. summation density (eq. 15), self term included::
+
+       rho_i = sum_j m_j WIJ
+
+3. strain (eqs. 4, 16) in the difference form, tensor (not engineering) shear, and its rate::
+
+       eps_i    = sym( sum_j V_j (u_j - u_i) (x) DWIJ ),      V_j = m_j / rho_j
+       deps_i/dt = sym( sum_j V_j (v_j - v_i) (x) DWIJ )
+
+   Eq. 16 as printed uses ``u_j`` alone. Its strain is the difference form plus
+   ``sym(u_i (x) g_i)`` with ``g_i = sum_j V_j DWIJ``; ``g_i`` vanishes only inside a perfectly
+   symmetric neighbourhood, and at a free surface it is of order 1/h, so a rigid translation
+   ``u = t`` would produce a strain ~|t|/h there (and a stress, and a force). The difference form
+   is exact for any constant field everywhere.
+4. Kelvin-Voigt stress (eqs. 1-3 with separate moduli; :class:`~.material.Material`)::
+
+       sigma_i = 2 G dev(eps_i) + K tr(eps_i) I + 2 eta_s dev(deps_i/dt) + eta_v tr(deps_i/dt) I
+
+   (``S = 2G e + 2 eta_s de/dt``, ``sigma_kk = 3K eps_kk + 3 eta_v deps_kk/dt``; the paper's
+   ``E``/``eta`` form is :meth:`~.material.Material.paper_preset`, nu = 0.)
+5. momentum (eqs. 11-14), the symmetric form, so internal forces conserve linear momentum::
+
+       dv_i/dt = sum_j m_j (sigma_i / rho_i^2 + sigma_j / rho_j^2) . DWIJ        (eq. 14, default)
+       dv_i/dt = sum_j m_j (sigma_i + sigma_j) / (rho_i rho_j) . DWIJ          (eq. 12, option)
+
+   ``SolverConfig.paper_momentum`` selects 14 or 12 (:func:`momentum_one` explains the difference).
+
+6. symplectic Euler (eq. 22): ``v <- v + dt a``, ``x <- x + dt v``.
+
+Naming follows PySPH: ``XIJ = x_i - x_j``, ``WIJ = W(|XIJ|, h)``, ``DWIJ = grad_i WIJ =
+dW/dr XIJ / |XIJ|``. There is no hourglass control and no kernel correction: the scheme shows the
+zero-energy modes, tensile instability and surface density deficiency of plain SPH, as the paper
+reports for large steps. A blow-up is caught every sub-step (speed limit, non-finite positions)
+and reported to the solver, which restores the state.
+
+Local mode (sec. 4): the solver's :func:`~.local_area.local_prepare` sets are used unchanged. The
+rows that get density, strain and stress are the fully solved particles and their reference
+neighbours; the grid is built over the current positions of those, one more ring of reference
+neighbours and every active particle (the paper too searches only inside the area). Particles
+outside the rows keep their last density and stress.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .contact import contact_forces
+from .kernel import kernel_dwdr, kernel_w
+from .neighbours import _cell_of, bin_points
+
+# stress / strain components, Voigt order without factors: xx, yy, zz, xy, xz, yz
+_MAX_CELLS = 50_000_000
+
+
+# ---------------------------------------------------------------------------- neighbour search
+@njit(cache=True)
+def current_neighbours(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx, nb_dw, nb_w):
+    """CSR neighbours (within 2h, current positions) of ``rows[:n_rows]`` among ``search[:n_search]``.
+
+    Row ``r`` (particle ``rows[r]``) has pairs ``nb_off[r]:nb_off[r + 1]`` with neighbour
+    ``nb_idx[k]``, ``nb_dw[k] = dW/dr(RIJ) / RIJ`` (so ``DWIJ = nb_dw[k] * XIJ``) and
+    ``nb_w[k] = WIJ``. The pair buffers grow when full. ``pos`` (>= n_search, 3) is scratch.
+
+    Returns ``(ok, nb_idx, nb_dw, nb_w)``; ``ok`` is False for non-finite positions or a grid too
+    large to allocate (particles flung apart), in which case the lists are not valid.
+    """
+    support = 2.0 * h
+    r2max = support * support
+    lo0 = math.inf; lo1 = math.inf; lo2 = math.inf
+    hi0 = -math.inf; hi1 = -math.inf; hi2 = -math.inf
+    for p in range(n_search):
+        j = search[p]
+        a = x[j, 0]; b = x[j, 1]; c = x[j, 2]
+        if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
+            return False, nb_idx, nb_dw, nb_w
+        pos[p, 0] = a; pos[p, 1] = b; pos[p, 2] = c
+        lo0 = min(lo0, a); lo1 = min(lo1, b); lo2 = min(lo2, c)
+        hi0 = max(hi0, a); hi1 = max(hi1, b); hi2 = max(hi2, c)
+    if n_search == 0:
+        nb_off[0] = 0
+        for r in range(n_rows):
+            nb_off[r + 1] = 0
+        return True, nb_idx, nb_dw, nb_w
+    origin = np.empty(3)
+    origin[0] = lo0 - support; origin[1] = lo1 - support; origin[2] = lo2 - support
+    dims = np.empty(3, dtype=np.int64)
+    ext0 = (hi0 + support - origin[0]) / support
+    ext1 = (hi1 + support - origin[1]) / support
+    ext2 = (hi2 + support - origin[2]) / support
+    if ext0 * ext1 * ext2 > _MAX_CELLS:
+        return False, nb_idx, nb_dw, nb_w
+    dims[0] = max(1, int(math.ceil(ext0)))
+    dims[1] = max(1, int(math.ceil(ext1)))
+    dims[2] = max(1, int(math.ceil(ext2)))
+    cell_start, cell_particles = bin_points(pos[:n_search], origin, support, dims)
+    m = 0
+    cap = nb_idx.shape[0]
+    nb_off[0] = 0
+    for r in range(n_rows):
+        i = rows[r]
+        xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
+        cx = _cell_of(xi0, origin[0], support, dims[0])
+        cy = _cell_of(xi1, origin[1], support, dims[1])
+        cz = _cell_of(xi2, origin[2], support, dims[2])
+        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+            for ay in range(max(cy - 1, 0), min(cy + 2, dims[1])):
+                for az in range(max(cz - 1, 0), min(cz + 2, dims[2])):
+                    cc = (ax * dims[1] + ay) * dims[2] + az
+                    for k in range(cell_start[cc], cell_start[cc + 1]):
+                        p = cell_particles[k]
+                        j = search[p]
+                        if j == i:
+                            continue
+                        d0 = xi0 - pos[p, 0]; d1 = xi1 - pos[p, 1]; d2 = xi2 - pos[p, 2]
+                        rr = d0 * d0 + d1 * d1 + d2 * d2
+                        if rr >= r2max:
+                            continue
+                        if m >= cap:
+                            cap = 2 * cap + 1024
+                            t_idx = np.empty(cap, dtype=nb_idx.dtype)
+                            t_dw = np.empty(cap)
+                            t_w = np.empty(cap)
+                            t_idx[:m] = nb_idx[:m]
+                            t_dw[:m] = nb_dw[:m]
+                            t_w[:m] = nb_w[:m]
+                            nb_idx = t_idx
+                            nb_dw = t_dw
+                            nb_w = t_w
+                        rij = math.sqrt(rr)
+                        nb_idx[m] = j
+                        nb_dw[m] = kernel_dwdr(rij, h) / rij if rij > 1e-300 else 0.0
+                        nb_w[m] = kernel_w(rij, h)
+                        m += 1
+        nb_off[r + 1] = m
+    return True, nb_idx, nb_dw, nb_w
+
+
+# ---------------------------------------------------------------------------- density, strain, stress
+@njit(cache=True, fastmath=True)
+def summation_density(rows, n_rows, nb_off, nb_w, mass, h, rho):
+    """Eq. 15 with equal masses: ``rho_i = m (W(0) + sum_j WIJ)`` for ``rows[:n_rows]``."""
+    w_self = kernel_w(0.0, h)
+    for r in range(n_rows):
+        s = w_self
+        for k in range(nb_off[r], nb_off[r + 1]):
+            s += nb_w[k]
+        rho[rows[r]] = mass * s
+
+
+@njit(cache=True, fastmath=True)
+def strain_stress(rows, n_rows, X, x, v, nb_off, nb_idx, nb_dw, mass, rho,
+                  G, K, eta_s, eta_v, eps, epsd, sig):
+    """Strain, strain rate (difference form of eq. 16) and Kelvin-Voigt stress (eqs. 1-3).
+
+    For ``i = rows[r]``, with ``V_j = m / rho_j`` and ``DWIJ = nb_dw[k] * (x_i - x_j)``::
+
+        grad u_i = sum_j V_j (u_j - u_i) (x) DWIJ,   u = x - X
+        grad v_i = sum_j V_j (v_j - v_i) (x) DWIJ
+        eps_i = sym(grad u_i),  deps_i/dt = sym(grad v_i)
+        sigma_i = 2 G dev(eps) + K tr(eps) I + 2 eta_s dev(deps/dt) + eta_v tr(deps/dt) I
+
+    Components are stored as (xx, yy, zz, xy, xz, yz) rows of ``eps``, ``epsd``, ``sig`` (N, 6).
+    """
+    for r in range(n_rows):
+        i = rows[r]
+        xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
+        ui0 = xi0 - X[i, 0]; ui1 = xi1 - X[i, 1]; ui2 = xi2 - X[i, 2]
+        vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
+        a00 = 0.0; a01 = 0.0; a02 = 0.0; a10 = 0.0; a11 = 0.0; a12 = 0.0; a20 = 0.0; a21 = 0.0; a22 = 0.0
+        b00 = 0.0; b01 = 0.0; b02 = 0.0; b10 = 0.0; b11 = 0.0; b12 = 0.0; b20 = 0.0; b21 = 0.0; b22 = 0.0
+        for k in range(nb_off[r], nb_off[r + 1]):
+            j = nb_idx[k]
+            f = nb_dw[k] * mass / rho[j]
+            g0 = f * (xi0 - x[j, 0]); g1 = f * (xi1 - x[j, 1]); g2 = f * (xi2 - x[j, 2])
+            d0 = x[j, 0] - X[j, 0] - ui0; d1 = x[j, 1] - X[j, 1] - ui1; d2 = x[j, 2] - X[j, 2] - ui2
+            e0 = v[j, 0] - vi0; e1 = v[j, 1] - vi1; e2 = v[j, 2] - vi2
+            a00 += d0 * g0; a01 += d0 * g1; a02 += d0 * g2
+            a10 += d1 * g0; a11 += d1 * g1; a12 += d1 * g2
+            a20 += d2 * g0; a21 += d2 * g1; a22 += d2 * g2
+            b00 += e0 * g0; b01 += e0 * g1; b02 += e0 * g2
+            b10 += e1 * g0; b11 += e1 * g1; b12 += e1 * g2
+            b20 += e2 * g0; b21 += e2 * g1; b22 += e2 * g2
+        exy = 0.5 * (a01 + a10); exz = 0.5 * (a02 + a20); eyz = 0.5 * (a12 + a21)
+        rxy = 0.5 * (b01 + b10); rxz = 0.5 * (b02 + b20); ryz = 0.5 * (b12 + b21)
+        eps[i, 0] = a00; eps[i, 1] = a11; eps[i, 2] = a22
+        eps[i, 3] = exy; eps[i, 4] = exz; eps[i, 5] = eyz
+        epsd[i, 0] = b00; epsd[i, 1] = b11; epsd[i, 2] = b22
+        epsd[i, 3] = rxy; epsd[i, 4] = rxz; epsd[i, 5] = ryz
+        tr3 = (a00 + a11 + a22) / 3.0
+        trd3 = (b00 + b11 + b22) / 3.0
+        # sigma = 2G (eps - tr/3 I) + 3K tr/3 I + viscous analogue
+        iso = 3.0 * K * tr3 + 3.0 * eta_v * trd3
+        sig[i, 0] = 2.0 * G * (a00 - tr3) + 2.0 * eta_s * (b00 - trd3) + iso
+        sig[i, 1] = 2.0 * G * (a11 - tr3) + 2.0 * eta_s * (b11 - trd3) + iso
+        sig[i, 2] = 2.0 * G * (a22 - tr3) + 2.0 * eta_s * (b22 - trd3) + iso
+        sig[i, 3] = 2.0 * G * exy + 2.0 * eta_s * rxy
+        sig[i, 4] = 2.0 * G * exz + 2.0 * eta_s * rxz
+        sig[i, 5] = 2.0 * G * eyz + 2.0 * eta_s * ryz
+
+
+MOMENTUM_EQ14 = 14
+MOMENTUM_EQ12 = 12
+
+
+@njit(cache=True, fastmath=True)
+def momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form, out):
+    """Internal acceleration of ``i = rows[r]`` into ``out`` (3,).
+
+    ``form == 14`` (eq. 14, the paper's final form)::
+
+        dv_i/dt = sum_j m_j (sigma_i / rho_i^2 + sigma_j / rho_j^2) . DWIJ
+
+    ``form == 12`` (eq. 12)::
+
+        dv_i/dt = sum_j m_j (sigma_i + sigma_j) / (rho_i rho_j) . DWIJ
+
+    Both are antisymmetric in i, j (momentum conserving). With the volumes ``V = m / rho`` held
+    fixed, eq. 12 is the negative gradient of the strain energy ``sum_i V_i eps_i : C : eps_i / 2``
+    of the difference-form strain, so its linear stiffness is symmetric; eq. 14 is not. They agree
+    where the density is uniform and differ where summation density drops (free surfaces): there
+    eq. 14 has a non-symmetric stiffness, whose growing modes make a free block at rest with a
+    tiny perturbation fly apart at any time step (see the tests).
+    """
+    i = rows[r]
+    if form == MOMENTUM_EQ12:
+        ri2 = 1.0 / rho[i]
+    else:
+        ri2 = 1.0 / (rho[i] * rho[i])
+    si0 = sig[i, 0]; si1 = sig[i, 1]; si2 = sig[i, 2]
+    si3 = sig[i, 3]; si4 = sig[i, 4]; si5 = sig[i, 5]
+    xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
+    a0 = 0.0; a1 = 0.0; a2 = 0.0
+    for k in range(nb_off[r], nb_off[r + 1]):
+        j = nb_idx[k]
+        f = mass * nb_dw[k]
+        g0 = f * (xi0 - x[j, 0]); g1 = f * (xi1 - x[j, 1]); g2 = f * (xi2 - x[j, 2])
+        if form == MOMENTUM_EQ12:
+            ci = ri2 / rho[j]
+            cj = ci
+        else:
+            ci = ri2
+            cj = 1.0 / (rho[j] * rho[j])
+        t0 = si0 * ci + sig[j, 0] * cj; t1 = si1 * ci + sig[j, 1] * cj; t2 = si2 * ci + sig[j, 2] * cj
+        t3 = si3 * ci + sig[j, 3] * cj; t4 = si4 * ci + sig[j, 4] * cj; t5 = si5 * ci + sig[j, 5] * cj
+        a0 += t0 * g0 + t3 * g1 + t4 * g2
+        a1 += t3 * g0 + t1 * g1 + t5 * g2
+        a2 += t4 * g0 + t5 * g1 + t2 * g2
+    out[0] = a0
+    out[1] = a1
+    out[2] = a2
+
+
+# ---------------------------------------------------------------------------- frame loop
+@njit(cache=True)
+def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
+                rows, n_rows, search, n_search, n_sph,
+                layer_list, layer_w, n_lp, cand, n_cand, contact_idx,
+                tool0, tool1, tool_on, reach, k_c, c_c,
+                n_sub, dt, frame_dt, v_limit, react, ext_idx, ext_force, n_ext,
+                rho, eps, epsd, sig, pos, nb_off, nb_idx, nb_dw, nb_w):
+    """Advance ``n_sub`` sub-steps of the paper scheme.
+
+    ``rows[:n_sph]`` are the fully solved (free) particles, ``rows[:n_rows]`` get density, strain
+    and stress, ``search[:n_search]`` (a superset of rows) are binned for the neighbour search.
+    Layers, contact and external loads are handled exactly as in :func:`~.integrate.run_frame`.
+
+    Returns ``(last overlap [m], ok, nb_idx, nb_dw, nb_w)`` (the pair buffers may have grown).
+    ``ok`` is False as soon as a speed exceeds ``v_limit``, a position is non-finite or a solved
+    particle has lost every neighbour (the body tore apart); the caller restores the state.
+    ``form`` selects the momentum equation (14 or 12, see :func:`momentum_one`). ``react``
+    receives the mean reaction on the tool [N].
+    """
+    react[0] = 0.0; react[1] = 0.0; react[2] = 0.0
+    tool = np.empty(3)
+    tool_vel = np.empty(3)
+    rsum = np.zeros(3)
+    fbuf = np.empty(3)
+    inv_mass = 1.0 / mass
+    vl2 = v_limit * v_limit
+    for a in range(3):
+        tool_vel[a] = (tool1[a] - tool0[a]) / frame_dt
+    overlap = 0.0
+    for s in range(n_sub):
+        frac = (s + 1.0) / n_sub
+        for a in range(3):
+            tool[a] = tool0[a] + frac * (tool1[a] - tool0[a])
+        ok, nb_idx, nb_dw, nb_w = current_neighbours(x, search, n_search, rows, n_rows, h, pos,
+                                                     nb_off, nb_idx, nb_dw, nb_w)
+        if not ok:
+            return overlap, False, nb_idx, nb_dw, nb_w
+        for r in range(n_sph):
+            if nb_off[r + 1] == nb_off[r]:
+                # a solved particle with no neighbour left: the body has torn apart
+                return overlap, False, nb_idx, nb_dw, nb_w
+        summation_density(rows, n_rows, nb_off, nb_w, mass, h, rho)
+        strain_stress(rows, n_rows, X, x, v, nb_off, nb_idx, nb_dw, mass, rho,
+                      G, K, eta_s, eta_v, eps, epsd, sig)
+        for r in range(n_sph):
+            i = rows[r]
+            momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form, fbuf)
+            acc[i, 0] = fbuf[0]
+            acc[i, 1] = fbuf[1]
+            acc[i, 2] = fbuf[2]
+        for t in range(n_ext):
+            i = ext_idx[t]
+            if not fixed[i]:
+                for a in range(3):
+                    acc[i, a] += ext_force[t, a] * inv_mass
+        if tool_on:
+            rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
+            overlap = contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, tool, tool_vel, reach,
+                                     k_c, c_c, rsum)
+            react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
+        # transmission layers follow the contact particle's acceleration (eqs. 20-21)
+        if n_lp > 0:
+            ac0 = 0.0; ac1 = 0.0; ac2 = 0.0
+            if contact_idx >= 0 and not fixed[contact_idx]:
+                ac0 = acc[contact_idx, 0]; ac1 = acc[contact_idx, 1]; ac2 = acc[contact_idx, 2]
+            for t in range(n_lp):
+                i = layer_list[t]
+                w = layer_w[t]
+                acc[i, 0] = w * ac0
+                acc[i, 1] = w * ac1
+                acc[i, 2] = w * ac2
+        # symplectic Euler (eq. 22), with the blow-up check of every sub-step
+        bad = False
+        for t in range(n_sph + n_lp):
+            i = rows[t] if t < n_sph else layer_list[t - n_sph]
+            for a in range(3):
+                v[i, a] += dt * acc[i, a]
+                x[i, a] += dt * v[i, a]
+            s2 = v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]
+            if not (s2 <= vl2):
+                bad = True
+        if bad or not (math.isfinite(react[0]) and math.isfinite(react[1]) and math.isfinite(react[2])):
+            return overlap, False, nb_idx, nb_dw, nb_w
+    for a in range(3):
+        react[a] /= max(n_sub, 1)
+    return overlap, True, nb_idx, nb_dw, nb_w
+
+
+# ---------------------------------------------------------------------------- local-mode sets
+@njit(cache=True)
+def local_rows(offsets, indices, sph, n_sph, stress, n_stress, active, n_active,
+               stamp, stamp_val, rows, search):
+    """Rows (``sph`` first, then the rest of ``stress``) and the search set for a local frame.
+
+    The search set is the rows, their reference neighbours and every active particle (active
+    particles may have moved far from home). Returns ``(n_rows, n_search)``.
+    """
+    n_rows = 0
+    for t in range(n_sph):
+        i = sph[t]
+        stamp[i] = stamp_val
+        rows[n_rows] = i
+        n_rows += 1
+    for t in range(n_stress):
+        i = stress[t]
+        if stamp[i] != stamp_val:
+            stamp[i] = stamp_val
+            rows[n_rows] = i
+            n_rows += 1
+    n_search = 0
+    for t in range(n_rows):
+        search[n_search] = rows[t]
+        n_search += 1
+    for t in range(n_rows):
+        i = rows[t]
+        for k in range(offsets[i], offsets[i + 1]):
+            j = indices[k]
+            if stamp[j] != stamp_val:
+                stamp[j] = stamp_val
+                search[n_search] = j
+                n_search += 1
+    for t in range(n_active):
+        j = active[t]
+        if stamp[j] != stamp_val:
+            stamp[j] = stamp_val
+            search[n_search] = j
+            n_search += 1
+    return n_rows, n_search
+
+
+@njit(cache=True)
+def von_mises_rows(sig, rows, n_rows, out):
+    """Von Mises stress ``sqrt(3/2 s:s)`` (s = dev sigma) of ``rows[:n_rows]`` into ``out``."""
+    for r in range(n_rows):
+        i = rows[r]
+        p = (sig[i, 0] + sig[i, 1] + sig[i, 2]) / 3.0
+        d0 = sig[i, 0] - p; d1 = sig[i, 1] - p; d2 = sig[i, 2] - p
+        out[i] = math.sqrt(1.5 * (d0 * d0 + d1 * d1 + d2 * d2
+                                  + 2.0 * (sig[i, 3] ** 2 + sig[i, 4] ** 2 + sig[i, 5] ** 2)))
+
+
+# ---------------------------------------------------------------------------- whole-body evaluation
+def paper_fields(X: np.ndarray, x: np.ndarray, v: np.ndarray, fixed: np.ndarray, h: float,
+                 volume: float, material, form: int = MOMENTUM_EQ14) -> dict:
+    """Density, strain, strain rate, stress and internal acceleration of every particle (global).
+
+    For analysis and tests: one call of the same kernels the frame loop uses, with all particles
+    as rows (fixed ones get fields but zero acceleration).
+
+    Returns:
+        dict with ``rho`` (N,), ``eps``, ``epsd``, ``sig`` (N, 6; xx, yy, zz, xy, xz, yz) and
+        ``acc`` (N, 3).
+    """
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    v = np.ascontiguousarray(v, dtype=np.float64)
+    fixed = np.ascontiguousarray(fixed, dtype=np.bool_)
+    n = len(X)
+    mass = material.rho * volume
+    rows = np.concatenate([np.flatnonzero(~fixed), np.flatnonzero(fixed)]).astype(np.int32)
+    nb_off = np.zeros(n + 1, dtype=np.int64)
+    ok, nb_idx, nb_dw, nb_w = current_neighbours(x, rows, n, rows, n, h, np.empty((n, 3)), nb_off,
+                                                 np.empty(64 * n, dtype=np.int32), np.empty(64 * n),
+                                                 np.empty(64 * n))
+    if not ok:
+        raise ValueError('positions are non-finite or too far apart for a cell grid')
+    rho = np.empty(n)
+    eps = np.zeros((n, 6))
+    epsd = np.zeros((n, 6))
+    sig = np.zeros((n, 6))
+    acc = np.zeros((n, 3))
+    summation_density(rows, n, nb_off, nb_w, mass, h, rho)
+    strain_stress(rows, n, X, x, v, nb_off, nb_idx, nb_dw, mass, rho, material.G, material.K,
+                  material.eta_shear, material.eta_bulk, eps, epsd, sig)
+    out = np.empty(3)
+    for r in range(int((~fixed).sum())):
+        momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form, out)
+        acc[rows[r]] = out
+    return dict(rho=rho, eps=eps, epsd=epsd, sig=sig, acc=acc)
+
+
+# ---------------------------------------------------------------------------- solver glue
+class PaperScheme:
+    """State and buffers of the ``paper`` scheme for one :class:`~.solver.Solver`.
+
+    The solver keeps positions, velocities, sub-stepping, the local-area bookkeeping and the
+    contact parameters; this object runs the frame loop on the index sets the solver prepared.
+    """
+
+    def __init__(self, solver) -> None:
+        self.solver = solver
+        n = solver.n
+        self.rho = np.empty(n)
+        self.eps = np.zeros((n, 6))
+        self.epsd = np.zeros((n, 6))
+        self.sig = np.zeros((n, 6))
+        self.pos = np.empty((n, 3))
+        self.rows = np.zeros(n, dtype=np.int32)
+        self.search = np.zeros(n, dtype=np.int32)
+        self.stamp = np.zeros(n, dtype=np.int64)
+        self.stamp_val = 0
+        self.nb_off = np.zeros(n + 1, dtype=np.int64)
+        cap = 2 * len(solver.indices) + 1024
+        self.nb_idx = np.empty(cap, dtype=np.int32)
+        self.nb_dw = np.empty(cap)
+        self.nb_w = np.empty(cap)
+        self.global_rows = np.concatenate([solver.free_idx, np.flatnonzero(solver.fixed)]).astype(np.int32)
+        self.n_rows_last = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Reference state: summation density at X for every particle, zero strain and stress."""
+        s = self.solver
+        n = s.n
+        ok, self.nb_idx, self.nb_dw, self.nb_w = current_neighbours(
+            s.X, self.global_rows, n, self.global_rows, n, s.h, self.pos, self.nb_off,
+            self.nb_idx, self.nb_dw, self.nb_w)
+        summation_density(self.global_rows, n, self.nb_off, self.nb_w, s.material.rho * s.volume, s.h,
+                          self.rho)
+        self.eps[:] = 0.0
+        self.epsd[:] = 0.0
+        self.sig[:] = 0.0
+        self.n_rows_last = 0
+
+    def run(self, lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt) -> tuple[float, bool]:
+        """One frame on the solver's index sets (same tuple as the tlsph path); returns ``(overlap, ok)``."""
+        s = self.solver
+        m = s.material
+        (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
+        if s.config.mode == 'global':
+            rows, n_rows = self.global_rows, s.n
+            search, n_search = self.global_rows, s.n
+            n_sph = len(s.free_idx)
+        else:
+            self.stamp_val += 1
+            n_rows, n_search = local_rows(s.offsets, s.indices, sph, n_sph, stress, n_stress,
+                                          s.active_list, s.n_active, self.stamp, self.stamp_val,
+                                          self.rows, self.search)
+            rows, search = self.rows, self.search
+        overlap, ok, self.nb_idx, self.nb_dw, self.nb_w = paper_frame(
+            s.X, s.x, s.v, s.acc, s.fixed, s.mass, s.h, m.G, m.K, m.eta_shear, m.eta_bulk,
+            s.config.paper_momentum, rows, n_rows, search, n_search, n_sph,
+            layer, layer_w, n_lp, cand, n_cand, contact,
+            tool0, tool1, tool_on, reach, s.config.contact_stiffness, s.contact_damping,
+            n_sub, sub_dt, dt, s.config.velocity_limit, s.react, s.ext_idx, s.ext_force, len(s.ext_idx),
+            self.rho, self.eps, self.epsd, self.sig, self.pos, self.nb_off,
+            self.nb_idx, self.nb_dw, self.nb_w)
+        self._vm_rows = rows
+        self.n_rows_last = n_rows if ok else 0
+        return overlap, ok
+
+    def von_mises(self) -> np.ndarray:
+        """(N,) von Mises stress [Pa] of the last frame's stress rows (0 elsewhere)."""
+        out = np.zeros(self.solver.n)
+        if self.n_rows_last > 0:
+            von_mises_rows(self.sig, self._vm_rows, self.n_rows_last, out)
+        return out
