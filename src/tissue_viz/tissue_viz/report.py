@@ -1,0 +1,435 @@
+"""Self-contained run report: PNG plots, CSV series, summary.md, index.html and summary.json.
+
+Headless (matplotlib Agg), no rclpy. The viz node writes a report on shutdown and on request; the
+``tissue_report`` command rebuilds one from the CSV files of an earlier report::
+
+    tissue_report reports/20261122-210000 -o /tmp/again
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as _dt
+import html
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tissue_viz.errors import ReportError
+from tissue_viz.stats import TOPICS, VizStats, percentile, press_displacement
+
+TABLES = {
+    'metrics': VizStats.METRICS_COLUMNS,
+    'force': VizStats.FORCE_COLUMNS,
+    'latency': VizStats.LATENCY_COLUMNS,
+    'rates': VizStats.RATE_COLUMNS,
+}
+PLOTS = (
+    ('force_vs_time.png', 'Force on the tool over time'),
+    ('force_vs_displacement.png', 'Force against tool displacement along the press direction'),
+    ('step_time_hist.png', 'Simulation step wall time'),
+    ('rates.png', 'Topic rates over time'),
+    ('latency_hist.png', 'Pose to force latency'),
+)
+
+
+@dataclass
+class ReportData:
+    """Everything a report is made of: whole-run tables (column -> array) and the summary."""
+
+    tables: dict = field(default_factory=dict)
+    summary: dict = field(default_factory=dict)
+    title: str = 'SPH soft-tissue simulation run'
+    haptic_period: float = 1e-3          # [s] for the deadline line in the step-time histogram
+    contact_threshold: float = 0.01      # [N] force that counts as first contact
+
+    @classmethod
+    def from_stats(cls, stats: VizStats, now: float, **kw) -> 'ReportData':
+        tables = {'metrics': stats.metrics_table.as_dict(), 'force': stats.force_table.as_dict(),
+                  'latency': stats.latency_table.as_dict(), 'rates': stats.rate_table.as_dict()}
+        return cls(tables=tables, summary=stats.summary(now), haptic_period=stats.period, **kw)
+
+    def table(self, name: str) -> dict:
+        cols = TABLES[name]
+        got = self.tables.get(name) or {}
+        n = len(next(iter(got.values()))) if got else 0
+        return {c: np.asarray(got.get(c, np.full(n, np.nan)), dtype=float) for c in cols}
+
+
+# -- CSV ------------------------------------------------------------------------------------------
+def write_csv(path: Path, columns: tuple, table: dict) -> None:
+    with open(path, 'w', newline='') as fh:
+        writer = csv.writer(fh)
+        writer.writerow(columns)
+        n = len(table[columns[0]]) if columns[0] in table else 0
+        arrays = [np.asarray(table[c], dtype=float) for c in columns]
+        for i in range(n):
+            writer.writerow(['' if not math.isfinite(a[i]) else repr(float(a[i])) for a in arrays])
+
+
+def read_csv(path: Path) -> dict:
+    """Read a report CSV back into column -> float array (empty cells are NaN)."""
+    try:
+        with open(path, newline='') as fh:
+            rows = list(csv.reader(fh))
+    except OSError as exc:
+        raise ReportError(f'cannot read {path}: {exc}') from exc
+    if not rows:
+        raise ReportError(f'{path} is empty (expected a header row)')
+    header, body = rows[0], rows[1:]
+    try:
+        data = np.array([[float(x) if x != '' else np.nan for x in row] for row in body],
+                        dtype=float).reshape(len(body), len(header))
+    except ValueError as exc:
+        raise ReportError(f'{path}: not a numeric CSV with {len(header)} columns: {exc}') from exc
+    return {name: data[:, i] for i, name in enumerate(header)}
+
+
+# -- plots ----------------------------------------------------------------------------------------
+def _figure():
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=100)
+    ax.grid(True, alpha=0.3)
+    return plt, fig, ax
+
+
+def _save(plt, fig, path: Path) -> None:
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _no_data(ax, what: str) -> None:
+    ax.text(0.5, 0.5, f'no {what} recorded', ha='center', va='center', transform=ax.transAxes,
+            fontsize=14, color='0.4')
+
+
+def _force_source(data: ReportData) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    """(t, force vectors, tool positions, label): force commands if any, else metrics forces."""
+    force = data.table('force')
+    if len(force['t']):
+        vec = np.column_stack([force['fx'], force['fy'], force['fz']])
+        pos = np.column_stack([force['px'], force['py'], force['pz']])
+        return force['t'], vec, pos, 'omni/force_feedback'
+    m = data.table('metrics')
+    vec = np.column_stack([m['fx'], m['fy'], m['fz']])
+    return m['t'], vec, np.full_like(vec, np.nan), 'tissue/metrics contact_force'
+
+
+def plot_force_vs_time(data: ReportData, path: Path) -> None:
+    plt, fig, ax = _figure()
+    t, vec, _, label = _force_source(data)
+    if len(t):
+        mag = np.linalg.norm(vec, axis=1)
+        for i, (axis, colour) in enumerate(zip('xyz', ('tab:red', 'tab:green', 'tab:blue'))):
+            ax.plot(t, vec[:, i], color=colour, lw=0.8, alpha=0.7, label=f'F{axis}')
+        ax.plot(t, mag, color='k', lw=1.4, label='|F|')
+        ax.legend(loc='upper right', fontsize=8)
+        ax.set_title(f'Force on the tool ({label})')
+    else:
+        _no_data(ax, 'force')
+        ax.set_title('Force on the tool')
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('force [N]')
+    _save(plt, fig, path)
+
+
+def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
+    plt, fig, ax = _figure()
+    t, vec, pos, _ = _force_source(data)
+    disp = press_displacement(vec, pos, data.contact_threshold) if len(t) else np.array([])
+    ok = np.isfinite(disp)
+    if ok.any():
+        mag = np.linalg.norm(vec, axis=1)
+        sc = ax.scatter(disp[ok] * 1e3, mag[ok], c=t[ok], s=4, cmap='viridis')
+        fig.colorbar(sc, ax=ax, label='time [s]')
+        ax.set_title('Force against tool displacement (from first contact, along the press)')
+    else:
+        # Without matched tool positions fall back to the penetration reported by the simulator.
+        m = data.table('metrics')
+        pen_ok = np.isfinite(m['penetration']) & (m['penetration'] > 0)
+        if pen_ok.any():
+            sc = ax.scatter(m['penetration'][pen_ok] * 1e3, m['force'][pen_ok], c=m['t'][pen_ok],
+                            s=4, cmap='viridis')
+            fig.colorbar(sc, ax=ax, label='time [s]')
+            ax.set_title('Force against tool penetration (tissue/metrics)')
+        else:
+            _no_data(ax, 'contact')
+            ax.set_title('Force against tool displacement')
+    ax.set_xlabel('tool displacement [mm]')
+    ax.set_ylabel('|F| [N]')
+    _save(plt, fig, path)
+
+
+def _hist(ax, values_s: np.ndarray, colour: str, p_lines: bool = True) -> None:
+    ms = values_s[np.isfinite(values_s)] * 1e3
+    ax.hist(ms, bins=min(80, max(10, int(np.sqrt(ms.size)))), color=colour, alpha=0.8)
+    if p_lines:
+        for q, style in ((50, '--'), (99, ':')):
+            v = percentile(ms, q)
+            ax.axvline(v, color='k', ls=style, lw=1, label=f'p{q} {v:.3f} ms')
+
+
+def plot_step_hist(data: ReportData, path: Path) -> None:
+    plt, fig, ax = _figure()
+    steps = data.table('metrics')['step_wall_time']
+    steps = steps[np.isfinite(steps)]
+    if steps.size:
+        _hist(ax, steps, 'tab:blue')
+        ax.axvline(data.haptic_period * 1e3, color='tab:red', lw=1.2,
+                   label=f'haptic period {data.haptic_period * 1e3:.2f} ms')
+        miss = 100.0 * np.count_nonzero(steps > data.haptic_period) / steps.size
+        ax.set_title(f'Step wall time ({steps.size} steps, {miss:.2f} % over the period)')
+        ax.legend(fontsize=8)
+    else:
+        _no_data(ax, 'step')
+        ax.set_title('Step wall time')
+    ax.set_xlabel('step wall time [ms]')
+    ax.set_ylabel('steps')
+    _save(plt, fig, path)
+
+
+def plot_rates(data: ReportData, path: Path) -> None:
+    plt, fig, ax = _figure()
+    rates = data.table('rates')
+    if len(rates['t']):
+        for topic in TOPICS:
+            ax.plot(rates['t'], rates[topic], lw=1.2, label=topic)
+        ax.legend(fontsize=8)
+        ax.set_yscale('symlog', linthresh=10)
+    else:
+        _no_data(ax, 'rate')
+    ax.set_title('Topic rates over time (sliding window)')
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('rate [Hz]')
+    _save(plt, fig, path)
+
+
+def plot_latency_hist(data: ReportData, path: Path) -> None:
+    plt, fig, ax = _figure()
+    lat = data.table('latency')['latency']
+    lat = lat[np.isfinite(lat)]
+    if lat.size:
+        _hist(ax, lat, 'tab:purple')
+        ax.legend(fontsize=8)
+        ax.set_title(f'Pose to force latency ({lat.size} replies)')
+    else:
+        _no_data(ax, 'latency')
+        ax.set_title('Pose to force latency')
+    ax.set_xlabel('latency [ms]')
+    ax.set_ylabel('replies')
+    _save(plt, fig, path)
+
+
+PLOTTERS = {
+    'force_vs_time.png': plot_force_vs_time,
+    'force_vs_displacement.png': plot_force_vs_displacement,
+    'step_time_hist.png': plot_step_hist,
+    'rates.png': plot_rates,
+    'latency_hist.png': plot_latency_hist,
+}
+
+
+# -- summaries ------------------------------------------------------------------------------------
+def summary_from_tables(data: ReportData) -> dict:
+    """A summary computed from the tables alone (when no summary.json came with them)."""
+    m, f, lat, r = (data.table(n) for n in ('metrics', 'force', 'latency', 'rates'))
+    steps = m['step_wall_time'][np.isfinite(m['step_wall_time'])]
+    latency = lat['latency'][np.isfinite(lat['latency'])]
+    forces = np.concatenate([f['force'], m['force']])
+    forces = forces[np.isfinite(forces)]
+    times = np.concatenate([m['t'], f['t'], r['t']])
+    times = times[np.isfinite(times)]
+
+    def num(x):
+        return None if x is None or not math.isfinite(x) else float(x)
+
+    def mean_rate(t):
+        return num((t.size - 1) / (t[-1] - t[0]) if t.size > 1 and t[-1] > t[0] else math.nan)
+
+    misses = int(np.count_nonzero(steps > data.haptic_period))
+    return {
+        'duration_s': num(times.max() - times.min() if times.size else math.nan),
+        'haptic_period_s': data.haptic_period,
+        'rates_hz': {'metrics': mean_rate(m['t']), 'force': mean_rate(f['t'])},
+        'steps': int(steps.size),
+        'forces': int(len(f['t'])),
+        'step_p50_s': num(percentile(steps, 50)),
+        'step_p99_s': num(percentile(steps, 99)),
+        'step_max_s': num(float(steps.max()) if steps.size else math.nan),
+        'deadline_misses': misses,
+        'deadline_miss_pct': num(100.0 * misses / steps.size if steps.size else math.nan),
+        'latency_p50_s': num(percentile(latency, 50)),
+        'latency_p99_s': num(percentile(latency, 99)),
+        'max_force_n': num(float(forces.max()) if forces.size else math.nan),
+        'max_displacement_m': num(float(np.nanmax(m['max_displacement']))
+                                  if np.isfinite(m['max_displacement']).any() else math.nan),
+    }
+
+
+def _fmt(value, scale: float = 1.0, digits: int = 3, unit: str = '') -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return 'n/a'
+    if isinstance(value, (int, float)):
+        return f'{value * scale:.{digits}f}{(" " + unit) if unit else ""}'
+    return str(value)
+
+
+def summary_rows(summary: dict) -> list[tuple[str, str]]:
+    """(label, formatted value) rows shared by summary.md and index.html."""
+    rows = [('duration', _fmt(summary.get('duration_s'), 1, 1, 's'))]
+    for topic, rate in (summary.get('rates_hz') or {}).items():
+        rows.append((f'{topic} rate', _fmt(rate, 1, 1, 'Hz')))
+    rows += [
+        ('steps', _fmt(summary.get('steps'), 1, 0)),
+        ('step wall time p50', _fmt(summary.get('step_p50_s'), 1e3, 3, 'ms')),
+        ('step wall time p99', _fmt(summary.get('step_p99_s'), 1e3, 3, 'ms')),
+        ('step wall time max', _fmt(summary.get('step_max_s'), 1e3, 3, 'ms')),
+        ('deadline misses', f"{_fmt(summary.get('deadline_misses'), 1, 0)} "
+                            f"({_fmt(summary.get('deadline_miss_pct'), 1, 2, '%')})"),
+        ('poses', _fmt(summary.get('poses'), 1, 0)),
+        ('pose to force latency p50', _fmt(summary.get('latency_p50_s'), 1e3, 3, 'ms')),
+        ('pose to force latency p99', _fmt(summary.get('latency_p99_s'), 1e3, 3, 'ms')),
+        ('poses without reply', _fmt(summary.get('replies_missed_pct'), 1, 2, '%')),
+        ('max force', _fmt(summary.get('max_force_n'), 1, 3, 'N')),
+        ('max displacement', _fmt(summary.get('max_displacement_m'), 1e3, 2, 'mm')),
+        ('max active particles', _fmt(summary.get('max_active_particles'), 1, 0)),
+        ('messages with NaN/inf', _fmt(summary.get('nan_messages'), 1, 0)),
+    ]
+    return rows
+
+
+def write_markdown(path: Path, data: ReportData, created: str) -> None:
+    lines = [f'# {data.title}', '', f'Report written {created}.', '', '| quantity | value |',
+             '|---|---|']
+    lines += [f'| {k} | {v} |' for k, v in summary_rows(data.summary)]
+    lines += ['', 'Series: ' + ', '.join(f'[{n}.csv]({n}.csv)' for n in TABLES) +
+              ', machine-readable summary: [summary.json](summary.json).', '']
+    for png, caption in PLOTS:
+        lines += [f'## {caption}', '', f'![{caption}]({png})', '']
+    path.write_text('\n'.join(lines))
+
+
+def write_html(path: Path, data: ReportData, created: str) -> None:
+    rows = '\n'.join(f'<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>'
+                     for k, v in summary_rows(data.summary))
+    figures = '\n'.join(
+        f'<figure><img src="{png}" alt="{html.escape(c)}"><figcaption>{html.escape(c)}'
+        f'</figcaption></figure>' for png, c in PLOTS)
+    links = ', '.join(f'<a href="{n}.csv">{n}.csv</a>' for n in TABLES)
+    path.write_text(f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{html.escape(data.title)}</title>
+<style>body{{font-family:sans-serif;max-width:900px;margin:2em auto}}
+table{{border-collapse:collapse}}td{{border:1px solid #ccc;padding:2px 8px}}
+img{{max-width:100%}}figure{{margin:1.5em 0}}</style></head>
+<body><h1>{html.escape(data.title)}</h1><p>Report written {html.escape(created)}.</p>
+<table>{rows}</table>
+<p>Series: {links}; summary: <a href="summary.json">summary.json</a>.</p>
+{figures}
+</body></html>
+""")
+
+
+def _json_safe(obj):
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+def default_report_dir(base: str | Path = 'reports') -> Path:
+    return Path(base) / _dt.datetime.now().strftime('%Y%m%d-%H%M%S')
+
+
+def write_report(directory: str | Path, data: ReportData) -> Path:
+    """Write the whole report folder and return its path (created if needed).
+
+    Raises:
+        ReportError: the folder cannot be created or written.
+    """
+    out = Path(directory)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ReportError(f'cannot create report folder {out}: {exc}') from exc
+    created = _dt.datetime.now(_dt.timezone.utc).strftime('%Y-%m-%d %H:%M:%S UTC')
+    if not data.summary:
+        data.summary = summary_from_tables(data)
+    try:
+        for name, columns in TABLES.items():
+            write_csv(out / f'{name}.csv', columns, data.table(name))
+        for png, plotter in PLOTTERS.items():
+            plotter(data, out / png)
+        summary = dict(_json_safe(data.summary))
+        summary['created'] = created
+        summary['files'] = sorted([p for p, _ in PLOTS] + [f'{n}.csv' for n in TABLES] +
+                                  ['summary.md', 'index.html'])
+        write_markdown(out / 'summary.md', data, created)
+        write_html(out / 'index.html', data, created)
+        # summary.json last and atomically: its presence means the folder is complete.
+        tmp = out / '.summary.json.tmp'
+        tmp.write_text(json.dumps(summary, indent=2, sort_keys=True) + '\n')
+        tmp.replace(out / 'summary.json')
+    except OSError as exc:
+        raise ReportError(f'cannot write report into {out}: {exc}') from exc
+    return out
+
+
+def load_report_data(directory: str | Path) -> ReportData:
+    """Read the CSV tables (and summary.json, if present) of an existing report folder."""
+    src = Path(directory)
+    if not src.is_dir():
+        raise ReportError(f'{src} is not a report folder')
+    tables = {}
+    for name in TABLES:
+        path = src / f'{name}.csv'
+        if path.is_file():
+            tables[name] = read_csv(path)
+    if not tables:
+        raise ReportError(f'{src} holds none of ' + ', '.join(f'{n}.csv' for n in TABLES))
+    summary = {}
+    js = src / 'summary.json'
+    if js.is_file():
+        try:
+            summary = json.loads(js.read_text())
+        except json.JSONDecodeError as exc:
+            raise ReportError(f'{js} is not valid JSON: {exc}') from exc
+    period = summary.get('haptic_period_s') or 1e-3
+    summary = {k: v for k, v in summary.items() if k not in ('created', 'files')}
+    return ReportData(tables=tables, summary=summary, haptic_period=float(period))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``tissue_report SRC [-o OUT]``: rebuild plots and summaries from a report's CSV files."""
+    parser = argparse.ArgumentParser(prog='tissue_report', description=main.__doc__)
+    parser.add_argument('source', help='report folder holding metrics.csv / force.csv / ...')
+    parser.add_argument('-o', '--output', help='output folder (default: the source folder)')
+    parser.add_argument('--recompute-summary', action='store_true',
+                        help='ignore summary.json and recompute the summary from the CSV files')
+    args = parser.parse_args(argv)
+    try:
+        data = load_report_data(args.source)
+        if args.recompute_summary:
+            data.summary = {}
+        out = write_report(args.output or args.source, data)
+    except ReportError as exc:
+        print(f'tissue_report: error: {exc}', file=sys.stderr)
+        return 2
+    print(f'tissue_report: wrote {out / "index.html"}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,545 @@
+"""Rolling statistics of the running simulation (pure Python + numpy, no rclpy).
+
+Every method takes the current time ``now`` explicitly (seconds on a monotonic clock), so the
+statistics can be fed hand-made series in tests and the node stays a thin adapter. Callbacks at
+1 kHz only append to deques; percentiles are computed when a snapshot is asked for (about 1 Hz).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict, deque
+from dataclasses import asdict, dataclass, field
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from tissue_viz.errors import VizConfigError
+
+TOPICS = ('metrics', 'particles', 'pose', 'force')
+
+
+def percentile(values: Sequence[float] | np.ndarray, q: float) -> float:
+    """The q-th percentile (0..100, linear interpolation) of ``values``; NaN when empty."""
+    arr = np.asarray(values, dtype=float)
+    if arr.size == 0:
+        return math.nan
+    return float(np.percentile(arr, q))
+
+
+class RateMeter:
+    """Message rate over a sliding time window, like diagnostic_updater's FrequencyStatus.
+
+    Once the topic has been seen for a whole window the rate is ``count_in_window / window``, so
+    it falls when messages thin out or stop; before that (start-up) it is ``(n - 1) / span`` over
+    the messages seen so far, which is exact for a regular stream.
+    """
+
+    def __init__(self, window: float) -> None:
+        if not window > 0:
+            raise VizConfigError(f'rate window must be > 0 s, got {window}')
+        self.window = float(window)
+        self._times: deque[float] = deque()
+        self.first: float | None = None
+        self.last: float | None = None
+        self.count = 0
+
+    def tick(self, now: float) -> None:
+        """Record one message received at ``now``."""
+        if self.first is None:
+            self.first = now
+        self.last = now
+        self.count += 1
+        self._times.append(now)
+        self._prune(now)
+
+    def _prune(self, now: float) -> None:
+        horizon = now - self.window
+        times = self._times
+        while times and times[0] <= horizon:
+            times.popleft()
+
+    def rate(self, now: float) -> float:
+        """Messages per second over the window ending at ``now`` (0 if never or no longer seen)."""
+        self._prune(now)
+        if self.first is None:
+            return 0.0
+        n = len(self._times)
+        if now - self.first >= self.window:
+            return n / self.window
+        if n < 2:
+            return 0.0
+        span = self._times[-1] - self._times[0]
+        return (n - 1) / span if span > 0 else 0.0
+
+    def age(self, now: float) -> float | None:
+        """Seconds since the last message, None if none arrived yet."""
+        return None if self.last is None else now - self.last
+
+    def mean_rate(self) -> float:
+        """Average rate over the whole run, ``(count - 1) / (last - first)``."""
+        if self.count < 2 or self.last is None or self.first is None or self.last <= self.first:
+            return 0.0
+        return (self.count - 1) / (self.last - self.first)
+
+
+class WindowedSeries:
+    """Values with their receive times, keeping only those inside the last ``window`` seconds."""
+
+    def __init__(self, window: float) -> None:
+        if not window > 0:
+            raise VizConfigError(f'series window must be > 0 s, got {window}')
+        self.window = float(window)
+        self._t: deque[float] = deque()
+        self._v: deque[float] = deque()
+
+    def add(self, now: float, value: float) -> None:
+        self._t.append(now)
+        self._v.append(value)
+
+    def values(self, now: float) -> np.ndarray:
+        """The values received in (now - window, now]."""
+        horizon = now - self.window
+        while self._t and self._t[0] <= horizon:
+            self._t.popleft()
+            self._v.popleft()
+        return np.fromiter(self._v, dtype=float, count=len(self._v))
+
+    def __len__(self) -> int:
+        return len(self._v)
+
+
+class DecimatingRecorder:
+    """A whole-run table of rows with bounded memory.
+
+    When ``max_rows`` is reached every other stored row is dropped and only every ``stride``-th
+    new row is kept from then on (stride doubles each time), so a long run keeps an evenly
+    thinned history for the report instead of its first or last minutes only.
+    """
+
+    def __init__(self, columns: Sequence[str], max_rows: int) -> None:
+        if max_rows < 2:
+            raise VizConfigError(f'max_rows must be >= 2, got {max_rows}')
+        self.columns = tuple(columns)
+        self.max_rows = int(max_rows)
+        self.stride = 1
+        self._seen = 0
+        self._rows: list[tuple[float, ...]] = []
+
+    def append(self, row: Iterable[float]) -> None:
+        row = tuple(float(x) for x in row)
+        if len(row) != len(self.columns):
+            raise ValueError(f'row has {len(row)} values, table has {len(self.columns)} columns')
+        keep = self._seen % self.stride == 0
+        self._seen += 1
+        if not keep:
+            return
+        self._rows.append(row)
+        if len(self._rows) >= self.max_rows:
+            self._rows = self._rows[::2]
+            self.stride *= 2
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def array(self) -> np.ndarray:
+        """Rows as a (n, n_columns) float array."""
+        if not self._rows:
+            return np.empty((0, len(self.columns)))
+        return np.asarray(self._rows, dtype=float)
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        arr = self.array()
+        return {name: arr[:, i] for i, name in enumerate(self.columns)}
+
+
+class LatencyMatcher:
+    """Pose→force latency: match a force's header stamp to the pose with the same stamp.
+
+    Latency is the receive time of the force minus the receive time of that pose (both here, so
+    one clock). Poses not answered within ``timeout`` count as missed replies; forces whose stamp
+    matches no pending pose are counted as unmatched (e.g. the pose was dropped on the way here).
+    """
+
+    def __init__(self, timeout: float, max_pending: int = 10000) -> None:
+        if not timeout > 0:
+            raise VizConfigError(f'latency timeout must be > 0 s, got {timeout}')
+        self.timeout = float(timeout)
+        self.max_pending = int(max_pending)
+        self._pending: OrderedDict[int, tuple[float, tuple[float, float, float]]] = OrderedDict()
+        self.answered = 0
+        self.missed = 0
+        self.unmatched_forces = 0
+
+    def on_pose(self, stamp_ns: int, now: float, position: tuple[float, float, float]) -> None:
+        if stamp_ns in self._pending:
+            # A repeated stamp: keep the first arrival, that is when the request went out.
+            return
+        self._pending[stamp_ns] = (now, position)
+        while len(self._pending) > self.max_pending:
+            self._pending.popitem(last=False)
+            self.missed += 1
+
+    def on_force(self, stamp_ns: int, now: float) -> tuple[float, tuple[float, float, float]] | None:
+        """Return (latency [s], pose position) or None when no pending pose has this stamp."""
+        entry = self._pending.pop(stamp_ns, None)
+        if entry is None:
+            self.unmatched_forces += 1
+            return None
+        self.answered += 1
+        t_pose, position = entry
+        return now - t_pose, position
+
+    def expire(self, now: float) -> int:
+        """Count poses older than the timeout as missed; returns how many expired now."""
+        expired = 0
+        horizon = now - self.timeout
+        pending = self._pending
+        # Receive order is insertion order, so the oldest are at the front.
+        while pending:
+            key, (t_pose, _) = next(iter(pending.items()))
+            if t_pose > horizon:
+                break
+            pending.popitem(last=False)
+            expired += 1
+        self.missed += expired
+        return expired
+
+    @property
+    def pending(self) -> int:
+        return len(self._pending)
+
+
+class StampOrder:
+    """Counts header stamps that go backwards on one topic (equal stamps are not out of order)."""
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.backwards = 0
+
+    def check(self, stamp_ns: int) -> bool:
+        """True if ``stamp_ns`` is not older than the newest stamp seen so far."""
+        if self.last is not None and stamp_ns < self.last:
+            self.backwards += 1
+            return False
+        self.last = stamp_ns
+        return True
+
+
+def finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+@dataclass
+class Snapshot:
+    """Rolling statistics at one instant; NaN where there is no data in the window."""
+
+    now: float
+    window: float
+    rates: dict = field(default_factory=dict)          # topic -> Hz over the window
+    ages: dict = field(default_factory=dict)           # topic -> s since last message (None never)
+    counts: dict = field(default_factory=dict)         # topic -> messages since start
+    step_p50: float = math.nan                         # [s] step wall time
+    step_p99: float = math.nan
+    step_max: float = math.nan
+    deadline_misses: int = 0                           # steps in window longer than the period
+    deadline_miss_pct: float = math.nan
+    latency_p50: float = math.nan                      # [s] pose -> force
+    latency_p99: float = math.nan
+    latency_max: float = math.nan
+    replies_missed_pct: float = math.nan               # poses without a force reply (whole run)
+    active: float = math.nan                           # particles computed in the latest step
+    n_interaction: float = math.nan
+    force: float = math.nan                            # [N] latest force magnitude
+    force_max: float = math.nan                        # [N] max in the window
+    displacement: float = math.nan                     # [m] latest max displacement
+    nan_in_window: int = 0
+    nan_total: int = 0
+    backwards_in_window: int = 0
+    backwards_total: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class VizStats:
+    """All the statistics the viz node keeps, fed by plain values.
+
+    Args:
+        window: sliding window [s] for rates and distributions.
+        haptic_rate: haptic loop rate [Hz]; a step longer than 1/haptic_rate misses its deadline.
+        latency_timeout: a pose without a force reply after this many seconds is a missed reply.
+        max_report_rows: memory bound of each whole-run table kept for the report.
+    """
+
+    METRICS_COLUMNS = ('t', 'step_wall_time', 'substeps', 'n_interaction', 'n_active',
+                       'contact_index', 'penetration', 'fx', 'fy', 'fz', 'force',
+                       'max_displacement', 'kinetic_energy')
+    FORCE_COLUMNS = ('t', 'fx', 'fy', 'fz', 'force', 'px', 'py', 'pz')
+    LATENCY_COLUMNS = ('t', 'latency')
+    RATE_COLUMNS = ('t',) + TOPICS
+
+    def __init__(self, window: float = 5.0, haptic_rate: float = 1000.0,
+                 latency_timeout: float = 0.5, max_report_rows: int = 200000) -> None:
+        if not haptic_rate > 0:
+            raise VizConfigError(f'haptic_rate must be > 0 Hz, got {haptic_rate}')
+        self.window = float(window)
+        self.period = 1.0 / float(haptic_rate)
+        self.meters = {topic: RateMeter(window) for topic in TOPICS}
+        self.order = {topic: StampOrder() for topic in TOPICS}
+        self.step = WindowedSeries(window)
+        self.latency = WindowedSeries(window)
+        self.force_window = WindowedSeries(window)
+        self.nan_window = WindowedSeries(window)
+        self.backwards_window = WindowedSeries(window)
+        self.matcher = LatencyMatcher(latency_timeout)
+        self.nan_total = 0
+        self.steps_total = 0
+        self.deadline_misses_total = 0
+        self.force_max_total = 0.0
+        self.displacement_max_total = 0.0
+        self.active_max_total = 0
+        self.points_last = 0
+        self.last_force: float = math.nan
+        self.last_metrics_force: float = math.nan
+        self.last_displacement: float = math.nan
+        self.last_active: float = math.nan
+        self.last_interaction: float = math.nan
+        self.last_pose: tuple[float, float, float] | None = None
+        self.last_force_vec: tuple[float, float, float] | None = None
+        self.t0: float | None = None
+        self.metrics_table = DecimatingRecorder(self.METRICS_COLUMNS, max_report_rows)
+        self.force_table = DecimatingRecorder(self.FORCE_COLUMNS, max_report_rows)
+        self.latency_table = DecimatingRecorder(self.LATENCY_COLUMNS, max_report_rows)
+        self.rate_table = DecimatingRecorder(self.RATE_COLUMNS, max_report_rows)
+
+    # -- inputs -----------------------------------------------------------------------------------
+    def _rel(self, now: float) -> float:
+        if self.t0 is None:
+            self.t0 = now
+        return now - self.t0
+
+    def _check_order(self, topic: str, now: float, stamp_ns: int) -> None:
+        if not self.order[topic].check(stamp_ns):
+            self.backwards_window.add(now, 1.0)
+
+    def _bad(self, now: float) -> None:
+        self.nan_total += 1
+        self.nan_window.add(now, 1.0)
+
+    def on_metrics(self, now: float, stamp_ns: int, step_wall_time: float, force: Sequence[float],
+                   max_displacement: float, n_interaction: int = 0, n_layer: Sequence[int] = (),
+                   n_relaxing: int = 0, substeps: int = 0, contact_index: int = -1,
+                   penetration: float = 0.0, kinetic_energy: float = 0.0) -> bool:
+        """One SimMetrics message; returns False (and counts it) if it carries NaN/inf."""
+        t = self._rel(now)
+        self.meters['metrics'].tick(now)
+        self._check_order('metrics', now, stamp_ns)
+        fx, fy, fz = (float(v) for v in force)
+        if not finite(step_wall_time, fx, fy, fz, max_displacement, penetration, kinetic_energy):
+            self._bad(now)
+            return False
+        fmag = math.sqrt(fx * fx + fy * fy + fz * fz)
+        active = int(n_interaction) + int(sum(n_layer)) + int(n_relaxing)
+        self.step.add(now, step_wall_time)
+        self.steps_total += 1
+        if step_wall_time > self.period:
+            self.deadline_misses_total += 1
+        self.force_max_total = max(self.force_max_total, fmag)
+        self.displacement_max_total = max(self.displacement_max_total, max_displacement)
+        self.active_max_total = max(self.active_max_total, active)
+        self.last_metrics_force = fmag
+        self.last_displacement = max_displacement
+        self.last_active = active
+        self.last_interaction = n_interaction
+        if self.meters['force'].count == 0:
+            self.force_window.add(now, fmag)
+        self.metrics_table.append((t, step_wall_time, substeps, n_interaction, active,
+                                   contact_index, penetration, fx, fy, fz, fmag,
+                                   max_displacement, kinetic_energy))
+        return True
+
+    def on_particles(self, now: float, stamp_ns: int, n_points: int) -> None:
+        self._rel(now)
+        self.meters['particles'].tick(now)
+        self._check_order('particles', now, stamp_ns)
+        self.points_last = int(n_points)
+
+    def on_pose(self, now: float, stamp_ns: int, position: Sequence[float]) -> bool:
+        """One tool pose; returns False (and counts it) if the position is not finite."""
+        self._rel(now)
+        self.meters['pose'].tick(now)
+        self._check_order('pose', now, stamp_ns)
+        px, py, pz = (float(v) for v in position)
+        if not finite(px, py, pz):
+            self._bad(now)
+            return False
+        self.last_pose = (px, py, pz)
+        self.matcher.on_pose(stamp_ns, now, self.last_pose)
+        return True
+
+    def on_force(self, now: float, stamp_ns: int, force: Sequence[float]) -> float | None:
+        """One force command; returns its latency [s] if its stamp matched a pose."""
+        t = self._rel(now)
+        self.meters['force'].tick(now)
+        self._check_order('force', now, stamp_ns)
+        fx, fy, fz = (float(v) for v in force)
+        if not finite(fx, fy, fz):
+            self._bad(now)
+            return None
+        fmag = math.sqrt(fx * fx + fy * fy + fz * fz)
+        self.last_force = fmag
+        self.last_force_vec = (fx, fy, fz)
+        self.force_max_total = max(self.force_max_total, fmag)
+        self.force_window.add(now, fmag)
+        matched = self.matcher.on_force(stamp_ns, now)
+        pos = (math.nan,) * 3
+        latency = None
+        if matched is not None:
+            latency, pos = matched
+            self.latency.add(now, latency)
+            self.latency_table.append((t, latency))
+        self.force_table.append((t, fx, fy, fz, fmag, *pos))
+        return latency
+
+    # -- outputs ----------------------------------------------------------------------------------
+    def snapshot(self, now: float) -> Snapshot:
+        """Rolling statistics over the window ending at ``now`` (also expires unanswered poses)."""
+        self.matcher.expire(now)
+        snap = Snapshot(now=now, window=self.window)
+        for topic, meter in self.meters.items():
+            snap.rates[topic] = meter.rate(now)
+            snap.ages[topic] = meter.age(now)
+            snap.counts[topic] = meter.count
+        steps = self.step.values(now)
+        if steps.size:
+            snap.step_p50 = percentile(steps, 50)
+            snap.step_p99 = percentile(steps, 99)
+            snap.step_max = float(steps.max())
+            snap.deadline_misses = int(np.count_nonzero(steps > self.period))
+            snap.deadline_miss_pct = 100.0 * snap.deadline_misses / steps.size
+        lat = self.latency.values(now)
+        if lat.size:
+            snap.latency_p50 = percentile(lat, 50)
+            snap.latency_p99 = percentile(lat, 99)
+            snap.latency_max = float(lat.max())
+        decided = self.matcher.answered + self.matcher.missed
+        if decided:
+            snap.replies_missed_pct = 100.0 * self.matcher.missed / decided
+        snap.active = self.last_active
+        snap.n_interaction = self.last_interaction
+        snap.force = self.last_force if self.meters['force'].count else self.last_metrics_force
+        forces = self.force_window.values(now)
+        if forces.size:
+            snap.force_max = float(forces.max())
+        snap.displacement = self.last_displacement
+        snap.nan_in_window = len(self.nan_window.values(now))
+        snap.nan_total = self.nan_total
+        snap.backwards_in_window = len(self.backwards_window.values(now))
+        snap.backwards_total = sum(o.backwards for o in self.order.values())
+        return snap
+
+    def sample_rates(self, now: float) -> None:
+        """Record the current windowed rates in the whole-run rate table (call at ~1 Hz)."""
+        t = self._rel(now)
+        self.rate_table.append((t, *(self.meters[topic].rate(now) for topic in TOPICS)))
+
+    def summary(self, now: float) -> dict:
+        """Whole-run summary (the content of summary.json)."""
+        self.matcher.expire(now)
+        metrics = self.metrics_table.as_dict()
+        lat = self.latency_table.as_dict()['latency']
+        steps = metrics['step_wall_time']
+        decided = self.matcher.answered + self.matcher.missed
+
+        def num(x: float) -> float | None:
+            return None if x is None or not math.isfinite(x) else float(x)
+
+        return {
+            'duration_s': num(0.0 if self.t0 is None else now - self.t0),
+            'window_s': self.window,
+            'haptic_period_s': self.period,
+            'rates_hz': {t: num(self.meters[t].mean_rate()) for t in TOPICS},
+            'messages': {t: self.meters[t].count for t in TOPICS},
+            'poses': self.meters['pose'].count,
+            'forces': self.meters['force'].count,
+            'steps': self.steps_total,
+            'step_p50_s': num(percentile(steps, 50)),
+            'step_p99_s': num(percentile(steps, 99)),
+            'step_max_s': num(float(steps.max()) if steps.size else math.nan),
+            'deadline_misses': self.deadline_misses_total,
+            'deadline_miss_pct': num(100.0 * self.deadline_misses_total / self.steps_total
+                                     if self.steps_total else math.nan),
+            'latency_p50_s': num(percentile(lat, 50)),
+            'latency_p99_s': num(percentile(lat, 99)),
+            'latency_max_s': num(float(lat.max()) if lat.size else math.nan),
+            'replies_answered': self.matcher.answered,
+            'replies_missed': self.matcher.missed,
+            'replies_missed_pct': num(100.0 * self.matcher.missed / decided if decided else math.nan),
+            'unmatched_forces': self.matcher.unmatched_forces,
+            'max_force_n': num(self.force_max_total),
+            'max_displacement_m': num(self.displacement_max_total),
+            'max_active_particles': self.active_max_total,
+            'points_last': self.points_last,
+            'nan_messages': self.nan_total,
+            'backwards_stamps': {t: self.order[t].backwards for t in TOPICS},
+        }
+
+
+def _fmt(value: float, scale: float, digits: int, unit: str) -> str:
+    if value is None or not math.isfinite(value):
+        return '-'
+    return f'{value * scale:.{digits}f} {unit}'
+
+
+def summary_line(snap: Snapshot) -> str:
+    """Compact one-line status, e.g. ``haptic 998 Hz | step p50 0.08 ms p99 0.2 ms | ...``."""
+    # The haptic loop's output is the force stream; without it, the (per-step) metrics stream.
+    haptic = snap.rates.get('force', 0.0) if snap.counts.get('force') else snap.rates.get('metrics', 0.0)
+    parts = [
+        f'haptic {haptic:.0f} Hz',
+        f'step p50 {_fmt(snap.step_p50, 1e3, 2, "ms")} p99 {_fmt(snap.step_p99, 1e3, 2, "ms")}',
+        f'miss {_fmt(snap.deadline_miss_pct, 1.0, 1, "%")}',
+        f'lat p50 {_fmt(snap.latency_p50, 1e3, 2, "ms")} p99 {_fmt(snap.latency_p99, 1e3, 2, "ms")}',
+        f'active {snap.active:.0f}' if math.isfinite(snap.active) else 'active -',
+        f'F {_fmt(snap.force, 1.0, 2, "N")}',
+        f'disp {_fmt(snap.displacement, 1e3, 1, "mm")}',
+        f'cloud {snap.rates.get("particles", 0.0):.0f} Hz',
+    ]
+    if snap.nan_total or snap.backwards_total:
+        parts.append(f'bad {snap.nan_total} nan {snap.backwards_total} backwards')
+    return ' | '.join(parts)
+
+
+def press_displacement(force: np.ndarray, position: np.ndarray,
+                       contact_threshold: float = 0.01) -> np.ndarray:
+    """Tool displacement along the press direction, from the first contact.
+
+    The press direction is opposite to the largest reaction force (the tissue pushes back against
+    the tool), and displacement is measured from the tool position at the first sample whose force
+    exceeds ``contact_threshold``. Samples before the contact, or without a finite position, are NaN.
+
+    Args:
+        force: (n, 3) force vectors [N].
+        position: (n, 3) tool positions [m] at the same samples.
+        contact_threshold: force magnitude [N] that counts as contact.
+
+    Returns:
+        (n,) displacement [m], NaN where undefined (all NaN if there never was contact).
+    """
+    force = np.asarray(force, dtype=float).reshape(-1, 3)
+    position = np.asarray(position, dtype=float).reshape(-1, 3)
+    out = np.full(len(force), np.nan)
+    mags = np.linalg.norm(force, axis=1)
+    ok = np.isfinite(position).all(axis=1) & np.isfinite(mags)
+    contact = np.flatnonzero(ok & (mags > contact_threshold))
+    if contact.size == 0:
+        return out
+    first = contact[0]
+    i_max = contact[np.argmax(mags[contact])]
+    direction = -force[i_max] / mags[i_max]
+    disp = (position - position[first]) @ direction
+    after = np.arange(len(force)) >= first
+    sel = after & ok
+    out[sel] = disp[sel]
+    return out
