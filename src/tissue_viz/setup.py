@@ -24,6 +24,7 @@ setup(
     entry_points={
         'console_scripts': [
             'viz_node = tissue_viz.viz_node:main',
+            'tissue_report = tissue_viz.report:main',
         ],
     },
 )

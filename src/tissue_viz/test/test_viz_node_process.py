@@ -1,0 +1,261 @@
+"""viz_node as a real process over DDS: diagnostics levels follow the metrics rate, reports, markers."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import pytest
+
+import harness
+
+pytestmark = pytest.mark.ros
+
+# Small, fast targets so a test process can hold the rates easily on a loaded 2-core machine.
+FAST = {
+    'window': 1.0, 'diagnostics_rate': 5.0, 'stale_timeout': 1.0, 'summary_period': 1.0,
+    'metrics_min_rate': 150.0, 'metrics_max_rate': 250.0, 'rate_tolerance': 0.2,
+    'particles_required': False, 'pose_required': False, 'force_required': False,
+    'report_on_shutdown': False,
+}
+
+
+def _metrics(stamp_ns: int, step: float = 1e-4, fz: float = 0.5, disp: float = 0.004):
+    from tissue_msgs.msg import SimMetrics
+
+    msg = SimMetrics()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+    msg.header.frame_id = 'tissue'
+    msg.step_wall_time = step
+    msg.n_particles, msg.n_interaction, msg.n_layer, msg.n_relaxing = 3670, 100, [40, 20], 5
+    msg.contact_force.z = fz
+    msg.max_displacement = disp
+    msg.scheme, msg.mode = msg.SCHEME_TLSPH, msg.MODE_LOCAL
+    return msg
+
+
+class Probe:
+    """Publishes metrics at a chosen rate while collecting /diagnostics."""
+
+    def __init__(self, node):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from tissue_msgs.msg import SimMetrics
+
+        self.node = node
+        self.pub = node.create_publisher(
+            SimMetrics, 'tissue/metrics', QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        self.arrays = []
+        self.diag_sub = node.create_subscription(DiagnosticArray, '/diagnostics',
+                                                 self.arrays.append, 10)
+        self.sent = 0
+        self.stamp_ns = 1_000_000_000
+
+    def status(self, name_part: str):
+        """Newest status whose name contains ``name_part`` (None before any arrived)."""
+        for array in reversed(self.arrays):
+            for s in array.status:
+                if name_part in s.name:
+                    return s
+        return None
+
+    def run(self, rate: float, until, timeout: float, make=None) -> bool:
+        """Publish at ``rate`` Hz (0: publish nothing) until ``until()`` or ``timeout``."""
+        period = 1.0 / rate if rate > 0 else None
+        next_pub = time.monotonic()
+        deadline = next_pub + timeout
+        executor = self.node.executor_for_test
+        while time.monotonic() < deadline:
+            if until():
+                return True
+            now = time.monotonic()
+            if period is not None and now >= next_pub:
+                self.stamp_ns += int(period * 1e9)
+                self.pub.publish(make(self) if make else _metrics(self.stamp_ns))
+                self.sent += 1
+                next_pub += period
+                if now - next_pub > 0.1:  # fell far behind (loaded machine): do not burst
+                    next_pub = now
+            executor.spin_once(timeout_sec=0.001)
+        return until()
+
+
+def _level(status) -> int:
+    return status.level[0] if isinstance(status.level, (bytes, bytearray)) else int(status.level)
+
+
+def test_diagnostics_follow_the_metrics_rate_ok_then_warn_then_no_data(rclpy_node):
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=FAST) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        probe = Probe(rclpy_node)
+        harness.wait_for_matching(rclpy_node, probe.pub)
+        harness.wait_for_matching(rclpy_node, probe.diag_sub)
+
+        # Nothing published yet: the required metrics topic says "no data" (ERROR).
+        assert probe.run(0, lambda: probe.status('tissue/metrics rate') is not None, 15)
+        first = probe.status('tissue/metrics rate')
+        assert _level(first) == 2 and first.message == 'no data'
+        assert _level(probe.status('omni/pose rate')) == 0   # not required here
+
+        # 200 Hz inside [150, 250]: OK.
+        def metrics_ok():
+            s = probe.status('tissue/metrics rate')
+            return s is not None and _level(s) == 0
+        assert probe.run(200.0, metrics_ok, 20), probe.status('tissue/metrics rate')
+        rate = float(dict((kv.key, kv.value) for kv in probe.status('tissue/metrics rate').values)
+                     ['rate [Hz]'])
+        assert 150 * 0.8 <= rate <= 250 * 1.2
+        assert 'p99' in probe.status('step time').message and _level(probe.status('step time')) == 0
+
+        # 40 Hz is below 150 Hz * (1 - 0.2): WARN "rate too low".
+        def metrics_warn():
+            s = probe.status('tissue/metrics rate')
+            return _level(s) == 1
+        assert probe.run(40.0, metrics_warn, 20), probe.status('tissue/metrics rate')
+        assert 'too low' in probe.status('tissue/metrics rate').message
+
+        # Stopped for longer than stale_timeout: ERROR "no data for ...".
+        def metrics_stopped():
+            s = probe.status('tissue/metrics rate')
+            return _level(s) == 2
+        assert probe.run(0, metrics_stopped, 20), probe.status('tissue/metrics rate')
+        assert probe.status('tissue/metrics rate').message.startswith('no data for')
+        assert viz.alive()
+        viz.wait_for_output(r'haptic \d+ Hz \| step p50', timeout=10)
+
+
+def test_nan_and_backwards_metrics_are_counted_and_the_node_keeps_running(rclpy_node):
+    def bad(probe):
+        # Every 5th message is NaN; every 7th goes back in time.
+        k = probe.sent
+        stamp = probe.stamp_ns - (500_000_000 if k % 7 == 3 else 0)
+        return _metrics(stamp, step=math.nan if k % 5 == 0 else 1e-4)
+
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=FAST) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        probe = Probe(rclpy_node)
+        harness.wait_for_matching(rclpy_node, probe.pub)
+        harness.wait_for_matching(rclpy_node, probe.diag_sub)
+
+        def input_warn():
+            s = probe.status('input')
+            return s is not None and _level(s) == 1 and 'NaN' in s.message and 'backwards' in s.message
+        assert probe.run(200.0, input_warn, 20, make=bad), probe.status('input')
+        # The finite messages still give step statistics.
+        assert _level(probe.status('step time')) == 0
+        assert viz.alive()
+
+
+def test_sigint_writes_a_report_whose_summary_matches_what_was_sent(rclpy_node, tmp_path):
+    report = tmp_path / 'report'
+    params = dict(FAST, report_on_shutdown=True, report_dir=str(report))
+    forces = [0.1 * (i % 20) for i in range(300)]   # max 1.9 N
+
+    def ramp(probe):
+        i = probe.sent
+        step = 2e-3 if i % 10 == 0 else 1e-4   # 10 % miss the 1 ms deadline
+        return _metrics(probe.stamp_ns, step=step, fz=forces[i], disp=0.001 * (i % 20))
+
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        probe = Probe(rclpy_node)
+        harness.wait_for_matching(rclpy_node, probe.pub)
+        probe.run(200.0, lambda: probe.sent >= len(forces), 30, make=ramp)
+        assert probe.sent == len(forces)
+
+        def all_counted():
+            s = probe.status('tissue/metrics rate')
+            return s is not None and dict((kv.key, kv.value) for kv in s.values)['messages'] == \
+                str(len(forces))
+        # Reliable QoS: every message reaches the node; wait until it has counted them all.
+        assert probe.run(0, all_counted, 15), probe.status('tissue/metrics rate')
+        rc = viz.stop(timeout=30)
+        assert rc == 0, viz.output()
+        assert 'report written' in viz.output()
+
+    summary = json.loads((report / 'summary.json').read_text())
+    assert summary['steps'] == len(forces)
+    assert summary['deadline_misses'] == len(forces) // 10
+    assert summary['deadline_miss_pct'] == pytest.approx(10.0)
+    assert summary['max_force_n'] == pytest.approx(1.9)
+    assert summary['max_displacement_m'] == pytest.approx(0.019)
+    assert summary['max_active_particles'] == 165
+    assert summary['step_p50_s'] == pytest.approx(1e-4)
+    assert summary['rates_hz']['metrics'] == pytest.approx(200.0, rel=0.3)
+    for name in ('force_vs_time.png', 'step_time_hist.png', 'rates.png', 'metrics.csv',
+                 'index.html', 'summary.md'):
+        assert (report / name).stat().st_size > 0, name
+
+
+def test_write_report_service_writes_a_folder_while_running(rclpy_node, tmp_path):
+    from std_srvs.srv import Trigger
+
+    report = tmp_path / 'on_request'
+    params = dict(FAST, report_dir=str(report))
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        probe = Probe(rclpy_node)
+        harness.wait_for_matching(rclpy_node, probe.pub)
+        probe.run(200.0, lambda: probe.sent >= 100, 20)
+        client = rclpy_node.create_client(Trigger, 'viz/write_report')
+        assert client.wait_for_service(timeout_sec=10)
+        future = client.call_async(Trigger.Request())
+        assert rclpy_node.spin_until(future.done, 10)
+        assert future.result().success, future.result().message
+        assert str(report) in future.result().message
+        assert rclpy_node.spin_until(lambda: (report / 'summary.json').is_file(), 30), viz.output()
+        assert viz.alive()
+    summary = json.loads((report / 'summary.json').read_text())
+    assert summary['steps'] >= 1
+
+
+def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node):
+    from geometry_msgs.msg import PoseStamped, WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    params = dict(FAST, marker_rate=20.0, force_arrow_scale=0.1)
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        pose_pub = rclpy_node.create_publisher(PoseStamped, 'omni/pose', qos)
+        force_pub = rclpy_node.create_publisher(WrenchStamped, 'omni/force_feedback', qos)
+        got = []
+        sub = rclpy_node.create_subscription(MarkerArray, 'viz/markers', got.append, 10)
+        for endpoint in (pose_pub, force_pub, sub):
+            harness.wait_for_matching(rclpy_node, endpoint)
+
+        def send():
+            pose = PoseStamped()
+            pose.header.frame_id = 'omni_base'
+            pose.header.stamp.sec = 5
+            pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = 0.01, 0.02, 0.03
+            pose.pose.orientation.w = 1.0
+            pose_pub.publish(pose)
+            wrench = WrenchStamped()
+            wrench.header = pose.header
+            wrench.wrench.force.z = 2.0
+            force_pub.publish(wrench)
+
+        def have_arrow():
+            send()
+            return any(len(a.markers) >= 2 for a in got)
+        assert rclpy_node.spin_until(have_arrow, 15), viz.output()
+        array = next(a for a in got if len(a.markers) >= 2)
+        tool = next(m for m in array.markers if m.ns == 'tool')
+        arrow = next(m for m in array.markers if m.type == Marker.ARROW)
+        assert tool.type == Marker.SPHERE and tool.header.frame_id == 'omni_base'
+        assert (tool.pose.position.x, tool.pose.position.y, tool.pose.position.z) == \
+            pytest.approx((0.01, 0.02, 0.03))
+        start, end = arrow.points
+        assert (start.x, start.y, start.z) == pytest.approx((0.01, 0.02, 0.03))
+        assert (end.x, end.y, end.z) == pytest.approx((0.01, 0.02, 0.03 + 0.1 * 2.0))
+
+
+def test_inconsistent_rate_targets_are_rejected_at_start_with_a_clear_message():
+    params = dict(FAST, metrics_min_rate=500.0, metrics_max_rate=100.0)
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
+        rc = viz.wait(timeout=30)
+        assert rc != 0
+        assert 'min_rate <= max_rate' in viz.output()

@@ -1,0 +1,362 @@
+"""viz_node: live statistics, /diagnostics, tool/force markers and a run report.
+
+Subscribes ``tissue/metrics``, ``tissue/particles``, ``omni/pose`` and ``omni/force_feedback``;
+publishes ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) and ``viz/markers``
+(visualization_msgs/MarkerArray); serves ``viz/write_report`` (std_srvs/Trigger). On shutdown
+(Ctrl-C) it writes the report folder (see :mod:`tissue_viz.report`).
+
+The callbacks only hand plain values to :class:`tissue_viz.stats.VizStats`; everything heavier runs
+in timers at a few hertz.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from pathlib import Path
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, PoseStamped, WrenchStamped
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException
+from rclpy.experimental import EventsExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+from tissue_msgs.msg import SimMetrics
+from visualization_msgs.msg import Marker, MarkerArray
+
+from tissue_viz.diagnostics import RateTarget, Status, Targets, worst_level, evaluate
+from tissue_viz.errors import ReportError, VizConfigError
+from tissue_viz.markers import ToolFrame, force_arrow
+from tissue_viz.report import ReportData, default_report_dir, write_report
+from tissue_viz.stats import TOPICS, VizStats, summary_line
+
+_F, _I, _B, _S, _FA = (Parameter.Type.DOUBLE, Parameter.Type.INTEGER, Parameter.Type.BOOL,
+                       Parameter.Type.STRING, Parameter.Type.DOUBLE_ARRAY)
+_RATE_DEFAULTS = {'metrics': (900.0, 1100.0), 'particles': (25.0, 35.0),
+                  'pose': (900.0, 1100.0), 'force': (900.0, 1100.0)}
+
+
+def _f(lo: float, hi: float) -> dict:
+    return {'floating_point_range': [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]}
+
+
+def _i(lo: int, hi: int) -> dict:
+    return {'integer_range': [IntegerRange(from_value=lo, to_value=hi, step=1)]}
+
+
+# name: (default, description, range kwargs, read_only) -- the one place parameters are declared.
+PARAMETERS: dict[str, tuple] = {
+    'window': (5.0, 'sliding window of the rolling statistics [s]', _f(0.1, 600.0), True),
+    'haptic_rate': (1000.0, 'haptic loop rate [Hz]; a step longer than 1/haptic_rate misses '
+                    'its deadline', _f(1.0, 10000.0), False),
+    'diagnostics_rate': (1.0, 'rate of /diagnostics [Hz]', _f(0.1, 50.0), True),
+    'summary_period': (5.0, 'period of the one-line summary in the log [s], 0 = off',
+                       _f(0.0, 3600.0), True),
+    'marker_rate': (30.0, 'rate of viz/markers [Hz], 0 = off', _f(0.0, 120.0), True),
+    'latency_timeout': (0.5, 'a pose without a force reply after this long counts as missed [s]',
+                        _f(0.001, 60.0), True),
+    'max_report_rows': (200000, 'rows kept per report table; longer runs are evenly thinned',
+                        _i(100, 10000000), True),
+    'metrics_reliable': (True, 'subscribe tissue/metrics reliable (the contract) instead of best '
+                         'effort', {}, True),
+    'stale_timeout': (2.0, 'a topic silent for longer than this is "no data" (ERROR) [s]',
+                      _f(0.01, 3600.0), False),
+    'rate_tolerance': (0.1, 'relative tolerance on min/max rates (as diagnostic_updater)',
+                       _f(0.0, 0.99), False),
+    'step_p99_warn': (0.0008, 'step wall time p99 above this is WARN [s]', _f(1e-6, 10.0), False),
+    'step_p99_error': (0.001, 'step wall time p99 above this is ERROR [s]', _f(1e-6, 10.0), False),
+    'deadline_miss_warn_pct': (1.0, 'deadline misses above this share are WARN [%]',
+                               _f(0.001, 100.0), False),
+    'deadline_miss_error_pct': (5.0, 'deadline misses above this share are ERROR [%]',
+                                _f(0.001, 100.0), False),
+    'latency_p50_warn': (0.001, 'pose->force latency median above this is WARN [s]',
+                         _f(1e-6, 10.0), False),
+    'latency_p99_warn': (0.003, 'pose->force latency p99 above this is WARN [s]', _f(1e-6, 10.0),
+                         False),
+    'latency_p99_error': (0.010, 'pose->force latency p99 above this is ERROR [s]',
+                          _f(1e-6, 10.0), False),
+    'reply_loss_warn_pct': (1.0, 'poses without a force reply above this share are WARN [%]',
+                            _f(0.001, 100.0), False),
+    'reply_loss_error_pct': (10.0, 'poses without a force reply above this share are ERROR [%]',
+                             _f(0.001, 100.0), False),
+    'force_limit': (3.3, 'device force limit [N]; reaching it is WARN', _f(0.01, 100.0), False),
+    'report_dir': ('', 'report folder; empty = ./reports/<timestamp> for each report', {}, False),
+    'report_on_shutdown': (True, 'write the report when the node shuts down', {}, False),
+    'report_title': ('SPH soft-tissue simulation run', 'title of the report', {}, False),
+    'contact_threshold': (0.01, 'force that counts as first contact in the report [N]',
+                          _f(0.0, 100.0), False),
+    'tool_in_tissue_frame': (False, 'draw tool and force in tissue_frame using the map below '
+                             '(else in the pose frame, omni_base)', {}, False),
+    'tissue_frame': ('tissue', 'frame of the tissue (particles)', {}, False),
+    'device_to_tissue_translation': ([0.0, 0.0, 0.0], 't of p_tissue = R (s p_device) + t [m]',
+                                     {}, False),
+    'device_to_tissue_rotation': ([0.0, 0.0, 0.0, 1.0], 'R as a quaternion x, y, z, w', {}, False),
+    'workspace_scale': (1.0, 's of p_tissue = R (s p_device) + t', _f(1e-6, 1e6), False),
+    'tool_radius': (0.003, 'radius of the tool sphere marker [m]', _f(1e-5, 1.0), False),
+    'force_arrow_scale': (0.02, 'force arrow length per newton [m/N]', _f(0.0, 10.0), False),
+}
+for _topic, (_lo, _hi) in _RATE_DEFAULTS.items():
+    PARAMETERS[f'{_topic}_min_rate'] = (_lo, f'lowest expected rate of {_topic} [Hz]',
+                                        _f(0.0, 100000.0), False)
+    PARAMETERS[f'{_topic}_max_rate'] = (_hi, f'highest expected rate of {_topic} [Hz]',
+                                        _f(0.0, 100000.0), False)
+    PARAMETERS[f'{_topic}_required'] = (True, f'a missing {_topic} topic is ERROR (else OK)',
+                                        {}, False)
+
+_LEVEL_BYTES = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR,
+                3: DiagnosticStatus.STALE}
+
+
+def _stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def targets_from(values: dict) -> Targets:
+    """Targets from a parameter dict (raises VizConfigError when inconsistent)."""
+    rates = {t: RateTarget(values[f'{t}_min_rate'], values[f'{t}_max_rate'],
+                           values[f'{t}_required']) for t in TOPICS}
+    keys = ('rate_tolerance', 'stale_timeout', 'step_p99_warn', 'step_p99_error',
+            'deadline_miss_warn_pct', 'deadline_miss_error_pct', 'latency_p50_warn',
+            'latency_p99_warn', 'latency_p99_error', 'reply_loss_warn_pct', 'reply_loss_error_pct',
+            'force_limit')
+    return Targets(rates=rates, **{k: float(values[k]) for k in keys}).validate()
+
+
+def tool_frame_from(values: dict) -> ToolFrame:
+    """Marker frame from a parameter dict (raises VizConfigError when invalid)."""
+    return ToolFrame(frame_id=values['tissue_frame'], to_tissue=values['tool_in_tissue_frame'],
+                     translation=tuple(values['device_to_tissue_translation']),
+                     rotation=tuple(values['device_to_tissue_rotation']),
+                     scale=float(values['workspace_scale']))
+
+
+class VizNode(Node):
+    """Rolling statistics, diagnostics, markers and reports for the tissue simulator."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('viz_node', **kwargs)
+        for name, (default, description, ranges, read_only) in PARAMETERS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(
+                description=description, read_only=read_only, **ranges))
+        self.p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        # Cross-parameter checks (min <= max, warn <= error): fail at start with a clear message.
+        self.targets = targets_from(self.p)
+        self.tool_frame = tool_frame_from(self.p)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.stats = VizStats(window=self.p['window'], haptic_rate=self.p['haptic_rate'],
+                              latency_timeout=self.p['latency_timeout'],
+                              max_report_rows=self.p['max_report_rows'])
+        self.pose_frame = 'omni_base'
+        self._report_lock = threading.Lock()
+        self._report_thread: threading.Thread | None = None
+        self.last_statuses: list[Status] = []
+
+        # Pose/force/particles best effort so the viz can never slow the loop down (a best-effort
+        # reader also matches reliable writers); metrics reliable as the contract says.
+        fast = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                          reliability=ReliabilityPolicy.BEST_EFFORT)
+        metrics_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                                 reliability=ReliabilityPolicy.RELIABLE
+                                 if self.p['metrics_reliable'] else ReliabilityPolicy.BEST_EFFORT)
+        cloud_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
+                               reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.create_subscription(SimMetrics, 'tissue/metrics', self._on_metrics, metrics_qos)
+        self.create_subscription(PointCloud2, 'tissue/particles', self._on_particles, cloud_qos)
+        self.create_subscription(PoseStamped, 'omni/pose', self._on_pose, fast)
+        self.create_subscription(WrenchStamped, 'omni/force_feedback', self._on_force, fast)
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.marker_pub = self.create_publisher(MarkerArray, 'viz/markers', 10)
+        self.create_service(Trigger, 'viz/write_report', self._on_write_report)
+
+        self.create_timer(1.0 / self.p['diagnostics_rate'], self._on_diagnostics_timer)
+        if self.p['summary_period'] > 0:
+            self.create_timer(self.p['summary_period'], self._on_summary_timer)
+        if self.p['marker_rate'] > 0:
+            self.create_timer(1.0 / self.p['marker_rate'], self._on_marker_timer)
+        self.get_logger().info(
+            f'ready: window {self.p["window"]} s, haptic period {self.stats.period * 1e3:.3f} ms, '
+            f'diagnostics at {self.p["diagnostics_rate"]} Hz')
+
+    # -- parameters -------------------------------------------------------------------------------
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        values = dict(self.p)
+        values.update({p.name: p.value for p in params if p.name in values})
+        try:
+            targets = targets_from(values)
+            tool_frame = tool_frame_from(values)
+        except VizConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        except (TypeError, ValueError, KeyError) as exc:
+            return SetParametersResult(successful=False, reason=f'invalid value: {exc}')
+        self.p, self.targets, self.tool_frame = values, targets, tool_frame
+        self.stats.period = 1.0 / values['haptic_rate']
+        return SetParametersResult(successful=True)
+
+    # -- callbacks: hand plain values to the statistics --------------------------------------------
+    def _on_metrics(self, msg: SimMetrics) -> None:
+        f = msg.contact_force
+        self.stats.on_metrics(time.monotonic(), _stamp_ns(msg.header.stamp), msg.step_wall_time,
+                              (f.x, f.y, f.z), msg.max_displacement, msg.n_interaction,
+                              msg.n_layer, msg.n_relaxing, msg.substeps, msg.contact_index,
+                              msg.penetration, msg.kinetic_energy)
+
+    def _on_particles(self, msg: PointCloud2) -> None:
+        self.stats.on_particles(time.monotonic(), _stamp_ns(msg.header.stamp),
+                                msg.width * msg.height)
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        p = msg.pose.position
+        if msg.header.frame_id:
+            self.pose_frame = msg.header.frame_id
+        self.stats.on_pose(time.monotonic(), _stamp_ns(msg.header.stamp), (p.x, p.y, p.z))
+
+    def _on_force(self, msg: WrenchStamped) -> None:
+        f = msg.wrench.force
+        self.stats.on_force(time.monotonic(), _stamp_ns(msg.header.stamp), (f.x, f.y, f.z))
+
+    # -- timers -----------------------------------------------------------------------------------
+    def _on_diagnostics_timer(self) -> None:
+        now = time.monotonic()
+        snap = self.stats.snapshot(now)
+        self.stats.sample_rates(now)
+        statuses = evaluate(snap, self.targets, prefix=self.get_name())
+        self.last_statuses = statuses
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        for s in statuses:
+            array.status.append(DiagnosticStatus(
+                level=_LEVEL_BYTES[s.level], name=s.name, message=s.message,
+                hardware_id='sph_tissue_sim',
+                values=[KeyValue(key=k, value=v) for k, v in s.values]))
+        self.diag_pub.publish(array)
+
+    def _on_summary_timer(self) -> None:
+        snap = self.stats.snapshot(time.monotonic())
+        level = worst_level(self.last_statuses) if self.last_statuses else 0
+        line = summary_line(snap)
+        log = self.get_logger()
+        (log.info if level == 0 else log.warning)(line)
+
+    def _on_marker_timer(self) -> None:
+        pose = self.stats.last_pose
+        if pose is None:
+            return
+        frame = self.tool_frame
+        frame_id = frame.frame_id if frame.to_tissue else self.pose_frame
+        stamp = self.get_clock().now().to_msg()
+        tip = frame.point(pose)
+        markers = MarkerArray()
+        tool = Marker(type=Marker.SPHERE, action=Marker.ADD, ns='tool', id=0)
+        tool.header.frame_id, tool.header.stamp = frame_id, stamp
+        tool.pose.position = Point(x=float(tip[0]), y=float(tip[1]), z=float(tip[2]))
+        tool.pose.orientation.w = 1.0
+        d = 2.0 * self.p['tool_radius']
+        tool.scale.x = tool.scale.y = tool.scale.z = d
+        tool.color.r, tool.color.g, tool.color.b, tool.color.a = 0.8, 0.8, 0.9, 1.0
+        tool.lifetime.nanosec = 500_000_000
+        markers.markers.append(tool)
+        fvec = self.stats.last_force_vec
+        if fvec is not None:
+            start, end = force_arrow(tip, frame.vector(fvec), self.p['force_arrow_scale'])
+            arrow = Marker(type=Marker.ARROW, action=Marker.ADD, ns='force', id=1)
+            arrow.header.frame_id, arrow.header.stamp = frame_id, stamp
+            arrow.points = [Point(x=float(start[0]), y=float(start[1]), z=float(start[2])),
+                            Point(x=float(end[0]), y=float(end[1]), z=float(end[2]))]
+            arrow.pose.orientation.w = 1.0
+            arrow.scale.x, arrow.scale.y, arrow.scale.z = 0.3 * d, 0.6 * d, 0.8 * d
+            arrow.color.r, arrow.color.g, arrow.color.b, arrow.color.a = 1.0, 0.3, 0.1, 1.0
+            arrow.lifetime.nanosec = 500_000_000
+            text = Marker(type=Marker.TEXT_VIEW_FACING, action=Marker.ADD, ns='force', id=2)
+            text.header.frame_id, text.header.stamp = frame_id, stamp
+            text.pose.position = Point(x=float(end[0]), y=float(end[1]), z=float(end[2]) + d)
+            text.pose.orientation.w = 1.0
+            text.scale.z = 1.5 * d
+            text.color.r = text.color.g = text.color.b = text.color.a = 1.0
+            text.text = f'{math.sqrt(sum(v * v for v in fvec)):.2f} N'
+            text.lifetime.nanosec = 500_000_000
+            markers.markers += [arrow, text]
+        self.marker_pub.publish(markers)
+
+    # -- report -----------------------------------------------------------------------------------
+    def _report_target(self) -> Path:
+        return Path(self.p['report_dir']) if self.p['report_dir'] else default_report_dir()
+
+    def report_data(self) -> ReportData:
+        return ReportData.from_stats(self.stats, time.monotonic(), title=self.p['report_title'],
+                                     contact_threshold=self.p['contact_threshold'])
+
+    def write_report_now(self) -> Path:
+        """Write the report synchronously (used at shutdown); returns the folder."""
+        with self._report_lock:
+            return write_report(self._report_target(), self.report_data())
+
+    def _on_write_report(self, request: Trigger.Request, response: Trigger.Response):
+        # Plotting takes a second or two: do it off the executor so the statistics keep flowing.
+        if self._report_thread is not None and self._report_thread.is_alive():
+            response.success, response.message = False, 'a report is already being written'
+            return response
+        target = self._report_target()
+        data = self.report_data()   # copied now, so the report is of this instant
+
+        def work() -> None:
+            try:
+                with self._report_lock:
+                    write_report(target, data)
+                self.get_logger().info(f'report written: {target / "index.html"}')
+            except ReportError as exc:
+                self.get_logger().error(f'report failed: {exc}')
+
+        self._report_thread = threading.Thread(target=work, name='report', daemon=True)
+        self._report_thread.start()
+        response.success = True
+        response.message = f'writing report to {target} (summary.json appears last)'
+        return response
+
+    def finish(self) -> None:
+        """Wait for a report in progress, then write the shutdown report if configured."""
+        if self._report_thread is not None:
+            self._report_thread.join(timeout=30.0)
+        if not self.p['report_on_shutdown']:
+            return
+        try:
+            out = self.write_report_now()
+            print(f'[viz_node] report written: {out / "index.html"}', flush=True)
+        except ReportError as exc:
+            print(f'[viz_node] report failed: {exc}', flush=True)
+
+
+def main(args=None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = VizNode()
+        executor = EventsExecutor()
+        executor.add_node(node)
+        # EventsExecutor.spin() of this rclpy (7.1.x wheels) never runs a callback and does not
+        # return on Ctrl-C (it busy-waits in C++); spin_once in a loop runs timers and
+        # subscriptions and lets the SIGINT handler stop the loop.
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (VizConfigError, InvalidParameterValueException) as exc:
+        print(f'[viz_node] invalid parameters: {exc}', flush=True)
+        raise SystemExit(2)
+    finally:
+        if node is not None:
+            node.finish()
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
