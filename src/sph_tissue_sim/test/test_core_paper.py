@@ -262,3 +262,26 @@ def test_a_forced_too_large_substep_raises_sim_error_and_restores_the_state():
 def test_paper_momentum_must_be_12_or_14():
     with pytest.raises(ConfigError):
         SolverConfig(scheme='paper', paper_momentum=13).validate()
+
+
+def test_current_neighbour_search_matches_brute_force_and_grows_its_buffers():
+    from sph_tissue_sim.core.paper import current_neighbours
+
+    model = make_block(5, 4, 3, spacing=0.005, fix='none')
+    h = H_RATIO * model.spacing
+    x = model.positions + np.random.default_rng(2).normal(0.0, 1e-3, model.positions.shape)
+    n = len(x)
+    rows = np.arange(n, dtype=np.int32)[::-1].copy()
+    off = np.zeros(n + 1, dtype=np.int64)
+    ok, idx, dw, w = current_neighbours(x, rows, n, rows, n, h, np.empty((n, 3)), off,
+                                        np.empty(1, dtype=np.int32), np.empty(1), np.empty(1))
+    assert ok and len(idx) >= off[-1] > 1
+    r = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=2)
+    for row, i in enumerate(rows):
+        got = idx[off[row]:off[row + 1]]
+        want = np.flatnonzero((r[i] < 2 * h) & (np.arange(n) != i))
+        assert sorted(got) == list(want)
+        assert np.allclose(w[off[row]:off[row + 1]], kernel_w_array(r[i, got], h))
+        assert np.allclose(dw[off[row]:off[row + 1]], kernel_dwdr_array(r[i, got], h) / r[i, got])
+    x[3, 0] = np.nan
+    assert not current_neighbours(x, rows, n, rows, n, h, np.empty((n, 3)), off, idx, dw, w)[0]

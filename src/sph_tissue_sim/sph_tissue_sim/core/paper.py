@@ -58,24 +58,66 @@ from .contact import contact_forces
 from .kernel import kernel_dwdr, kernel_w
 from .neighbours import _cell_of, bin_points
 
-# stress / strain components, Voigt order without factors: xx, yy, zz, xy, xz, yz
-_MAX_CELLS = 50_000_000
+_MAX_CELLS = 50_000_000   # a larger current-configuration grid means the body flew apart
 
 
 # ---------------------------------------------------------------------------- neighbour search
+@njit(cache=True)
+def _fill_pairs(x, search, rows, n_rows, h, pos, origin, dims, cell_start, cell_particles,
+                nb_off, nb_idx, nb_dw, nb_w):
+    """Pair lists of :func:`current_neighbours` into fixed buffers; -1 if they are too small.
+
+    Kept free of allocation so the hot loop stays tight (a growable buffer in the loop made the
+    search five times slower).
+    """
+    support = 2.0 * h
+    r2max = support * support
+    cap = nb_idx.shape[0]
+    m = 0
+    nb_off[0] = 0
+    for r in range(n_rows):
+        i = rows[r]
+        xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
+        cx = _cell_of(xi0, origin[0], support, dims[0])
+        cy = _cell_of(xi1, origin[1], support, dims[1])
+        cz = _cell_of(xi2, origin[2], support, dims[2])
+        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+            for ay in range(max(cy - 1, 0), min(cy + 2, dims[1])):
+                for az in range(max(cz - 1, 0), min(cz + 2, dims[2])):
+                    cc = (ax * dims[1] + ay) * dims[2] + az
+                    for k in range(cell_start[cc], cell_start[cc + 1]):
+                        p = cell_particles[k]
+                        j = search[p]
+                        if j == i:
+                            continue
+                        d0 = xi0 - pos[p, 0]; d1 = xi1 - pos[p, 1]; d2 = xi2 - pos[p, 2]
+                        rr = d0 * d0 + d1 * d1 + d2 * d2
+                        if rr >= r2max:
+                            continue
+                        if m >= cap:
+                            return -1
+                        rij = math.sqrt(rr)
+                        nb_idx[m] = j
+                        nb_dw[m] = kernel_dwdr(rij, h) / rij if rij > 1e-300 else 0.0
+                        nb_w[m] = kernel_w(rij, h)
+                        m += 1
+        nb_off[r + 1] = m
+    return m
+
+
 @njit(cache=True)
 def current_neighbours(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx, nb_dw, nb_w):
     """CSR neighbours (within 2h, current positions) of ``rows[:n_rows]`` among ``search[:n_search]``.
 
     Row ``r`` (particle ``rows[r]``) has pairs ``nb_off[r]:nb_off[r + 1]`` with neighbour
     ``nb_idx[k]``, ``nb_dw[k] = dW/dr(RIJ) / RIJ`` (so ``DWIJ = nb_dw[k] * XIJ``) and
-    ``nb_w[k] = WIJ``. The pair buffers grow when full. ``pos`` (>= n_search, 3) is scratch.
+    ``nb_w[k] = WIJ``. The pair buffers are replaced by larger ones when full (hence returned).
+    ``pos`` (>= n_search, 3) is scratch.
 
     Returns ``(ok, nb_idx, nb_dw, nb_w)``; ``ok`` is False for non-finite positions or a grid too
     large to allocate (particles flung apart), in which case the lists are not valid.
     """
     support = 2.0 * h
-    r2max = support * support
     lo0 = math.inf; lo1 = math.inf; lo2 = math.inf
     hi0 = -math.inf; hi1 = -math.inf; hi2 = -math.inf
     for p in range(n_search):
@@ -103,45 +145,16 @@ def current_neighbours(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx
     dims[1] = max(1, int(math.ceil(ext1)))
     dims[2] = max(1, int(math.ceil(ext2)))
     cell_start, cell_particles = bin_points(pos[:n_search], origin, support, dims)
-    m = 0
-    cap = nb_idx.shape[0]
-    nb_off[0] = 0
-    for r in range(n_rows):
-        i = rows[r]
-        xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
-        cx = _cell_of(xi0, origin[0], support, dims[0])
-        cy = _cell_of(xi1, origin[1], support, dims[1])
-        cz = _cell_of(xi2, origin[2], support, dims[2])
-        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
-            for ay in range(max(cy - 1, 0), min(cy + 2, dims[1])):
-                for az in range(max(cz - 1, 0), min(cz + 2, dims[2])):
-                    cc = (ax * dims[1] + ay) * dims[2] + az
-                    for k in range(cell_start[cc], cell_start[cc + 1]):
-                        p = cell_particles[k]
-                        j = search[p]
-                        if j == i:
-                            continue
-                        d0 = xi0 - pos[p, 0]; d1 = xi1 - pos[p, 1]; d2 = xi2 - pos[p, 2]
-                        rr = d0 * d0 + d1 * d1 + d2 * d2
-                        if rr >= r2max:
-                            continue
-                        if m >= cap:
-                            cap = 2 * cap + 1024
-                            t_idx = np.empty(cap, dtype=nb_idx.dtype)
-                            t_dw = np.empty(cap)
-                            t_w = np.empty(cap)
-                            t_idx[:m] = nb_idx[:m]
-                            t_dw[:m] = nb_dw[:m]
-                            t_w[:m] = nb_w[:m]
-                            nb_idx = t_idx
-                            nb_dw = t_dw
-                            nb_w = t_w
-                        rij = math.sqrt(rr)
-                        nb_idx[m] = j
-                        nb_dw[m] = kernel_dwdr(rij, h) / rij if rij > 1e-300 else 0.0
-                        nb_w[m] = kernel_w(rij, h)
-                        m += 1
-        nb_off[r + 1] = m
+    while True:
+        m = _fill_pairs(x, search, rows, n_rows, h, pos, origin, dims, cell_start, cell_particles,
+                        nb_off, nb_idx, nb_dw, nb_w)
+        if m >= 0:
+            break
+        # out of pair capacity (rare: compression packs particles): grow and redo
+        cap = 2 * nb_idx.shape[0] + 1024
+        nb_idx = np.empty(cap, dtype=nb_idx.dtype)
+        nb_dw = np.empty(cap)
+        nb_w = np.empty(cap)
     return True, nb_idx, nb_dw, nb_w
 
 
