@@ -133,6 +133,13 @@ def test_liver_bottom_fix_takes_the_requested_number_of_layers_and_none_fixes_no
     assert not make_liver(3670, fix='none').fixed.any()
 
 
+def test_liver_at_a_given_spacing_holds_its_volume_over_the_cell_volume():
+    vol, _ = _monte_carlo_volume(liver_field, (-0.11, -0.085, -0.005), (0.11, 0.085, 0.09))
+    model = make_liver(spacing=0.005)
+    assert model.spacing == 0.005 and model.info['n_target'] is None
+    assert model.n_particles == pytest.approx(vol / 0.005 ** 3, rel=0.03)
+
+
 def test_liver_scales_with_its_length():
     small = make_liver(3670, length=0.1)
     assert abs(small.n_particles - 3670) <= 0.02 * 3670

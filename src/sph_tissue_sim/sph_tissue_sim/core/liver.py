@@ -13,7 +13,7 @@ The shape is an implicit surface ``liver_field(p) < 0`` built from two lobes and
 Tissue frame (metres): x from the patient's right (-x) to left (+x), y caudal (-y) to cranial
 (+y), z posterior (0, the attached face) to anterior (+z, where the tool comes from). At the
 default ``length = 0.2`` m the bounding box is 0.20 x 0.15 x 0.08 m, centred at x = y = 0 with
-its lowest point at z = 0, and the volume is about 1.2 litres (adult livers: 1.2-1.8 l).
+its lowest point at z = 0, and the volume is 1.15 litres (adult livers: about 1.2-1.8 l).
 Every dimension scales with ``length``.
 
 The lattice spacing is chosen by bisection (:func:`~.models.fit_spacing`) so that the particle
