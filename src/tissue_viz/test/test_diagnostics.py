@@ -1,0 +1,120 @@
+"""Diagnostic levels against targets, as diagnostic_updater's FrequencyStatus would give them."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from tissue_viz.diagnostics import (ERROR, OK, STALE, WARN, RateTarget, Targets, evaluate,
+                                    input_status, latency_status, rate_status, step_status,
+                                    tissue_status, worst_level)
+from tissue_viz.errors import VizConfigError
+from tissue_viz.stats import Snapshot, VizStats
+
+MS = 1_000_000
+
+
+def _snap(rate: float | None, age: float | None, count: int = 100) -> Snapshot:
+    snap = Snapshot(now=10.0, window=1.0)
+    snap.rates['metrics'] = rate or 0.0
+    snap.ages['metrics'] = age
+    snap.counts['metrics'] = count if age is not None else 0
+    return snap
+
+
+@pytest.mark.parametrize('rate, age, level, text', [
+    (None, None, ERROR, 'no data'),                     # never arrived
+    (1000.0, 0.001, OK, 'rate ok'),
+    (815.0, 0.001, OK, 'rate ok'),                      # 900 * (1 - 0.1) = 810 is the edge
+    (805.0, 0.001, WARN, 'rate too low'),
+    (1215.0, 0.001, WARN, 'rate too high'),             # 1100 * 1.1 = 1210
+    (1000.0, 2.5, ERROR, 'no data for 2.5 s'),          # silent longer than stale_timeout
+])
+def test_rate_status_levels_follow_frequency_status_semantics(rate, age, level, text):
+    status = rate_status('metrics', _snap(rate, age), Targets())
+    assert status.level == level and status.message.startswith(text), status
+    assert status.name == 'viz_node: tissue/metrics rate'
+    assert dict(status.values)['min rate [Hz]'] == '900.0'
+
+
+def test_a_topic_that_is_not_required_is_ok_without_data():
+    targets = Targets()
+    targets.rates['metrics'] = RateTarget(900.0, 1100.0, required=False)
+    assert rate_status('metrics', _snap(None, None), targets).level == OK
+    assert rate_status('metrics', _snap(1000.0, 30.0), targets).level == OK
+
+
+def test_step_status_warns_and_errors_on_p99_and_deadline_misses():
+    targets = Targets()
+    snap = Snapshot(now=0.0, window=1.0)
+    assert step_status(snap, targets).level == STALE
+    snap.step_p50, snap.step_p99, snap.step_max, snap.deadline_miss_pct = 1e-4, 5e-4, 6e-4, 0.0
+    assert step_status(snap, targets).level == OK
+    snap.step_p99 = 0.9e-3                               # above 0.8 ms warn, below 1 ms error
+    assert step_status(snap, targets).level == WARN
+    snap.step_p99, snap.deadline_miss_pct = 5e-4, 6.0   # 6 % misses > 5 % error
+    status = step_status(snap, targets)
+    assert status.level == ERROR and 'too slow' in status.message
+
+
+def test_latency_status_uses_design_targets_and_reply_loss():
+    targets = Targets()
+    snap = Snapshot(now=0.0, window=1.0)
+    assert latency_status(snap, targets).level == STALE
+    snap.latency_p50, snap.latency_p99, snap.latency_max = 0.5e-3, 2e-3, 3e-3
+    snap.replies_missed_pct = 0.5
+    assert latency_status(snap, targets).level == OK
+    snap.latency_p50 = 1.5e-3                            # median above 1 ms
+    assert latency_status(snap, targets).level == WARN
+    snap.latency_p50, snap.replies_missed_pct = 0.5e-3, 20.0
+    assert latency_status(snap, targets).level == ERROR
+
+
+def test_tissue_status_warns_when_the_force_reaches_the_device_limit():
+    stats = VizStats(window=1.0)
+    assert tissue_status(stats.snapshot(0.0), Targets()).level == STALE
+    stats.on_metrics(0.0, 0, 1e-4, (0.0, 0.0, 1.0), 0.002, n_interaction=50)
+    status = tissue_status(stats.snapshot(0.01), Targets())
+    assert status.level == OK and 'active 50' in status.message and 'disp 2.0 mm' in status.message
+    stats.on_force(0.02, MS, (0.0, 0.0, 3.3))
+    assert tissue_status(stats.snapshot(0.03), Targets()).level == WARN
+
+
+def test_input_status_names_nan_and_backwards_stamps():
+    stats = VizStats(window=1.0)
+    assert input_status(stats.snapshot(0.0)).level == OK
+    stats.on_metrics(0.0, 2 * MS, math.nan, (0, 0, 0), 0.0)
+    stats.on_metrics(0.001, 1 * MS, 1e-4, (0, 0, 0), 0.0)
+    status = input_status(stats.snapshot(0.01))
+    assert status.level == WARN
+    assert '1 messages with NaN/inf' in status.message and '1 stamps went backwards' in status.message
+
+
+def test_evaluate_reports_every_topic_and_the_worst_level():
+    stats = VizStats(window=1.0)
+    statuses = evaluate(stats.snapshot(0.0), Targets())
+    assert [s.name.split(': ', 1)[1] for s in statuses] == [
+        'tissue/metrics rate', 'tissue/particles rate', 'omni/pose rate',
+        'omni/force_feedback rate', 'step time', 'pose to force latency', 'tissue', 'input']
+    assert worst_level(statuses) == STALE
+    assert worst_level([]) == OK
+
+
+@pytest.mark.parametrize('change, message', [
+    ({'rate_tolerance': 1.5}, 'rate_tolerance'),
+    ({'stale_timeout': 0.0}, 'stale_timeout'),
+    ({'step_p99_warn': 2e-3, 'step_p99_error': 1e-3}, 'step_p99_warn <= step_p99_error'),
+    ({'force_limit': -1.0}, 'force_limit'),
+])
+def test_inconsistent_targets_are_rejected_with_the_parameter_named(change, message):
+    targets = Targets(**change)
+    with pytest.raises(VizConfigError, match=message):
+        targets.validate()
+
+
+def test_rate_targets_need_min_below_max():
+    targets = Targets()
+    targets.rates['pose'] = RateTarget(500.0, 100.0)
+    with pytest.raises(VizConfigError, match='min_rate <= max_rate'):
+        targets.validate()

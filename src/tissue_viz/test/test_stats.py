@@ -1,0 +1,198 @@
+"""Rolling statistics against series whose answers are computed by hand (no rclpy)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tissue_viz.errors import VizConfigError
+from tissue_viz.markers import ToolFrame, force_arrow
+from tissue_viz.stats import (DecimatingRecorder, LatencyMatcher, RateMeter, StampOrder, VizStats,
+                              percentile, press_displacement, summary_line)
+
+MS = 1_000_000  # ns per ms
+
+
+def test_percentile_interpolates_linearly_and_is_nan_when_empty():
+    values = [float(v) for v in range(1, 11)]   # 1..10
+    assert percentile(values, 50) == pytest.approx(5.5)
+    # rank 0.99 * 9 = 8.91 -> 9 + 0.91 * (10 - 9)
+    assert percentile(values, 99) == pytest.approx(9.91)
+    assert math.isnan(percentile([], 50))
+
+
+def test_rate_meter_reports_100_hz_then_falls_when_the_stream_stops():
+    meter = RateMeter(window=1.0)
+    for i in range(100):                      # 100 Hz for one second: t = 0.00 .. 0.99
+        meter.tick(i / 100)
+    # Start-up (seen for less than a window): (n - 1) / span over t = 0 .. 0.99.
+    assert meter.rate(0.99) == pytest.approx(99 / 0.99)
+    # A whole window seen: messages in (0.0, 1.0] = 99 of them.
+    assert meter.rate(1.0) == pytest.approx(99.0)
+    # Stopped: only t = 0.51 .. 0.99 are inside (0.5, 1.5].
+    assert meter.rate(1.5) == pytest.approx(49.0)
+    assert meter.rate(2.0) == 0.0
+    assert meter.age(2.0) == pytest.approx(1.01)
+    assert meter.mean_rate() == pytest.approx(100.0)
+    assert RateMeter(1.0).age(5.0) is None
+
+
+def test_rate_meter_rejects_a_non_positive_window():
+    with pytest.raises(VizConfigError, match='window'):
+        RateMeter(0.0)
+
+
+def test_step_time_percentiles_and_deadline_misses_against_the_haptic_period():
+    stats = VizStats(window=10.0, haptic_rate=1000.0)
+    steps_ms = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 2.0, 3.0]
+    for i, ms in enumerate(steps_ms):
+        assert stats.on_metrics(i * 1e-3, i * MS, ms * 1e-3, (0.0, 0.0, 0.0), 0.0)
+    snap = stats.snapshot(0.02)
+    assert snap.step_p50 == pytest.approx(0.65e-3)       # (0.6 + 0.7) / 2
+    assert snap.step_max == pytest.approx(3.0e-3)
+    # exactly one period (1.0 ms) is on time; 2 and 3 ms miss
+    assert snap.deadline_misses == 2
+    assert snap.deadline_miss_pct == pytest.approx(100 * 2 / 12)
+    # p99: rank 0.99 * 11 = 10.89 between 2.0 and 3.0 ms
+    assert snap.step_p99 == pytest.approx(2.89e-3)
+
+
+def test_step_statistics_forget_steps_older_than_the_window():
+    stats = VizStats(window=1.0)
+    stats.on_metrics(0.0, 0, 5e-3, (0, 0, 0), 0.0)      # slow, but long ago
+    stats.on_metrics(1.5, MS, 1e-4, (0, 0, 0), 0.0)
+    snap = stats.snapshot(1.6)
+    assert snap.step_max == pytest.approx(1e-4) and snap.deadline_misses == 0
+    assert stats.summary(1.6)['deadline_misses'] == 1   # the whole-run count keeps it
+
+
+def test_latency_is_matched_by_stamp_and_unanswered_poses_count_as_missed():
+    stats = VizStats(window=10.0, latency_timeout=0.1)
+    for k in range(5):                                   # poses with stamps 1..5 ms, 1 ms apart
+        stats.on_pose(k * 1e-3, (k + 1) * MS, (0.0, 0.0, 0.0))
+    stats.on_force(0.0005, 1 * MS, (0, 0, 1.0))          # 0.5 ms after pose 1
+    stats.on_force(0.0030, 2 * MS, (0, 0, 1.0))          # 2.0 ms after pose 2
+    stats.on_force(0.0042, 4 * MS, (0, 0, 1.0))          # 1.2 ms after pose 4
+    stats.on_force(0.0050, 99 * MS, (0, 0, 1.0))         # no such pose
+    snap = stats.snapshot(0.5)                           # poses 3 and 5 have timed out
+    assert snap.latency_p50 == pytest.approx(1.2e-3)
+    assert snap.latency_max == pytest.approx(2.0e-3)
+    assert snap.replies_missed_pct == pytest.approx(100 * 2 / 5)
+    assert stats.matcher.unmatched_forces == 1 and stats.matcher.pending == 0
+
+
+def test_latency_matcher_keeps_the_first_of_repeated_stamps_and_bounds_its_memory():
+    matcher = LatencyMatcher(timeout=1.0, max_pending=3)
+    matcher.on_pose(1, 0.0, (0, 0, 0))
+    matcher.on_pose(1, 0.5, (0, 0, 0))                   # repeated stamp: first arrival counts
+    assert matcher.on_force(1, 0.75)[0] == pytest.approx(0.75)
+    for stamp in range(10, 15):                          # 5 pending, only 3 kept
+        matcher.on_pose(stamp, 1.0, (0, 0, 0))
+    assert matcher.pending == 3 and matcher.missed == 2
+    with pytest.raises(VizConfigError):
+        LatencyMatcher(timeout=0.0)
+
+
+def test_nan_metrics_are_counted_and_left_out_of_the_statistics():
+    stats = VizStats(window=5.0)
+    assert stats.on_metrics(0.0, 0, 1e-4, (0, 0, 0.5), 0.001)
+    assert not stats.on_metrics(0.001, MS, math.nan, (0, 0, 0.5), 0.001)
+    assert not stats.on_metrics(0.002, 2 * MS, 1e-4, (0, math.inf, 0.5), 0.001)
+    assert not stats.on_pose(0.003, 3 * MS, (math.nan, 0, 0))
+    snap = stats.snapshot(0.01)
+    assert snap.nan_in_window == 3 and snap.nan_total == 3
+    assert snap.step_max == pytest.approx(1e-4)
+    assert snap.counts['metrics'] == 3                   # received, even if rejected
+    assert stats.steps_total == 1 and len(stats.metrics_table) == 1
+    assert stats.last_pose is None
+    assert stats.snapshot(10.0).nan_in_window == 0       # out of the window again
+    assert stats.summary(10.0)['nan_messages'] == 3
+
+
+def test_backwards_stamps_are_counted_per_topic_but_equal_stamps_are_not():
+    order = StampOrder()
+    assert [order.check(s) for s in (1, 2, 2, 1, 3, 2)] == [True, True, True, False, True, False]
+    assert order.backwards == 2
+    stats = VizStats(window=5.0)
+    for now, stamp in ((0.0, 5 * MS), (0.001, 4 * MS), (0.002, 6 * MS)):
+        stats.on_metrics(now, stamp, 1e-4, (0, 0, 0), 0.0)
+    stats.on_pose(0.003, 1 * MS, (0, 0, 0))              # another topic: its own order
+    snap = stats.snapshot(0.01)
+    assert snap.backwards_in_window == 1 and snap.backwards_total == 1
+    assert stats.summary(0.01)['backwards_stamps'] == {'metrics': 1, 'particles': 0, 'pose': 0,
+                                                        'force': 0}
+
+
+def test_active_particles_force_and_displacement_come_from_the_latest_metrics():
+    stats = VizStats(window=5.0)
+    stats.on_metrics(0.0, 0, 1e-4, (3.0, 4.0, 0.0), 0.002, n_interaction=100, n_layer=[40, 20],
+                     n_relaxing=5)
+    stats.on_metrics(0.001, MS, 1e-4, (0.0, 0.6, 0.8), 0.001, n_interaction=10, n_layer=[4],
+                     n_relaxing=0)
+    snap = stats.snapshot(0.002)
+    assert snap.active == 14 and snap.n_interaction == 10
+    assert snap.force == pytest.approx(1.0)              # |(0, 0.6, 0.8)|
+    assert snap.force_max == pytest.approx(5.0)          # |(3, 4, 0)| earlier in the window
+    assert snap.displacement == pytest.approx(0.001)
+    summary = stats.summary(0.002)
+    assert summary['max_active_particles'] == 165
+    assert summary['max_force_n'] == pytest.approx(5.0)
+    assert summary['max_displacement_m'] == pytest.approx(0.002)
+
+
+def test_force_commands_take_over_the_force_figure_once_they_arrive():
+    stats = VizStats(window=5.0)
+    stats.on_metrics(0.0, 0, 1e-4, (0, 0, 2.0), 0.0)
+    stats.on_force(0.001, 0, (0, 0, 0.5))                # e.g. clamped by the device chain
+    assert stats.snapshot(0.002).force == pytest.approx(0.5)
+
+
+def test_decimating_recorder_keeps_an_evenly_thinned_whole_run():
+    rec = DecimatingRecorder(('t',), max_rows=4)
+    for i in range(10):
+        rec.append((i,))
+    # full at 4 rows -> keep every 2nd (0, 2) then every 2nd new; full again -> every 4th
+    assert rec.array()[:, 0].tolist() == [0.0, 4.0, 8.0]
+    with pytest.raises(ValueError):
+        rec.append((1.0, 2.0))
+    with pytest.raises(VizConfigError):
+        DecimatingRecorder(('t',), max_rows=1)
+
+
+def test_press_displacement_is_measured_from_first_contact_against_the_reaction():
+    # Tool goes down in z from +1 mm to -4 mm; contact at z = 0 with a 500 N/m tissue.
+    z = np.linspace(0.001, -0.004, 11)                   # 0.5 mm steps
+    position = np.column_stack([np.zeros_like(z), np.zeros_like(z), z])
+    force = np.column_stack([np.zeros_like(z), np.zeros_like(z), 500.0 * np.maximum(0.0, -z)])
+    disp = press_displacement(force, position, contact_threshold=0.01)
+    # first force > 0.01 N is at z = -0.5 mm (0.25 N), index 3
+    assert np.isnan(disp[:3]).all()
+    assert disp[3:] == pytest.approx(np.arange(8) * 0.0005)
+    assert np.isnan(press_displacement(np.zeros((3, 3)), np.zeros((3, 3)))).all()
+
+
+def test_summary_line_is_one_compact_line_with_units():
+    stats = VizStats(window=1.0)
+    for i in range(11):
+        stats.on_metrics(i * 0.1, i * 100 * MS, 2e-4, (0, 0, 1.25), 0.0031, n_interaction=7)
+    line = summary_line(stats.snapshot(1.0))
+    assert '\n' not in line
+    assert 'step p50 0.20 ms' in line and 'F 1.25 N' in line and 'disp 3.1 mm' in line
+    assert 'active 7' in line and 'lat p50 -' in line
+
+
+def test_tool_frame_maps_device_points_into_the_tissue_frame():
+    # 90 degrees about z, scale 2, then shift by (1, 0, 0): (1, 0, 0) -> (0, 2, 0) + (1, 0, 0)
+    s = math.sqrt(0.5)
+    frame = ToolFrame(to_tissue=True, translation=(1.0, 0.0, 0.0), rotation=(0.0, 0.0, s, s),
+                      scale=2.0)
+    assert frame.point((1.0, 0.0, 0.0)) == pytest.approx([1.0, 2.0, 0.0])
+    assert frame.vector((1.0, 0.0, 0.0)) == pytest.approx([0.0, 1.0, 0.0])   # forces not scaled
+    start, end = force_arrow((0.0, 0.0, 0.01), (0.0, 0.0, 2.0), scale=0.02)
+    assert end == pytest.approx([0.0, 0.0, 0.05]) and start == pytest.approx([0.0, 0.0, 0.01])
+    with pytest.raises(VizConfigError):
+        ToolFrame(rotation=(0.0, 0.0, 0.0, 0.0))
+    with pytest.raises(VizConfigError):
+        ToolFrame(scale=-1.0)
