@@ -187,38 +187,55 @@ def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, F, Fd, A, hg_k, hg_c,
     alpha eta V^2 scale the hourglass bonds: ``f_i -= hgw (hg_k eps_ij + hg_c deps_ij/dt)`` with
     ``eps_ij = (F_i + F_j)/2 (X_j - X_i) - (x_j - x_i)``. The vector form (no projection on the
     bond, so no square root) is antisymmetric in i, j and zero for rigid motions and linear fields.
+
+    One fused pass over the neighbours. With ``X'_k = X_j - X_i``, ``DWIJ0 = -dw_k X'_k`` and
+    ``H = hg_k F + hg_c dF/dt`` the stress and hourglass sums regroup as
+
+        f_i = -sum_k (dw_k A_j + hgw_k/2 H_j) X'_k + sum_k hgw_k (hg_k x'_k + hg_c v'_k)
+              - A_i sum_k dw_k X'_k - H_i/2 sum_k hgw_k X'_k,
+
+    the same terms as the pairwise form in another summation order (the i terms factor out of
+    the loop), so the neighbour data are read once.
     """
-    f0 = 0.0; f1 = 0.0; f2 = 0.0
-    Ai = A[i]
     Xi0 = X[i, 0]; Xi1 = X[i, 1]; Xi2 = X[i, 2]
+    xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
+    vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
+    f0 = 0.0; f1 = 0.0; f2 = 0.0
+    s0 = 0.0; s1 = 0.0; s2 = 0.0          # sum dw X'
+    c0 = 0.0; c1 = 0.0; c2 = 0.0          # sum hgw/2 X'
     for k in range(offsets[i], offsets[i + 1]):
         j = indices[k]
-        Aj = A[j]
-        # DWIJ0 = dw * (X_i - X_j)
         d = dw[k]
-        g0 = d * (Xi0 - X[j, 0]); g1 = d * (Xi1 - X[j, 1]); g2 = d * (Xi2 - X[j, 2])
-        f0 += (Ai[0, 0] + Aj[0, 0]) * g0 + (Ai[0, 1] + Aj[0, 1]) * g1 + (Ai[0, 2] + Aj[0, 2]) * g2
-        f1 += (Ai[1, 0] + Aj[1, 0]) * g0 + (Ai[1, 1] + Aj[1, 1]) * g1 + (Ai[1, 2] + Aj[1, 2]) * g2
-        f2 += (Ai[2, 0] + Aj[2, 0]) * g0 + (Ai[2, 1] + Aj[2, 1]) * g1 + (Ai[2, 2] + Aj[2, 2]) * g2
-    if hg_k > 0.0 or hg_c > 0.0:
-        # hourglass: error of each bond against the pair's mean linear map, a spring + dashpot
-        Fi = F[i]; Fdi = Fd[i]
-        xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
-        vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
-        for k in range(offsets[i], offsets[i + 1]):
-            j = indices[k]
-            Fj = F[j]; Fdj = Fd[j]
-            X0 = X[j, 0] - Xi0; X1 = X[j, 1] - Xi1; X2 = X[j, 2] - Xi2
-            p0 = 0.5 * ((Fi[0, 0] + Fj[0, 0]) * X0 + (Fi[0, 1] + Fj[0, 1]) * X1 + (Fi[0, 2] + Fj[0, 2]) * X2) - (x[j, 0] - xi0)
-            p1 = 0.5 * ((Fi[1, 0] + Fj[1, 0]) * X0 + (Fi[1, 1] + Fj[1, 1]) * X1 + (Fi[1, 2] + Fj[1, 2]) * X2) - (x[j, 1] - xi1)
-            p2 = 0.5 * ((Fi[2, 0] + Fj[2, 0]) * X0 + (Fi[2, 1] + Fj[2, 1]) * X1 + (Fi[2, 2] + Fj[2, 2]) * X2) - (x[j, 2] - xi2)
-            q0 = 0.5 * ((Fdi[0, 0] + Fdj[0, 0]) * X0 + (Fdi[0, 1] + Fdj[0, 1]) * X1 + (Fdi[0, 2] + Fdj[0, 2]) * X2) - (v[j, 0] - vi0)
-            q1 = 0.5 * ((Fdi[1, 0] + Fdj[1, 0]) * X0 + (Fdi[1, 1] + Fdj[1, 1]) * X1 + (Fdi[1, 2] + Fdj[1, 2]) * X2) - (v[j, 1] - vi1)
-            q2 = 0.5 * ((Fdi[2, 0] + Fdj[2, 0]) * X0 + (Fdi[2, 1] + Fdj[2, 1]) * X1 + (Fdi[2, 2] + Fdj[2, 2]) * X2) - (v[j, 2] - vi2)
-            c = hgw[k]
-            f0 -= c * (hg_k * p0 + hg_c * q0)
-            f1 -= c * (hg_k * p1 + hg_c * q1)
-            f2 -= c * (hg_k * p2 + hg_c * q2)
+        c = 0.5 * hgw[k]
+        X0 = X[j, 0] - Xi0; X1 = X[j, 1] - Xi1; X2 = X[j, 2] - Xi2
+        s0 += d * X0; s1 += d * X1; s2 += d * X2
+        c0 += c * X0; c1 += c * X1; c2 += c * X2
+        Aj = A[j]; Fj = F[j]; Fdj = Fd[j]
+        m00 = d * Aj[0, 0] + c * (hg_k * Fj[0, 0] + hg_c * Fdj[0, 0])
+        m01 = d * Aj[0, 1] + c * (hg_k * Fj[0, 1] + hg_c * Fdj[0, 1])
+        m02 = d * Aj[0, 2] + c * (hg_k * Fj[0, 2] + hg_c * Fdj[0, 2])
+        m10 = d * Aj[1, 0] + c * (hg_k * Fj[1, 0] + hg_c * Fdj[1, 0])
+        m11 = d * Aj[1, 1] + c * (hg_k * Fj[1, 1] + hg_c * Fdj[1, 1])
+        m12 = d * Aj[1, 2] + c * (hg_k * Fj[1, 2] + hg_c * Fdj[1, 2])
+        m20 = d * Aj[2, 0] + c * (hg_k * Fj[2, 0] + hg_c * Fdj[2, 0])
+        m21 = d * Aj[2, 1] + c * (hg_k * Fj[2, 1] + hg_c * Fdj[2, 1])
+        m22 = d * Aj[2, 2] + c * (hg_k * Fj[2, 2] + hg_c * Fdj[2, 2])
+        cc = 2.0 * c
+        f0 += cc * (hg_k * (x[j, 0] - xi0) + hg_c * (v[j, 0] - vi0)) - (m00 * X0 + m01 * X1 + m02 * X2)
+        f1 += cc * (hg_k * (x[j, 1] - xi1) + hg_c * (v[j, 1] - vi1)) - (m10 * X0 + m11 * X1 + m12 * X2)
+        f2 += cc * (hg_k * (x[j, 2] - xi2) + hg_c * (v[j, 2] - vi2)) - (m20 * X0 + m21 * X1 + m22 * X2)
+    Ai = A[i]; Fi = F[i]; Fdi = Fd[i]
+    for a in range(3):
+        t = -(Ai[a, 0] * s0 + Ai[a, 1] * s1 + Ai[a, 2] * s2
+              + (hg_k * Fi[a, 0] + hg_c * Fdi[a, 0]) * c0
+              + (hg_k * Fi[a, 1] + hg_c * Fdi[a, 1]) * c1
+              + (hg_k * Fi[a, 2] + hg_c * Fdi[a, 2]) * c2)
+        if a == 0:
+            f0 += t
+        elif a == 1:
+            f1 += t
+        else:
+            f2 += t
     out[0] = f0
     out[1] = f1
     out[2] = f2
