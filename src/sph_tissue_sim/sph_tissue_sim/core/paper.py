@@ -485,24 +485,34 @@ class PaperScheme:
         self.reset()
 
     def reset(self) -> None:
-        """Reference state: summation density at X for every particle, zero strain and stress."""
-        s = self.solver
-        n = s.n
-        ok, self.nb_idx, self.nb_dw, self.nb_w = current_neighbours(
-            s.X, self.global_rows, n, self.global_rows, n, s.h, self.pos, self.nb_off,
-            self.nb_idx, self.nb_dw, self.nb_w)
-        summation_density(self.global_rows, n, self.nb_off, self.nb_w, s.material.rho * s.volume, s.h,
-                          self.rho)
+        """Reference state: zero strain and stress, summation density of every particle."""
         self.eps[:] = 0.0
         self.epsd[:] = 0.0
         self.sig[:] = 0.0
         self.n_rows_last = 0
+        self._refresh_density()
+
+    def _refresh_density(self) -> None:
+        """Summation density of every particle at the current positions (particles outside a local
+        frame's rows keep this value); redone when the particle mass changes (new material)."""
+        s = self.solver
+        n = s.n
+        ok, self.nb_idx, self.nb_dw, self.nb_w = current_neighbours(
+            s.x, self.global_rows, n, self.global_rows, n, s.h, self.pos, self.nb_off,
+            self.nb_idx, self.nb_dw, self.nb_w)
+        if ok:
+            summation_density(self.global_rows, n, self.nb_off, self.nb_w, s.mass, s.h, self.rho)
+        else:
+            self.rho[:] = s.material.rho
+        self._mass = s.mass
 
     def run(self, lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt) -> tuple[float, bool]:
         """One frame on the solver's index sets (same tuple as the tlsph path); returns ``(overlap, ok)``."""
         s = self.solver
         m = s.material
         (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
+        if s.mass != self._mass:
+            self._refresh_density()
         if s.config.mode == 'global':
             rows, n_rows = self.global_rows, s.n
             search, n_search = self.global_rows, s.n
