@@ -123,10 +123,25 @@ def _force_source(data: ReportData) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return m['t'], vec, np.full_like(vec, np.nan), 'tissue/metrics contact_force'
 
 
+def _break_gaps(t: np.ndarray, *series: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Insert a NaN row where the stream paused (> 10 median periods) so lines do not bridge it."""
+    if len(t) < 3:
+        return (t, *series)
+    dt = np.diff(t)
+    typical = np.median(dt[dt > 0]) if np.any(dt > 0) else 0.0
+    gaps = np.flatnonzero(dt > 10.0 * typical) + 1 if typical > 0 else np.array([], dtype=int)
+    if gaps.size == 0:
+        return (t, *series)
+    out_t = np.insert(np.asarray(t, dtype=float), gaps, np.nan)
+    out = [np.insert(np.asarray(s, dtype=float), gaps, np.nan, axis=0) for s in series]
+    return (out_t, *out)
+
+
 def plot_force_vs_time(data: ReportData, path: Path) -> None:
     plt, fig, ax = _figure()
     t, vec, _, label = _force_source(data)
     if len(t):
+        t, vec = _break_gaps(t, vec)
         mag = np.linalg.norm(vec, axis=1)
         for i, (axis, colour) in enumerate(zip('xyz', ('tab:red', 'tab:green', 'tab:blue'))):
             ax.plot(t, vec[:, i], color=colour, lw=0.8, alpha=0.7, label=f'F{axis}')
@@ -171,6 +186,8 @@ def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
 def _hist(ax, values_s: np.ndarray, colour: str, p_lines: bool = True) -> None:
     ms = values_s[np.isfinite(values_s)] * 1e3
     ax.hist(ms, bins=min(80, max(10, int(np.sqrt(ms.size)))), color=colour, alpha=0.8)
+    # Log counts: the rare slow steps that miss the deadline are the point of the plot.
+    ax.set_yscale('log')
     if p_lines:
         for q, style in ((50, '--'), (99, ':')):
             v = percentile(ms, q)
