@@ -118,3 +118,15 @@ def test_rate_targets_need_min_below_max():
     targets.rates['pose'] = RateTarget(500.0, 100.0)
     with pytest.raises(VizConfigError, match='min_rate <= max_rate'):
         targets.validate()
+
+
+def test_statuses_without_data_are_ok_when_their_topics_are_not_required():
+    targets = Targets()
+    for topic in ('pose', 'force'):
+        targets.rates[topic] = RateTarget(900.0, 1100.0, required=False)
+    snap = VizStats(window=1.0).snapshot(0.0)
+    assert latency_status(snap, targets).level == OK
+    assert step_status(snap, targets).level == STALE        # metrics still required
+    assert tissue_status(snap, targets).level == STALE
+    targets.rates['metrics'] = RateTarget(900.0, 1100.0, required=False)
+    assert step_status(snap, targets).level == OK and tissue_status(snap, targets).level == OK

@@ -4,7 +4,8 @@ The functions here return plain :class:`Status` records; the node converts them 
 ``diagnostic_msgs/DiagnosticStatus``. Rate checks follow diagnostic_updater's FrequencyStatus:
 a rate below ``min_rate * (1 - tolerance)`` or above ``max_rate * (1 + tolerance)`` is WARN, a
 topic that never arrived or stopped for longer than ``stale_timeout`` is ERROR with "no data".
-Statuses derived from a topic that has no data in the window are STALE.
+Statuses derived from a topic that has no data in the window are STALE (OK when that topic is not
+required, so a graph without a device can still be all OK).
 """
 
 from __future__ import annotations
@@ -139,7 +140,9 @@ def step_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> S
               ('p99 error [ms]', _ms(targets.step_p99_error))]
     name = f'{prefix}: step time'
     if not math.isfinite(snap.step_p99):
-        return Status(name, STALE, 'no data', values)
+        if targets.rates['metrics'].required:
+            return Status(name, STALE, 'no data', values)
+        return Status(name, OK, 'no data (metrics not required)', values)
     miss = snap.deadline_miss_pct
     text = f'p99 {snap.step_p99 * 1e3:.3f} ms, {miss:.1f} % deadline misses'
     if snap.step_p99 > targets.step_p99_error or miss > targets.deadline_miss_error_pct:
@@ -159,7 +162,9 @@ def latency_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -
               ('p99 error [ms]', _ms(targets.latency_p99_error))]
     name = f'{prefix}: pose to force latency'
     if not math.isfinite(snap.latency_p50):
-        return Status(name, STALE, 'no data', values)
+        if targets.rates['pose'].required and targets.rates['force'].required:
+            return Status(name, STALE, 'no data', values)
+        return Status(name, OK, 'no data (pose and force not both required)', values)
     loss = 0.0 if not math.isfinite(loss) else loss
     text = (f'p50 {snap.latency_p50 * 1e3:.2f} ms p99 {snap.latency_p99 * 1e3:.2f} ms, '
             f'{loss:.1f} % poses without reply')
@@ -180,7 +185,9 @@ def tissue_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') ->
               ('max displacement [mm]', _ms(snap.displacement))]
     name = f'{prefix}: tissue'
     if not (math.isfinite(snap.active) or math.isfinite(snap.force)):
-        return Status(name, STALE, 'no data', values)
+        if targets.rates['metrics'].required or targets.rates['force'].required:
+            return Status(name, STALE, 'no data', values)
+        return Status(name, OK, 'no data (metrics and force not required)', values)
     if math.isfinite(snap.force_max) and snap.force_max >= targets.force_limit * (1.0 - 1e-6):
         return Status(name, WARN, f'force at the device limit ({snap.force_max:.2f} N)', values)
     text = (f'active {_num(snap.active, 0)}, F {_num(snap.force, 2)} N, '

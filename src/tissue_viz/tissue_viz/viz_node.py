@@ -243,8 +243,11 @@ class VizNode(Node):
         snap = self.stats.snapshot(time.monotonic())
         level = worst_level(self.last_statuses) if self.last_statuses else 0
         line = summary_line(snap)
-        log = self.get_logger()
-        (log.info if level == 0 else log.warning)(line)
+        # rclpy binds one severity to each logging call site, so the two levels need two calls.
+        if level == 0:
+            self.get_logger().info(line)
+        else:
+            self.get_logger().warning(line)
 
     def _on_marker_timer(self) -> None:
         pose = self.stats.last_pose
