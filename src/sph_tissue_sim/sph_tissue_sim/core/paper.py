@@ -485,7 +485,7 @@ class PaperScheme:
         self.stamp = np.zeros(n, dtype=np.int64)
         self.stamp_val = 0
         self.nb_off = np.zeros(n + 1, dtype=np.int64)
-        cap = 2 * len(solver.indices) + 1024
+        cap = len(solver.indices) + len(solver.indices) // 4 + 1024   # grows if compression packs more
         self.nb_idx = np.empty(cap, dtype=np.int32)
         self.nb_dw = np.empty(cap)
         self.nb_w = np.empty(cap)
