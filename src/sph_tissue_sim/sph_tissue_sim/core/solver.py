@@ -382,9 +382,12 @@ class Solver:
             tool = np.asarray(tool_pos, dtype=np.float64).reshape(3)
         except (TypeError, ValueError) as exc:
             raise InvalidInput(f'tool position must be 3 numbers, got {tool_pos!r}') from exc
-        if not np.all(np.isfinite(tool)):
+        # scalar checks: numpy's per-call overhead on a 3-vector matters at 1 kHz
+        t0, t1, t2 = tool.tolist()
+        if not (math.isfinite(t0) and math.isfinite(t1) and math.isfinite(t2)):
             raise InvalidInput(f'tool position is not finite: {tool}')
-        if np.linalg.norm(tool - self.centre) > self.config.max_tool_distance:
+        c0, c1, c2 = self.centre.tolist()
+        if math.sqrt((t0 - c0) ** 2 + (t1 - c1) ** 2 + (t2 - c2) ** 2) > self.config.max_tool_distance:
             raise InvalidInput(f'tool position {tool} is more than {self.config.max_tool_distance} m '
                                f'from the tissue')
         return tool.copy()
@@ -412,7 +415,8 @@ class Solver:
             res = self._local_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
         force_raw = self.react.copy()
         force, clamped = clamp_force(force_raw, cfg.force_limit)
-        self.f_prev = float(np.linalg.norm(force))
+        f0, f1, f2 = force.tolist()
+        self.f_prev = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
         self.tool_prev = tool1 if tool_on else None
         self.sim_time += n_sub * sub_dt
         result = StepResult(force=force, force_raw=force_raw, clamped=clamped, substeps=n_sub,
@@ -489,7 +493,9 @@ class Solver:
                                    g.cell_start, g.cell_particles, tool1, reach, margin, self.tmp)
         if tool_on:
             cand_centre = 0.5 * (tool0 + tool1)
-            cand_radius = 0.5 * float(np.linalg.norm(tool1 - tool0)) + reach + margin
+            a0, a1, a2 = tool0.tolist()
+            b0, b1, b2 = tool1.tolist()
+            cand_radius = 0.5 * math.sqrt((b0 - a0) ** 2 + (b1 - a1) ** 2 + (b2 - a2) ** 2) + reach + margin
         else:
             contact = -1
             cand_centre = self.centre
