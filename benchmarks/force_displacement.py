@@ -204,7 +204,7 @@ def _robust_top(values: list[np.ndarray]) -> float:
     return 1.2 * max(max(tops, default=0.0), 1e-3)
 
 
-def plot(path: Path, results: dict, p: Protocol, model, material) -> None:
+def plot(path: Path, results: dict, p: Protocol, model, material, statuses: dict | None = None) -> None:
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -221,7 +221,13 @@ def plot(path: Path, results: dict, p: Protocol, model, material) -> None:
         c = COLOURS.get(name, None)
         load = (ph == 'press') | (ph == 'hold')
         rel = ph == 'release'
-        ax_press.plot(get['depth'][load] * 1e3, get['fz'][load], '-', color=c, lw=2, label=name)
+        label = name
+        if statuses and statuses.get(name, 'ok') != 'ok':
+            # mark where the run stopped (a blow-up) on every panel
+            label = f'{name} (unstable at {get["time"][-1]:.2f} s)'
+            ax_press.plot(get['depth'][-1] * 1e3, get['fz'][-1], 'x', color=c, ms=10, mew=2.5)
+            ax_time.plot(get['time'][-1], get['f_norm'][-1], 'x', color=c, ms=10, mew=2.5)
+        ax_press.plot(get['depth'][load] * 1e3, get['fz'][load], '-', color=c, lw=2, label=label)
         if rel.any():
             ax_press.plot(get['depth'][rel] * 1e3, get['fz'][rel], ':', color=c, lw=1.5)
         pull = ph == 'pull'
@@ -354,7 +360,8 @@ def main(argv=None) -> int:
 
     write_csv(args.out / 'force_displacement.csv', all_rows, CSV_COLUMNS)
     write_csv(args.out / 'summary.csv', summary, SUMMARY_COLUMNS)
-    plot(args.out / 'force_displacement.png', results, p, model, material)
+    plot(args.out / 'force_displacement.png', results, p, model, material,
+         {s['config']: s['status'] for s in summary})
     print()
     print_table(summary)
     print(f'\nwrote {args.out}/force_displacement.csv, summary.csv, force_displacement.png '
