@@ -1,11 +1,12 @@
 """Sub-stepped symplectic Euler frame loop (paper eq. 22) shared by the tlsph and mass-spring schemes.
 
 One call advances the tissue by ``n_sub`` sub-steps of ``dt``: internal forces of the fully solved
-set, contact forces, transmission-layer accelerations ``w(i) * a_contact`` (paper eq. 21), then
+set, contact forces, then
 
     v <- v + dt a,    x <- x + dt v          (symplectic Euler, eq. 22)
 
-for every active free particle. All index sets are preallocated arrays with counts, so a local
+for every fully solved free particle, while transmission-layer particles move with
+``v = w(i) * v_contact`` (paper eq. 21, ``a = w(i) a_contact``, integrated once). All index sets are preallocated arrays with counts, so a local
 step costs in proportion to the active area, never to the model size.
 """
 
@@ -96,28 +97,29 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
             overlap = contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, tool, tool_vel, reach,
                                      k_c, c_c, rsum)
             react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
-        # transmission layers follow the contact particle's acceleration (paper eqs. 20-21)
-        if n_lp > 0:
-            ac0 = 0.0; ac1 = 0.0; ac2 = 0.0
-            if contact_idx >= 0 and not fixed[contact_idx]:
-                ac0 = acc[contact_idx, 0]; ac1 = acc[contact_idx, 1]; ac2 = acc[contact_idx, 2]
-            for t in range(n_lp):
-                i = layer_list[t]
-                w = layer_w[t]
-                acc[i, 0] = w * ac0
-                acc[i, 1] = w * ac1
-                acc[i, 2] = w * ac2
         # symplectic Euler
         for t in range(n_sph):
             i = sph_list[t]
             for a in range(3):
                 v[i, a] += dt * acc[i, a]
                 x[i, a] += dt * v[i, a]
-        for t in range(n_lp):
-            i = layer_list[t]
-            for a in range(3):
-                v[i, a] += dt * acc[i, a]
-                x[i, a] += dt * v[i, a]
+        # transmission layers (paper eqs. 20-21): a = w(i) a_c, integrated once as v = w(i) v_c.
+        # Integrating the acceleration instead keeps each layer particle's own integration
+        # constant (its velocity when it joined the layer, or a jump when the contact particle
+        # changes), which then drifts unopposed (layers feel no elastic force) and pumps energy
+        # into the solved area: deep random poking blew up within 1 s that way.
+        if n_lp > 0:
+            vc0 = 0.0; vc1 = 0.0; vc2 = 0.0
+            if contact_idx >= 0 and not fixed[contact_idx]:
+                vc0 = v[contact_idx, 0]; vc1 = v[contact_idx, 1]; vc2 = v[contact_idx, 2]
+            for t in range(n_lp):
+                i = layer_list[t]
+                w = layer_w[t]
+                v[i, 0] = w * vc0
+                v[i, 1] = w * vc1
+                v[i, 2] = w * vc2
+                for a in range(3):
+                    x[i, a] += dt * v[i, a]
     for a in range(3):
         react[a] /= max(n_sub, 1)
     ok = True

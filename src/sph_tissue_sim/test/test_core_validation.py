@@ -1,0 +1,286 @@
+"""Physics validation of the tlsph scheme against answers from continuum mechanics.
+
+Every reference value here comes from a closed-form solution (Kelvin-Voigt creep, Hooke's law,
+Euler-Bernoulli beam theory) or from a conservation law, never from a previous run of the code.
+The particle models are small so that each test runs in seconds on two cores; each docstring
+states why the chosen geometry lets the closed-form answer apply.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sph_tissue_sim.core.material import Material
+from sph_tissue_sim.core.models import make_beam, make_block, make_model
+from sph_tissue_sim.core.solver import Solver, SolverConfig
+
+E_TEST = 5000.0      # Young's modulus of the test material [Pa] (liver order of magnitude)
+RHO = 1060.0         # density [kg/m^3]
+SPACING = 0.005      # particle spacing of the bar models [m]
+
+
+def _material(nu: float, tau: float) -> Material:
+    """Kelvin-Voigt material with Young's modulus E_TEST, Poisson ratio ``nu`` and retardation ``tau``.
+
+    ``Material.from_shear`` with ``eta_bulk=None`` gives the volumetric dashpot the same
+    retardation time as the shear one: eta_shear / G = eta_bulk / K = tau.
+    """
+    G = E_TEST / (2.0 * (1.0 + nu))
+    return Material.from_shear(G, nu, G * tau, None, rho=RHO)
+
+
+def _free_bar_under_end_tractions(nx: int, ny: int, nz: int, material: Material, sigma0: float,
+                                  **config) -> tuple[Solver, np.ndarray]:
+    """A free bar along x pulled by equal and opposite tractions ``sigma0`` on its two end faces.
+
+    The total force sigma0 * A (A = ny nz spacing^2, the cross-section the particles fill) is shared
+    equally by the particles of each end layer. No particle is fixed: the loads balance, so the bar
+    stays in place and its lateral faces are free (uniaxial stress). Returns the solver and a mask
+    of the interior particles (1.5 spacings away from both loaded ends), where the stress is uniform.
+    """
+    model = make_block(nx, ny, nz, spacing=SPACING, fix='none')
+    solver = Solver(model, material, SolverConfig(mode='global', max_substeps=100000, **config))
+    X = model.positions
+    left = np.flatnonzero(X[:, 0] < X[:, 0].min() + 1e-9)
+    right = np.flatnonzero(X[:, 0] > X[:, 0].max() - 1e-9)
+    total = sigma0 * ny * nz * SPACING ** 2
+    forces = np.zeros((len(left) + len(right), 3))
+    forces[:len(left), 0] = -total / len(left)
+    forces[len(left):, 0] = total / len(right)
+    solver.set_external_forces(np.concatenate([left, right]), forces)
+    interior = (X[:, 0] > X[:, 0].min() + 1.5 * SPACING) & (X[:, 0] < X[:, 0].max() - 1.5 * SPACING)
+    return solver, interior
+
+
+def _axial_strain(solver: Solver, mask: np.ndarray) -> float:
+    """Slope d u_x / d X of the particles in ``mask`` (least squares): the uniform axial strain."""
+    X = solver.model.positions[mask]
+    u = solver.positions[mask] - X
+    return float(np.polyfit(X[:, 0], u[:, 0], 1)[0])
+
+
+def _advance_to(solver: Solver, t_end: float, frame: float) -> None:
+    while solver.sim_time < t_end - 1e-12:
+        solver.step(None, min(frame, t_end - solver.sim_time))
+
+
+# ---------------------------------------------------------------------------------------------
+def test_kelvin_voigt_creep_under_constant_traction_follows_sigma_over_e_times_one_minus_exp():
+    """Creep of a free bar under a constant end traction: eps(t) = sigma0/E (1 - exp(-t/tau)).
+
+    Why this is the closed-form answer: with both dashpots sharing the retardation time tau
+    (eta_shear/G = eta_bulk/K = tau), the Kelvin-Voigt constitutive law is
+    sigma = C : (eps + tau deps/dt) with C the isotropic elastic tensor. Under uniaxial stress
+    sigma0 (lateral faces free) C^-1 : sigma has axial component sigma0/E, so
+    eps + tau deps/dt = sigma0/E, whose solution from rest is sigma0/E (1 - exp(-t/tau)): the creep
+    modulus is E and the viscosity in the textbook formula is eta = E tau. The formula neglects
+    inertia; a Kelvin-Voigt bar with fundamental angular frequency omega = pi c_bar / L
+    (c_bar = sqrt(E/rho)) creeps at the rate 1/tau (1 + 1/(omega tau)^2 + ...), so tau is set to
+    15 / omega (0.4 % rate error) and the strain is compared from t = tau/2 on, after the fast
+    (elastic-wave) transients decay at rate omega^2 tau. Strain 1e-3 keeps the neo-Hookean spring
+    linear to 0.1 %.
+    """
+    nx, ny, nz, nu = 8, 4, 4, 0.45
+    omega = math.pi * math.sqrt(E_TEST / RHO) / (nx * SPACING)
+    tau = 15.0 / omega
+    sigma0 = 1e-3 * E_TEST
+    solver, interior = _free_bar_under_end_tractions(nx, ny, nz, _material(nu, tau), sigma0)
+    errors = {}
+    for t in (0.5 * tau, tau, 3.0 * tau):
+        _advance_to(solver, t, 5e-4)
+        exact = sigma0 / E_TEST * (1.0 - math.exp(-solver.sim_time / tau))
+        errors[t / tau] = _axial_strain(solver, interior) / exact - 1.0
+    print('creep relative error at t/tau:', {k: f'{v:+.4f}' for k, v in errors.items()})
+    assert all(abs(e) < 0.02 for e in errors.values()), errors
+
+
+def test_uniaxial_tension_recovers_youngs_modulus_and_poisson_ratio():
+    """Static uniaxial stress: sigma0 = E eps_axial and eps_lateral = -nu eps_axial (Hooke's law).
+
+    A free bar (12 x 6 x 6 particles) under equal and opposite end tractions; the viscosity
+    (tau = 20 ms, about 1.5 fundamental periods) only brings it to rest: after 8 tau the transient
+    is below 1e-3 of the static strain. The strain is the slope of the interior displacement field
+    (uniform stress region, 1.5 spacings from the loaded ends).
+    """
+    nu, tau = 0.45, 0.02
+    sigma0 = 1e-3 * E_TEST
+    solver, interior = _free_bar_under_end_tractions(12, 6, 6, _material(nu, tau), sigma0)
+    _advance_to(solver, 8.0 * tau, 1e-3)
+    eps = _axial_strain(solver, interior)
+    X = solver.model.positions[interior]
+    u = solver.positions[interior] - X
+    eps_lat = 0.5 * (np.polyfit(X[:, 1], u[:, 1], 1)[0] + np.polyfit(X[:, 2], u[:, 2], 1)[0])
+    E_meas = sigma0 / eps
+    nu_meas = -eps_lat / eps
+    print(f'E error {E_meas / E_TEST - 1.0:+.4f}, nu measured {nu_meas:.4f} (exact {nu})')
+    assert E_meas == pytest.approx(E_TEST, rel=0.05)
+    assert nu_meas == pytest.approx(nu, rel=0.05)
+
+
+@pytest.mark.xfail(reason='the vector hourglass force is not central: drift 3.9e-4 of the scale',
+                   strict=True)
+def test_internal_forces_conserve_angular_momentum():
+    """Internal (elastic, viscous and hourglass) forces exert no net torque on a free body.
+
+    A free block with random initial velocities (no loads, no contact) deforms for 200 frames;
+    the total angular momentum about the centre of mass must not change (linear momentum is
+    checked in test_core_solver.py).
+    """
+    model = make_block(6, 5, 4, spacing=0.0075, fix='none')
+    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode='global'))
+    rng = np.random.default_rng(1)
+    solver.velocities[:] = rng.normal(0.0, 0.02, solver.velocities.shape)
+    solver.velocities[:] -= solver.velocities.mean(axis=0)
+
+    def angular_momentum():
+        r = solver.positions - solver.positions.mean(axis=0)
+        return solver.mass * np.cross(r, solver.velocities).sum(axis=0)
+
+    r0 = solver.positions - solver.positions.mean(axis=0)
+    scale = solver.mass * np.sum(np.linalg.norm(r0, axis=1) * np.linalg.norm(solver.velocities, axis=1))
+    L0 = angular_momentum()
+    for _ in range(200):
+        solver.step(None, 1e-3)
+    assert solver.displacement().max() > 5e-4          # the body did deform
+    drift = np.abs(angular_momentum() - L0).max() / scale
+    print(f'angular momentum drift / scale: {drift:.2e}')
+    assert drift < 1e-9
+
+
+def _cantilever_frequency(n_across: int, slenderness: float, nu: float = 0.3):
+    """First bending frequency of a clamped beam: (measured, Euler-Bernoulli) [Hz]."""
+    length = slenderness * n_across * 0.0025
+    model = make_beam(length, n_across * 0.0025, n_across * 0.0025, 0.0025, fixed_layers=2)
+    L, H, W = model.info['length'], model.info['height'], model.info['width']
+    f_eb = 1.8751 ** 2 / (2.0 * math.pi * L ** 2) * math.sqrt(E_TEST * W * H ** 3 / 12.0 / (RHO * W * H))
+    # low viscosity: the mode's damping ratio tau * omega / 2 is 1e-4
+    solver = Solver(model, _material(nu, 1e-4 / (2 * math.pi * f_eb)),
+                    SolverConfig(mode='global', max_substeps=100000))
+    X = model.positions
+    # initial velocity in the shape of the first clamped-free mode (beta L = 1.8751)
+    b, s = 1.8751 / L, 0.7341
+    xi = np.clip(X[:, 0], 0.0, None)
+    phi = np.cosh(b * xi) - np.cos(b * xi) - s * (np.sinh(b * xi) - np.sin(b * xi))
+    phi_tip = np.cosh(b * L) - np.cos(b * L) - s * (np.sinh(b * L) - np.sin(b * L))
+    amplitude = 0.01 * L
+    free = ~model.fixed
+    solver.velocities[free, 2] = amplitude * 2.0 * math.pi * f_eb * phi[free] / phi_tip
+    tip = X[:, 0] > X[:, 0].max() - 1e-9
+    t, z = [], []
+    frame = 1.0 / (200.0 * f_eb)
+    while len(t) < 2 or _crossings(np.array(t), np.array(z)).size < 3:
+        solver.step(None, frame)
+        t.append(solver.sim_time)
+        z.append(float(np.mean(solver.positions[tip, 2] - X[tip, 2])))
+        assert solver.sim_time < 5.0 / f_eb, 'no oscillation'
+    tc = _crossings(np.array(t), np.array(z))
+    return 1.0 / (2.0 * np.mean(np.diff(tc))), f_eb
+
+
+def _crossings(t: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Times where ``z`` changes sign (linear interpolation), excluding the start at z = 0."""
+    k = np.flatnonzero(z[:-1] * z[1:] < 0.0)
+    return t[k] - z[k] * (t[k + 1] - t[k]) / (z[k + 1] - z[k])
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason='first-order gradients at free surfaces: f1 about 18 % low (4 particles '
+                          'across)', strict=True)
+def test_cantilever_first_bending_frequency_matches_euler_bernoulli():
+    """f1 = 1.8751^2 / (2 pi L^2) sqrt(E I / (rho A)) for a clamped-free beam.
+
+    Beam of 4 x 4 particles across and slenderness L/H = 8 (Timoshenko shear and rotary-inertia
+    corrections below 1 %), clamped by two fixed particle layers, set swinging in its first mode
+    shape with a tip amplitude of 1 % of L; the period is the mean spacing of the tip
+    displacement's zero crossings.
+    """
+    f, f_eb = _cantilever_frequency(4, 8.0)
+    err = f / f_eb - 1.0
+    print(f'cantilever: f1 = {f:.4f} Hz, Euler-Bernoulli {f_eb:.4f} Hz, error {err:+.4f}')
+    assert abs(err) < 0.10
+
+
+# ---------------------------------------------------------------------------------------------
+def _random_poke(solver: Solver, frames: int, seed: int) -> dict:
+    """Drive the tool along random straight paths in and out of the tissue at 1 kHz.
+
+    Waypoints are drawn in the model's bounding box grown by 2 cm (so the tool leaves the tissue,
+    re-enters and presses deep into it); the tool moves at 2-20 cm/s between them.
+    """
+    X = solver.model.positions
+    lo, hi = X.min(axis=0) - 0.02, X.max(axis=0) + 0.02
+    rng = np.random.default_rng(seed)
+    pos = np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), hi[2]])
+    target, speed = pos, 0.0
+    stats = dict(max_force=0.0, max_speed=0.0, contact_frames=0, max_disp=0.0)
+    for _ in range(frames):
+        if np.linalg.norm(target - pos) < 1e-9:
+            target = rng.uniform(lo, hi)
+            speed = rng.uniform(0.02, 0.2)
+        step = target - pos
+        dist = float(np.linalg.norm(step))
+        pos = target.copy() if dist <= speed * 1e-3 else pos + step * (speed * 1e-3 / dist)
+        res = solver.step(pos, 1e-3)
+        assert np.all(np.isfinite(res.force)) and np.all(np.isfinite(res.force_raw))
+        stats['max_force'] = max(stats['max_force'], float(np.linalg.norm(res.force)))
+        stats['contact_frames'] += res.contact_index >= 0
+        stats['max_disp'] = max(stats['max_disp'], res.max_displacement)
+        stats['max_speed'] = max(stats['max_speed'], float(np.abs(solver.velocities).max()))
+    assert np.all(np.isfinite(solver.positions)) and np.all(np.isfinite(solver.velocities))
+    return stats
+
+
+def _check_poke(solver: Solver, stats: dict, frames: int) -> None:
+    print('random poking:', stats)
+    assert stats['contact_frames'] > frames // 10          # the tool really was in the tissue
+    assert stats['max_force'] <= solver.config.force_limit * (1.0 + 1e-12)
+    assert stats['max_speed'] < solver.config.velocity_limit
+    assert stats['max_disp'] < 0.1                         # dents, no particle flung away
+
+
+@pytest.mark.slow
+def test_random_poking_of_block_for_10000_frames_stays_finite_and_bounded():
+    model = make_block(10, 10, 6, spacing=0.0075, fix='bottom')
+    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode='local'))
+    stats = _random_poke(solver, 10000, seed=7)
+    _check_poke(solver, stats, 10000)
+
+
+LIVER_MODULE = Path(__file__).resolve().parents[1] / 'sph_tissue_sim' / 'core' / 'liver.py'
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not LIVER_MODULE.is_file(), reason='no liver model')
+def test_random_poking_of_liver_for_10000_frames_stays_finite_and_bounded():
+    model = make_model('liver', n_particles=1289)
+    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode='local'))
+    stats = _random_poke(solver, 10000, seed=11)
+    _check_poke(solver, stats, 10000)
+
+
+# ---------------------------------------------------------------------------------------------
+def _press_and_hold(mode: str, depth: float, **config) -> np.ndarray:
+    """Lower the tool 4 mm into the top of a bottom-fixed block over 0.4 s, hold 0.3 s; force [N]."""
+    model = make_block(10, 10, 6, spacing=0.0075, fix='bottom')
+    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode=mode, **config))
+    X = model.positions
+    start = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean() + 5e-4, X[:, 2].max() + solver.contact_reach])
+    res = None
+    for k in range(700):
+        res = solver.step(start - np.array([0.0, 0.0, depth * min(1.0, (k + 1) / 400.0)]), 1e-3)
+    return res.force
+
+
+@pytest.mark.parametrize('k1_min', [3.0])
+def test_local_area_contact_force_matches_global_at_same_indentation(k1_min):
+    """Quasi-static press: the local-area model gives the global model's force within 10 %."""
+    f_global = _press_and_hold('global', 0.004, k1_min=k1_min)
+    f_local = _press_and_hold('local', 0.004, k1_min=k1_min)
+    err = f_local[2] / f_global[2] - 1.0
+    print(f'k1_min {k1_min}: global {f_global[2]:.4f} N, local {f_local[2]:.4f} N, error {err:+.4f}')
+    assert f_global[2] > 0.1
+    assert abs(err) < 0.10
