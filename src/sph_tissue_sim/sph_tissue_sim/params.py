@@ -1,0 +1,277 @@
+"""Parameters of sim_node in one place (descriptors, ranges) and the builders that turn them into
+core objects (model, material, solver settings, device mapping).
+
+Each table entry: name -> (default, description, range or choices or None, read_only, rebuild).
+Numeric ranges become FloatingPointRange / IntegerRange on the descriptor (rclpy enforces them at
+start-up and on every set); string choices are checked at start-up and by the node's
+set-parameters callback. ``rebuild`` says what a run-time change needs: ``None`` (applied at the next
+step), ``'material'`` (material swapped between steps), ``'solver'`` (solver rebuilt between steps,
+the tissue returns to rest), ``'mapping'`` (device map rebuilt). Read-only parameters need a restart.
+
+The builders import no rclpy, so they are tested without ROS.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .core.errors import ConfigError, ModelError
+from .core.material import Material, load_material
+from .core.models import TissueModel, make_beam, make_block, make_model
+from .core.solver import MODES, SCHEMES, SolverConfig
+from .mapping import ANCHORS, DEFAULT_ROTATION
+
+MODELS = ('liver', 'block', 'beam', 'mesh')
+TIMING_MODES = ('live', 'lockstep')
+HARD_FORCE_LIMIT = 3.3  # [N] PHANTOM Omni peak force
+
+# name: (default, description, range/choices, read_only, rebuild)
+SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
+    # -- model ------------------------------------------------------------------------------------
+    'model': ('liver', 'tissue body: liver | block | beam | mesh (mesh_path)', MODELS, True, None),
+    'mesh_path': ('', 'model mesh: surface mesh file sampled into particles', None, True, None),
+    'n_particles': (3670, 'particle count (the lattice spacing is chosen to give about this many)',
+                    (8, 2_000_000), True, None),
+    'block_size': ([0.08, 0.08, 0.04], '[m] model block: x, y, z extent (bottom layer fixed)', None,
+                   True, None),
+    'beam_size': ([0.1, 0.02, 0.02], '[m] model beam: length (x), width, height (x=0 end clamped)',
+                  None, True, None),
+    # -- material ---------------------------------------------------------------------------------
+    'material': ('liver', 'name in materials_file, or "custom" for E, nu, eta_shear, eta_bulk, rho',
+                 None, False, 'material'),
+    'materials_file': ('', 'material presets YAML ("" = the package config/materials.yaml)', None,
+                       False, 'material'),
+    'E': (5220.0, '[Pa] custom material: Young modulus', (1.0, 1e9), False, 'material'),
+    'nu': (0.45, '[-] custom material: Poisson ratio', (0.0, 0.4999), False, 'material'),
+    'eta_shear': (3.0, '[Pa s] custom material: shear viscosity', (0.0, 1e6), False, 'material'),
+    'eta_bulk': (-1.0, '[Pa s] custom material: bulk viscosity (-1 = same retardation time as the '
+                       'shear part)', (-1.0, 1e6), False, 'material'),
+    'rho': (1060.0, '[kg/m^3] custom material: density', (1.0, 1e5), False, 'material'),
+    # -- solver -----------------------------------------------------------------------------------
+    'scheme': ('tlsph', 'paper | tlsph | mass_spring', SCHEMES, False, 'solver'),
+    'mode': ('local', 'global (every particle) | local (dynamic local interaction area)', MODES,
+             False, 'solver'),
+    'h_ratio': (1.3, 'smoothing length h / particle spacing (support 2h)', (0.2, 4.0), False,
+                'solver'),
+    'k1_gain': (0.5, '[1/N] k1 = k1_gain * f_ext (paper eq. 18: 0.5); Dr = k1 h', (0.0, 100.0),
+                False, 'solver'),
+    'k1_min': (1.0, 'lower clamp of k1 (keeps the area non-empty without force)', (0.01, 100.0),
+               False, 'solver'),
+    'k1_max': (6.0, 'upper clamp of k1', (0.01, 100.0), False, 'solver'),
+    'n_layers': (2, 'transmission layers N (paper eqs. 20-21)', (0, 8), False, 'solver'),
+    'tool_radius': (0.005, '[m] radius of the tool-tip sphere', (1e-4, 0.05), False, 'solver'),
+    'contact_stiffness': (300.0, '[N/m] penalty stiffness per contacted particle', (1.0, 1e5), False,
+                          'solver'),
+    'contact_damping_ratio': (1.0, '[-] contact dashpot as a fraction of critical', (0.0, 10.0),
+                              False, 'solver'),
+    'cfl': (0.3, '[-] Courant number of the sub-step bounds', (0.01, 1.0), False, 'solver'),
+    'max_substeps': (64, 'sub-step cap per frame (beyond it simulated time lags; reported)',
+                     (1, 100000), False, 'solver'),
+    # -- force ------------------------------------------------------------------------------------
+    'force_limit': (HARD_FORCE_LIMIT, f'[N] norm clamp of the force sent to the device (Omni peak '
+                                      f'{HARD_FORCE_LIMIT} N, continuous 0.88 N)',
+                    (0.001, HARD_FORCE_LIMIT), False, None),
+    'force_scale': (1.0, 'device force = force_scale * tissue force (use workspace_scale for an '
+                         'energy-consistent scaled workspace)', (0.001, 100.0), False, None),
+    # -- device -> tissue -------------------------------------------------------------------------
+    'device_frame': ('omni_base', 'frame of accepted poses (and of the force replies)', None, False,
+                     None),
+    'accept_empty_frame': (True, 'accept poses with an empty frame_id as device frame', None, False,
+                           None),
+    'tissue_frame': ('tissue', 'frame of tissue/particles and tissue/metrics', None, True, None),
+    'rotation': (list(DEFAULT_ROTATION), 'device -> tissue rotation quaternion [x, y, z, w] '
+                                         '(default: +90 deg about x, device y-up -> tissue z-up)',
+                 None, False, 'mapping'),
+    'translation': ([0.0, 0.0, 0.0], '[m] tissue-frame offset added after the anchor', None, False,
+                    'mapping'),
+    'anchor': ('top_contact', 'tissue point of the device origin: top_contact (tool just touching '
+                              'the top surface above the model centre) | top_surface | centre | '
+                              'origin', ANCHORS, False, 'mapping'),
+    'workspace_scale': (1.0, 'tissue displacement per device displacement', (0.01, 100.0), False,
+                        'mapping'),
+    'max_device_distance': (1.0, '[m] poses farther than this from the device origin are rejected '
+                                 '(an Omni workspace is ~0.16 m)', (0.001, 100.0), False, None),
+    # -- timing -----------------------------------------------------------------------------------
+    'timing_mode': ('live', 'live (newest pose only, never a backlog) | lockstep (every pose in '
+                            'order, reliable deep queue; bit-identical replays)', TIMING_MODES, True,
+                    None),
+    'nominal_dt': (0.001, '[s] step of the first pose and of a pose whose stamp went backwards',
+                   (1e-5, 0.1), False, None),
+    'max_dt': (0.02, '[s] largest frame step; longer stamp gaps are clamped to it', (1e-4, 1.0),
+               False, None),
+    'lockstep_queue_limit': (100000, 'lockstep: queued poses beyond this are dropped (oldest first, '
+                                     'logged)', (10, 10_000_000), True, None),
+    # -- output -----------------------------------------------------------------------------------
+    'particles_rate': (30.0, '[Hz] tissue/particles rate (0 = off)', (0.0, 1000.0), False, None),
+    'metrics_decimation': (1, 'publish tissue/metrics every n-th step', (1, 100000), False, None),
+    'reliable': (False, 'reliable QoS on omni/pose and omni/force_feedback (lockstep: always)', None,
+                 True, None),
+    'qos_depth': (1, 'history depth of omni/pose and omni/force_feedback (lockstep: at least 1000)',
+                  (1, 100000), True, None),
+    'warmup': (True, 'compile the numba kernels before reporting ready', None, True, None),
+    'log_throttle': (1.0, '[s] at most one log line per kind of bad input in this period',
+                     (0.0, 3600.0), False, None),
+}
+
+
+def descriptor(name: str, spec: tuple):
+    """ParameterDescriptor for one entry of :data:`SIM_PARAMS`."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+
+    default, text, rng, read_only, _ = spec
+    desc = ParameterDescriptor(name=name, description=text, read_only=read_only)
+    if isinstance(rng, tuple) and len(rng) == 2 and not isinstance(rng[0], str):
+        if isinstance(default, bool):
+            pass
+        elif isinstance(default, int):
+            desc.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]), step=0)]
+        elif isinstance(default, float):
+            desc.floating_point_range = [FloatingPointRange(from_value=float(rng[0]),
+                                                            to_value=float(rng[1]), step=0.0)]
+    elif isinstance(rng, tuple):
+        desc.additional_constraints = 'one of: ' + ', '.join(rng)
+    return desc
+
+
+def declare_all(node, table: dict = SIM_PARAMS) -> dict[str, Any]:
+    """Declare every parameter of ``table`` on ``node``; return name -> value.
+
+    Raises:
+        ConfigError: a value is out of range, of the wrong type or not one of the choices.
+    """
+    from rclpy.exceptions import ParameterException
+
+    values = {}
+    for name, spec in table.items():
+        try:
+            values[name] = node.declare_parameter(name, spec[0], descriptor(name, spec)).value
+        except (ParameterException, TypeError, ValueError) as exc:
+            raise ConfigError(f'parameter {name}: {exc}') from exc
+        err = check_value(name, values[name], table)
+        if err:
+            raise ConfigError(err)
+    return values
+
+
+def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
+    """Error text if ``value`` is not one of the string choices of ``name`` or a bad vector."""
+    rng = table[name][2]
+    if isinstance(rng, tuple) and rng and isinstance(rng[0], str) and value not in rng:
+        return f'parameter {name} must be one of {", ".join(rng)}, got {value!r}'
+    default = table[name][0]
+    if isinstance(default, list):
+        try:
+            arr = np.asarray(list(value), dtype=np.float64)
+        except (TypeError, ValueError):
+            return f'parameter {name} must be a list of {len(default)} numbers, got {value!r}'
+        if arr.shape != (len(default),) or not np.all(np.isfinite(arr)):
+            return f'parameter {name} must be {len(default)} finite numbers, got {list(value)!r}'
+    return None
+
+
+# -- builders (no rclpy) ----------------------------------------------------------------------------
+def _spacing_for(volume: float, n: int) -> float:
+    return (volume / n) ** (1.0 / 3.0)
+
+
+def block_model(size, n_particles: int) -> TissueModel:
+    """A block of about ``n_particles`` particles filling ``size`` [m] (bottom layer fixed)."""
+    size = np.asarray(size, dtype=np.float64)
+    if size.shape != (3,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
+        raise ConfigError(f'block_size must be 3 positive lengths [m], got {size.tolist()}')
+    s = _spacing_for(float(np.prod(size)), n_particles)
+    dims = [max(2, int(round(L / s))) for L in size]
+    return make_block(*dims, spacing=s, fix='bottom')
+
+
+def beam_model(size, n_particles: int) -> TissueModel:
+    """A cantilever of about ``n_particles`` particles, ``size`` = (length, width, height) [m]."""
+    size = np.asarray(size, dtype=np.float64)
+    if size.shape != (3,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
+        raise ConfigError(f'beam_size must be 3 positive lengths [m], got {size.tolist()}')
+    s = _spacing_for(float(np.prod(size)), n_particles)
+    return make_beam(float(size[0]), float(size[1]), float(size[2]), spacing=s)
+
+
+def build_model(p: dict, log=None) -> TissueModel:
+    """The tissue model selected by the parameters.
+
+    ``model: liver`` falls back to a block of the same particle count (with an error log line) when
+    the core has no liver generator.
+
+    Raises:
+        ConfigError: bad size parameters.
+        ModelError: the model cannot be built (mesh missing or unreadable, bad particle count).
+    """
+    kind, n = p['model'], int(p['n_particles'])
+    if kind == 'block':
+        return block_model(p['block_size'], n)
+    if kind == 'beam':
+        return beam_model(p['beam_size'], n)
+    if kind == 'liver':
+        try:
+            from .core import liver  # noqa: F401  (probe: is the generator part of this build?)
+        except ImportError:
+            if log is not None:
+                log('model liver is not available in this build (sph_tissue_sim.core.liver '
+                    'missing): using a block of the same particle count instead')
+            return block_model(p['block_size'], n)
+        return make_model('liver', n_particles=n)
+    if kind == 'mesh':
+        path = str(p['mesh_path'])
+        if not path:
+            raise ConfigError('model mesh needs mesh_path (a surface mesh file)')
+        if not Path(path).is_file():
+            raise ModelError(f'mesh file not found: {path}')
+        try:
+            return make_model('mesh', path=path, n_particles=n)
+        except ImportError as exc:
+            raise ModelError(f'model mesh is not available in this build: {exc}') from exc
+    raise ConfigError(f'parameter model must be one of {", ".join(MODELS)}, got {kind!r}')
+
+
+def default_materials_file() -> Path | None:
+    """The installed ``share/sph_tissue_sim/config/materials.yaml`` (None: use the core default)."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        path = Path(get_package_share_directory('sph_tissue_sim')) / 'config' / 'materials.yaml'
+        return path if path.is_file() else None
+    except Exception:  # noqa: BLE001  (no ament index: the core's source-tree default applies)
+        return None
+
+
+def build_material(p: dict) -> Material:
+    """The material selected by the parameters (raises ConfigError)."""
+    name = str(p['material'])
+    if name == 'custom':
+        E, nu, eta_s, eta_b, rho = (float(p[k]) for k in ('E', 'nu', 'eta_shear', 'eta_bulk', 'rho'))
+        if eta_b < 0.0:
+            G = E / (2.0 * (1.0 + nu))
+            K = E / (3.0 * (1.0 - 2.0 * nu))
+            eta_b = K * eta_s / G
+        return Material(E, nu, eta_s, eta_b, rho, 'custom')
+    path = p.get('materials_file') or default_materials_file()
+    return load_material(path, name)
+
+
+def build_config(p: dict) -> SolverConfig:
+    """Validated solver settings from the parameters (raises ConfigError)."""
+    cfg = SolverConfig(scheme=p['scheme'], mode=p['mode'], h_ratio=float(p['h_ratio']),
+                       k1_gain=float(p['k1_gain']), k1_min=float(p['k1_min']),
+                       k1_max=float(p['k1_max']), n_layers=int(p['n_layers']),
+                       tool_radius=float(p['tool_radius']),
+                       contact_stiffness=float(p['contact_stiffness']),
+                       contact_damping_ratio=float(p['contact_damping_ratio']),
+                       force_limit=float(p['force_limit']), cfl=float(p['cfl']),
+                       max_substeps=int(p['max_substeps']))
+    cfg.validate()
+    if not p['max_dt'] >= p['nominal_dt']:
+        raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')
+    if not math.isfinite(p['force_limit']) or p['force_limit'] > HARD_FORCE_LIMIT:
+        raise ConfigError(f'force_limit must be <= {HARD_FORCE_LIMIT} N, got {p["force_limit"]}')
+    return cfg

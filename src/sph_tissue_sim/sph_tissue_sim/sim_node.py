@@ -1,0 +1,445 @@
+"""sim_node: the SPH soft-tissue simulation in the ROS 2 graph.
+
+Subscribes ``omni/pose`` (geometry_msgs/PoseStamped, stylus tip in the device frame), maps the tip
+into the tissue frame, advances the tissue by the time since the previous pose (sub-stepped by the
+core) and answers every step with ``omni/force_feedback`` (geometry_msgs/WrenchStamped: the reaction
+of the tissue on the tool in the device frame, clamped to ``force_limit``; header stamp and frame
+are the pose's, so the round trip can be measured). Publishes ``tissue/particles``
+(sensor_msgs/PointCloud2, see :mod:`.cloud`) at ``particles_rate`` and ``tissue/metrics``
+(tissue_msgs/SimMetrics) per step; serves ``tissue/reset`` (tissue_msgs/srv/ResetTissue).
+
+Timing modes (parameter ``timing_mode``):
+
+- ``live``: the subscription callback only keeps the newest pose; a worker thread steps for it, so
+  poses that arrive during a step are dropped (counted) and there is never a backlog.
+- ``lockstep``: every pose is queued and processed in order with ``dt`` from its stamp (reliable,
+  deep QoS), so replaying the same poses gives bit-identical forces.
+
+Bad input never stops the node and never sends an unsafe force: a pose that is non-finite, too far
+from the device origin or in a foreign frame is answered with a zero force (the device gets a
+defined, safe command and a lockstep replay its reply) and does not advance the tissue; a repeated
+stamp is answered with the previous force; a stamp going backwards steps with ``nominal_dt``; a
+gap longer than ``max_dt`` is clamped to it; an unstable step answers zero and resets the tissue.
+
+Exit codes: 0 normal (Ctrl-C), 1 the model cannot be built (missing mesh, ...), 2 invalid parameters.
+"""
+
+from __future__ import annotations
+
+import collections
+import sys
+import threading
+import time
+import traceback
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped, WrenchStamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from tissue_msgs.msg import SimMetrics
+from tissue_msgs.srv import ResetTissue
+
+from .cloud import POINT_DTYPE, make_cloud, pack_points
+from .core.errors import ConfigError, ModelError, SimError
+from .core.solver import InvalidInput, Solver, SolverConfig, warmup
+from .mapping import DeviceMapping, anchor_point, check_position, clamp_norm
+from .params import (SIM_PARAMS, build_config, build_material, build_model, check_value,
+                     declare_all)
+from .timing import BACKWARDS, JUMP, REPEAT, StampClock
+
+EXIT_OK, EXIT_INPUT, EXIT_PARAMS = 0, 1, 2
+LOCKSTEP_MIN_DEPTH = 1000
+
+
+def make_solver(model, material, config: SolverConfig, nominal_dt: float) -> Solver:
+    """A solver whose scheme can actually step (a probe step without tool, then back to rest).
+
+    Raises:
+        ConfigError: invalid settings, or a scheme this build cannot run yet.
+    """
+    solver = Solver(model, material, config)
+    solver.step(None, nominal_dt)
+    solver.reset()
+    return solver
+
+
+def stamp_to_ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class SimNode(Node):
+    """omni/pose -> tissue step -> omni/force_feedback, plus particles, metrics and reset."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('sim_node', **kwargs)
+        self.p = declare_all(self, SIM_PARAMS)
+        p = self.p
+        log = self.get_logger()
+        self._log_times: dict[str, float] = {}
+        self.counts = collections.Counter()
+
+        self.model = build_model(p, log=log.error)
+        self.material = build_material(p)
+        config = build_config(p)
+        t0 = time.perf_counter()
+        if p['warmup']:
+            warmup(config.scheme)
+        self.solver = make_solver(self.model, self.material, config, p['nominal_dt'])
+        self.compile_time = time.perf_counter() - t0
+        self.mapping = self._make_mapping(p, self.solver)
+        self.clock = StampClock(p['nominal_dt'], p['max_dt'])
+        self.lockstep = p['timing_mode'] == 'lockstep'
+
+        self._lock = threading.Lock()            # the solver and its state
+        self._cv = threading.Condition()         # the pose inbox
+        self._inbox: collections.deque = collections.deque()
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._last_force_dev = np.zeros(3)
+        self._last_stamp = None
+        self._step_count = 0
+        self._cloud_buf = np.zeros(self.model.n_particles, dtype=POINT_DTYPE)
+
+        if self.lockstep:
+            io_qos = QoSProfile(depth=max(p['qos_depth'], LOCKSTEP_MIN_DEPTH),
+                                history=HistoryPolicy.KEEP_LAST,
+                                reliability=ReliabilityPolicy.RELIABLE)
+        else:
+            io_qos = QoSProfile(depth=p['qos_depth'], history=HistoryPolicy.KEEP_LAST,
+                                reliability=ReliabilityPolicy.RELIABLE if p['reliable']
+                                else ReliabilityPolicy.BEST_EFFORT)
+        self.io_qos = io_qos
+        self.force_pub = self.create_publisher(WrenchStamped, 'omni/force_feedback', io_qos)
+        self.metrics_pub = self.create_publisher(
+            SimMetrics, 'tissue/metrics',
+            QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
+                       reliability=ReliabilityPolicy.RELIABLE))
+        self.cloud_pub = self.create_publisher(
+            PointCloud2, 'tissue/particles',
+            QoSProfile(depth=2, history=HistoryPolicy.KEEP_LAST,
+                       reliability=ReliabilityPolicy.RELIABLE))
+        self.reset_srv = self.create_service(ResetTissue, 'tissue/reset', self._on_reset)
+        self.cloud_timer = None
+        self._set_cloud_timer(p['particles_rate'])
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.pose_sub = self.create_subscription(PoseStamped, 'omni/pose', self._on_pose, io_qos)
+
+    # -- set-up helpers ----------------------------------------------------------------------------
+    @staticmethod
+    def _make_mapping(p: dict, solver: Solver) -> DeviceMapping:
+        anchor = anchor_point(solver.model.positions, solver.model.spacing, solver.contact_reach,
+                              p['anchor'])
+        return DeviceMapping.build(p['rotation'], p['translation'], p['workspace_scale'],
+                                   p['force_scale'], anchor)
+
+    def _set_cloud_timer(self, rate: float) -> None:
+        if self.cloud_timer is not None:
+            self.destroy_timer(self.cloud_timer)
+            self.cloud_timer = None
+        if rate > 0.0:
+            self.cloud_timer = self.create_timer(1.0 / rate, self._publish_cloud)
+
+    def describe(self) -> str:
+        s, m, c = self.solver, self.solver.material, self.solver.config
+        o = self.mapping.origin
+        return (f'model {self.model.name} ({s.n_particles} particles, {int(s.fixed.sum())} fixed, '
+                f'spacing {self.model.spacing * 1e3:.2f} mm, h {s.smoothing_length * 1e3:.2f} mm), '
+                f'scheme {c.scheme}, mode {c.mode}, material {m.name} (E {m.E:.4g} Pa, nu {m.nu:g}, '
+                f'eta_shear {m.eta_shear:g} Pa s), timing {self.p["timing_mode"]}, pose QoS '
+                f'{"reliable" if self.io_qos.reliability == ReliabilityPolicy.RELIABLE else "best effort"}'
+                f' depth {self.io_qos.depth}, force_limit {self.p["force_limit"]:g} N, device origin '
+                f'-> tissue ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) m')
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the stepping thread and report ready."""
+        self._worker = threading.Thread(target=self._work, name='sim_step', daemon=True)
+        self._worker.start()
+        self.get_logger().info(f'numba warm-up (compile or cache load) and first step: '
+                               f'{self.compile_time:.2f} s')
+        self.get_logger().info('ready: ' + self.describe())
+
+    def shutdown(self) -> None:
+        """Stop the stepping thread and log the totals."""
+        self._stop.set()
+        with self._cv:
+            self._cv.notify_all()
+        if self._worker is not None:
+            self._worker.join(2.0)
+        c = self.counts
+        # not the node logger: the context may already be shut down (no rosout publisher)
+        rclpy.logging.get_logger(self.get_name()).info(
+            f'totals: {c["poses"]} poses, {c["steps"]} steps, {c["dropped"]} dropped (newer pose '
+            f'arrived first), {c["rejected"]} rejected, {c["sim_errors"]} unstable steps, '
+            f'{c["overflow"]} lockstep overflows')
+
+    # -- logging -----------------------------------------------------------------------------------
+    def _throttled(self, kind: str, level: str, text: str) -> None:
+        """At most one line per kind of event and ``log_throttle`` seconds (a flood must not flood
+        the log); the count of such events so far is appended."""
+        self.counts['ev_' + kind] += 1
+        now = time.monotonic()
+        if now - self._log_times.get(kind, -1e18) < self.p['log_throttle']:
+            return
+        self._log_times[kind] = now
+        getattr(self.get_logger(), level)(f'{text} ({self.counts["ev_" + kind]} so far)')
+
+    # -- pose intake -------------------------------------------------------------------------------
+    def _on_pose(self, msg: PoseStamped) -> None:
+        with self._cv:
+            self.counts['poses'] += 1
+            if self.lockstep:
+                if len(self._inbox) >= self.p['lockstep_queue_limit']:
+                    self._inbox.popleft()
+                    self.counts['overflow'] += 1
+                    self._throttled('overflow', 'error',
+                                    f'lockstep queue full ({self.p["lockstep_queue_limit"]} poses): '
+                                    f'dropped the oldest')
+            elif self._inbox:
+                self.counts['dropped'] += len(self._inbox)
+                self._inbox.clear()
+            self._inbox.append(msg)
+            self._cv.notify()
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            with self._cv:
+                while not self._inbox and not self._stop.is_set():
+                    self._cv.wait(0.1)
+                if self._stop.is_set():
+                    return
+                msg = self._inbox.popleft()
+            try:
+                self._process(msg)
+            except Exception:  # noqa: BLE001  (a bug must not kill the loop or leave the device pushing)
+                self._throttled('internal', 'error', 'internal error while stepping, answered '
+                                'zero force:\n' + traceback.format_exc())
+                self._publish_force(msg.header, np.zeros(3))
+
+    # -- one frame ---------------------------------------------------------------------------------
+    def _reject_reason(self, msg: PoseStamped) -> str | None:
+        frame = msg.header.frame_id
+        if frame != self.p['device_frame'] and not (frame == '' and self.p['accept_empty_frame']):
+            return f'frame {frame!r} is not {self.p["device_frame"]!r}'
+        pos = msg.pose.position
+        return check_position((pos.x, pos.y, pos.z), self.p['max_device_distance'])
+
+    def _process(self, msg: PoseStamped) -> None:
+        header = msg.header
+        reason = self._reject_reason(msg)
+        if reason is not None:
+            self.counts['rejected'] += 1
+            self._throttled('reject', 'warn', f'rejected pose ({reason}): answered zero force, '
+                            f'tissue not stepped')
+            self._publish_force(header, np.zeros(3))
+            return
+        stamp_ns = stamp_to_ns(header.stamp)
+        pos = msg.pose.position
+        res = None
+        with self._lock:
+            dt, kind = self.clock.advance(stamp_ns)
+            if kind == REPEAT:
+                self._publish_force(header, self._last_force_dev)
+                return
+            if kind == BACKWARDS:
+                self._throttled('backwards', 'warn', f'pose stamp went backwards (to {stamp_ns} ns): '
+                                f'stepping {self.clock.nominal_dt * 1e3:g} ms')
+            elif kind == JUMP:
+                self._throttled('jump', 'warn', f'pose stamp jumped by more than max_dt: step '
+                                f'clamped to {self.clock.max_dt * 1e3:g} ms')
+            tool = self.mapping.to_tissue((pos.x, pos.y, pos.z))
+            solver = self.solver
+            try:
+                res = solver.step(tool, dt)
+            except InvalidInput as exc:
+                self.counts['rejected'] += 1
+                self._throttled('invalid', 'warn', f'step refused the input ({exc}): answered zero '
+                                f'force')
+            except ConfigError as exc:
+                self._throttled('config', 'error', f'step impossible ({exc}): answered zero force')
+            except SimError as exc:
+                self.counts['sim_errors'] += 1
+                solver.reset()
+                self.clock.reset()
+                self._throttled('unstable', 'error', f'{exc}: answered zero force and reset the '
+                                f'tissue to rest')
+            if res is None:
+                force_dev = np.zeros(3)
+            else:
+                force_dev, clamped = clamp_norm(self.mapping.force_to_device(res.force),
+                                                self.p['force_limit'])
+                self.counts['steps'] += 1
+                if res.substeps_capped:
+                    self._throttled('capped', 'warn', f'frame needed more than max_substeps '
+                                    f'({solver.config.max_substeps}): simulated time lags')
+            self._last_force_dev = force_dev
+            self._last_stamp = header.stamp
+            metrics = self._metrics(header, res, solver) if res is not None else None
+        self._publish_force(header, force_dev)
+        if metrics is not None:
+            self.metrics_pub.publish(metrics)
+
+    def _publish_force(self, header, force: np.ndarray) -> None:
+        msg = WrenchStamped()
+        msg.header.stamp = header.stamp
+        msg.header.frame_id = header.frame_id or self.p['device_frame']
+        f = msg.wrench.force
+        f.x, f.y, f.z = (float(v) for v in force)
+        self.force_pub.publish(msg)
+
+    def _metrics(self, header, res, solver: Solver) -> SimMetrics | None:
+        self._step_count += 1
+        if self._step_count % self.p['metrics_decimation']:
+            return None
+        m = SimMetrics()
+        m.header.stamp = header.stamp
+        m.header.frame_id = self.p['tissue_frame']
+        m.step_wall_time = float(res.wall_time)
+        m.sim_time = float(solver.sim_time)
+        m.substeps = int(res.substeps)
+        m.substep_dt = float(res.substep_dt)
+        m.n_particles = int(solver.n_particles)
+        m.n_interaction = int(res.n_interaction)
+        m.n_layer = [int(v) for v in res.n_layer]
+        m.n_relaxing = int(res.n_relaxing)
+        m.contact_index = int(res.contact_index)
+        m.penetration = float(res.penetration)
+        m.contact_force.x, m.contact_force.y, m.contact_force.z = (float(v) for v in res.force)
+        m.max_displacement = float(res.max_displacement)
+        m.kinetic_energy = float(res.kinetic_energy)
+        m.scheme = solver.config.scheme_index
+        m.mode = solver.config.mode_index
+        return m
+
+    # -- particles -------------------------------------------------------------------------------
+    def _publish_cloud(self) -> None:
+        with self._lock:
+            s = self.solver
+            pts = pack_points(s.positions, s.displacement(), s.von_mises(), s.region, self._cloud_buf)
+            stamp = self._last_stamp
+        msg = make_cloud(pts, self.p['tissue_frame'],
+                         stamp if stamp is not None else self.get_clock().now().to_msg())
+        self.cloud_pub.publish(msg)
+
+    # -- reset -----------------------------------------------------------------------------------
+    def _on_reset(self, request: ResetTissue.Request, response: ResetTissue.Response):
+        try:
+            material = None if request.keep_material else build_material(self.p)
+        except ConfigError as exc:
+            response.success = False
+            response.message = f'reset refused: the configured material cannot be loaded: {exc}'
+            self.get_logger().error(response.message)
+            return response
+        with self._lock:
+            response.sim_time = float(self.solver.sim_time)
+            if material is not None:
+                self.solver.set_material(material)
+            self.solver.reset()
+            self.clock.reset()
+            self._last_force_dev = np.zeros(3)
+            response.n_particles = int(self.solver.n_particles)
+        self.counts['resets'] += 1
+        response.success = True
+        response.message = (f'tissue reset to rest at sim time {response.sim_time:.4f} s; material '
+                             f'{self.solver.material.name}'
+                             + (' (kept)' if request.keep_material else ' (reloaded)'))
+        self.get_logger().info(response.message)
+        return response
+
+    # -- run-time parameters -----------------------------------------------------------------------
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        new = dict(self.p)
+        for param in params:
+            if param.name not in SIM_PARAMS:
+                continue
+            err = check_value(param.name, param.value)
+            if err:
+                return SetParametersResult(successful=False, reason=err)
+            new[param.name] = param.value
+        changed = {n for n in new if new[n] != self.p[n]}
+        if not changed:
+            return SetParametersResult(successful=True)
+        kinds = {SIM_PARAMS[n][4] for n in changed}
+        try:
+            config = build_config(new)
+            material = build_material(new) if 'material' in kinds else None
+            solver = None
+            if 'solver' in kinds:
+                solver = make_solver(self.model, material or self.solver.material, config,
+                                     new['nominal_dt'])
+            mapping = None
+            if 'mapping' in kinds or solver is not None:
+                mapping = self._make_mapping(new, solver or self.solver)
+            elif {'force_scale'} & changed:
+                mapping = DeviceMapping(self.mapping.rotation, self.mapping.origin,
+                                        self.mapping.scale, float(new['force_scale']))
+        except (ConfigError, ModelError) as exc:
+            reason = f'refused: {exc}'
+            self.get_logger().warn(f'parameter change {sorted(changed)} {reason}')
+            return SetParametersResult(successful=False, reason=reason)
+        with self._lock:
+            if solver is not None:
+                self.solver = solver
+                self.clock.reset()
+                self._last_force_dev = np.zeros(3)
+            elif material is not None:
+                self.solver.set_material(material)
+            self.solver.config.force_limit = float(new['force_limit'])
+            if mapping is not None:
+                self.mapping = mapping
+            self.clock.nominal_dt = float(new['nominal_dt'])
+            self.clock.max_dt = float(new['max_dt'])
+            self.p = new
+        if 'particles_rate' in changed:
+            self._set_cloud_timer(new['particles_rate'])
+        what = ('solver rebuilt, tissue at rest' if solver is not None else
+                'material swapped' if material is not None else 'applied')
+        self.get_logger().info(f'parameters {sorted(changed)} changed: {what}; now '
+                               + self.describe())
+        return SetParametersResult(successful=True)
+
+
+def main(args=None) -> int:
+    """Entry point of ``sim_node``; returns the exit code."""
+    rclpy.init(args=args)
+    node = None
+    code = EXIT_OK
+    try:
+        try:
+            node = SimNode()
+        except ConfigError as exc:
+            rclpy.logging.get_logger('sim_node').fatal(f'invalid parameters: {exc}')
+            return EXIT_PARAMS
+        except (ModelError, SimError) as exc:
+            rclpy.logging.get_logger('sim_node').fatal(f'cannot build the tissue: {exc}')
+            return EXIT_INPUT
+        except Exception:
+            if not rclpy.ok():  # Ctrl-C during the warm-up shut the context down under us
+                rclpy.logging.get_logger('sim_node').info('interrupted during start-up')
+                return EXIT_OK
+            raise
+        from rclpy.experimental import EventsExecutor
+
+        # The default SingleThreadedExecutor cannot keep up with 1 kHz poses here (DESIGN.md sec. 2).
+        executor = EventsExecutor()
+        executor.add_node(node)
+        node.start()
+        # spin_once in a loop (not spin()): EventsExecutor.spin() does not return on Ctrl-C here
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.shutdown()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,149 @@
+"""Test-side helpers for sim_node: a probe that sends poses and collects the node's replies."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+import harness
+
+PKG = 'sph_tissue_sim'
+# 8 x 8 x 4 cm block at 1 cm spacing: exactly 8 * 8 * 4 = 256 particles, bottom layer (64) fixed
+BLOCK = {'model': 'block', 'block_size': [0.08, 0.08, 0.04], 'n_particles': 256,
+         'particles_rate': 20.0, 'log_throttle': 0.0}
+N_BLOCK = 256
+START_TIMEOUT = 240.0  # numba recompiles every kernel after a core edit (tens of seconds on 2 cores)
+T0_NS = 1_700_000_000_000_000_000
+
+
+def sim(params: dict | None = None, **kw) -> harness.NodeProcess:
+    return harness.NodeProcess(PKG, 'sim_node', params={**BLOCK, **(params or {})}, **kw)
+
+
+def qos(reliable: bool, depth: int = 1000):
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
+                      reliability=ReliabilityPolicy.RELIABLE if reliable
+                      else ReliabilityPolicy.BEST_EFFORT)
+
+
+def stamp_ns(header) -> int:
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+def press_path(n: int, depth: float, start_height: float = 0.01) -> np.ndarray:
+    """(n, 3) device positions from ``start_height`` above the surface point down to ``depth`` below
+    it along device -y (the scripted driver's press)."""
+    y = np.linspace(start_height, -depth, n)
+    return np.stack([np.full(n, 1e-3), y, np.full(n, -5e-4)], axis=1)
+
+
+class SimProbe:
+    """Publishes omni/pose and collects omni/force_feedback, tissue/metrics and tissue/particles."""
+
+    def __init__(self, node, reliable: bool = False, ns: str = '') -> None:
+        from geometry_msgs.msg import PoseStamped, WrenchStamped
+        from sensor_msgs.msg import PointCloud2
+        from tissue_msgs.msg import SimMetrics
+
+        self.node = node
+        self.ns = ns
+        self.pose_pub = node.create_publisher(PoseStamped, ns + 'omni/pose', qos(True))
+        self.forces: dict[int, object] = {}
+        self.force_order: list[int] = []
+        self.metrics: list = []
+        self.clouds: list = []
+        self.force_sub = node.create_subscription(WrenchStamped, ns + 'omni/force_feedback',
+                                                  self._on_force, qos(reliable, 10000))
+        self.metrics_sub = node.create_subscription(SimMetrics, ns + 'tissue/metrics',
+                                                    self.metrics.append, qos(True, 10000))
+        self.cloud_sub = node.create_subscription(PointCloud2, ns + 'tissue/particles',
+                                                  self.clouds.append, qos(False, 5))
+        self._msg = PoseStamped()
+
+    def _on_force(self, msg) -> None:
+        ns = stamp_ns(msg.header)
+        self.forces[ns] = msg
+        self.force_order.append(ns)
+
+    def wait_matched(self, proc) -> None:
+        proc.wait_for_output(r'ready:', START_TIMEOUT)
+        for endpoint in (self.pose_pub, self.force_sub, self.metrics_sub, self.cloud_sub):
+            harness.wait_for_matching(self.node, endpoint)
+
+    def publish(self, pos, ns: int, frame: str = 'omni_base') -> None:
+        msg = self._msg
+        msg.header.frame_id = frame
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
+        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pos)
+        msg.pose.orientation.w = 1.0
+        self.pose_pub.publish(msg)
+
+    def exchange(self, pos, ns: int, frame: str = 'omni_base', timeout: float = 10.0,
+                 resend: float = 1.0):
+        """Send one pose and wait for the wrench with its stamp (resent if a best-effort reply is
+        lost: a repeated stamp is answered again without stepping)."""
+        deadline = time.monotonic() + timeout
+        self.forces.pop(ns, None)
+        while True:
+            self.publish(pos, ns, frame)
+            if self.node.spin_until(lambda: ns in self.forces, min(resend, timeout)):
+                return self.forces[ns]
+            if time.monotonic() > deadline:
+                raise AssertionError(f'no wrench for the pose stamped {ns}')
+
+    def run_path(self, path: np.ndarray, t0_ns: int, period_ns: int = 1_000_000) -> list:
+        """Exchange every pose of ``path`` in turn; returns the device-frame forces (n, 3)."""
+        out = []
+        for k, p in enumerate(path):
+            w = self.exchange(p, t0_ns + k * period_ns)
+            f = w.wrench.force
+            out.append((f.x, f.y, f.z))
+        return np.array(out)
+
+
+def force_of(msg) -> np.ndarray:
+    f = msg.wrench.force
+    return np.array([f.x, f.y, f.z])
+
+
+def finite_and_bounded(forces, limit: float) -> bool:
+    forces = np.asarray(forces, dtype=float).reshape(-1, 3)
+    return bool(np.all(np.isfinite(forces)) and np.all(np.linalg.norm(forces, axis=1) <= limit + 1e-9))
+
+
+def set_parameters(node, names_values: dict, node_name: str = '/sim_node', timeout: float = 20.0):
+    """Call the node's set_parameters service; returns the list of SetParametersResult."""
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    client = node.create_client(SetParameters, f'{node_name}/set_parameters')
+    try:
+        assert node.spin_until(client.service_is_ready, timeout), 'set_parameters not available'
+        req = SetParameters.Request()
+        req.parameters = [Parameter(n, value=v).to_parameter_msg() for n, v in names_values.items()]
+        fut = client.call_async(req)
+        assert node.spin_until(fut.done, timeout), 'set_parameters did not answer'
+        return fut.result().results
+    finally:
+        node.destroy_client(client)
+
+
+def call_reset(node, keep_material: bool = True, timeout: float = 20.0, ns: str = ''):
+    from tissue_msgs.srv import ResetTissue
+
+    client = node.create_client(ResetTissue, ns + 'tissue/reset')
+    try:
+        assert node.spin_until(client.service_is_ready, timeout), 'tissue/reset not available'
+        fut = client.call_async(ResetTissue.Request(keep_material=keep_material))
+        assert node.spin_until(fut.done, timeout), 'tissue/reset did not answer'
+        return fut.result()
+    finally:
+        node.destroy_client(client)
+
+
+def norm(v) -> float:
+    return math.sqrt(sum(float(x) ** 2 for x in v))

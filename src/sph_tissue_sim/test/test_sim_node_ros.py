@@ -1,0 +1,263 @@
+"""sim_node as a real process over DDS (installed executable, isolated domain, see test/harness.py).
+
+One live-mode node on a 256-particle block serves most tests of this module (started once, reset
+between tests); lockstep and bad start-up parameters get their own processes.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+
+import numpy as np
+import pytest
+
+import harness
+from sim_probe import (N_BLOCK, START_TIMEOUT, T0_NS, SimProbe, call_reset, finite_and_bounded,
+                       force_of, press_path, set_parameters, sim, stamp_ns)
+
+pytestmark = pytest.mark.ros
+
+# the shared fixtures (ros_domain, rclpy_node) live in test/conftest.py, outside this folder
+_spec = importlib.util.spec_from_file_location('sph_sim_shared_conftest',
+                                               harness.REPO_ROOT / 'test' / 'conftest.py')
+_shared = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_shared)
+ros_domain = _shared.ros_domain
+rclpy_node = _shared.rclpy_node
+
+FORCE_LIMIT = 3.3
+
+
+@pytest.fixture(scope='module')
+def live_sim(ros_domain):
+    """One live-mode sim_node for the module (force_limit 3.3 N, 20 Hz cloud)."""
+    with sim() as proc:
+        proc.wait_for_output(r'ready:', START_TIMEOUT)
+        yield proc
+    assert proc.returncode == 0, proc.output()
+
+
+@pytest.fixture
+def probe(rclpy_node, live_sim):
+    p = SimProbe(rclpy_node)
+    p.wait_matched(live_sim)
+    res = call_reset(rclpy_node)
+    assert res.success, res.message
+    return p
+
+
+def _unique_t0(k: int) -> int:
+    return T0_NS + k * 10_000_000_000
+
+
+# -- pose in, wrench out ------------------------------------------------------------------------------
+def test_pressing_returns_a_wrench_per_pose_with_its_stamp_pushing_back_up(probe, live_sim):
+    path = press_path(60, depth=0.004)  # 1 cm above the surface point down to 4 mm below
+    t0 = _unique_t0(1)
+    forces = probe.run_path(path, t0)
+    for k in range(len(path)):
+        w = probe.forces[t0 + k * 1_000_000]
+        assert w.header.frame_id == 'omni_base'
+        assert stamp_ns(w.header) == t0 + k * 1_000_000
+    assert finite_and_bounded(forces, FORCE_LIMIT)
+    above = path[:, 1] > 0.001
+    assert np.all(forces[above] == 0.0)                # no contact above the surface
+    f = forces[-1]
+    assert f[1] > 0.02                                 # device +y: the tissue pushes the stylus up
+    assert f[1] > 3 * np.hypot(f[0], f[2])
+    assert live_sim.alive()
+
+
+def test_metrics_follow_the_steps_with_sane_content(probe):
+    from tissue_msgs.msg import SimMetrics
+
+    t0 = _unique_t0(2)
+    path = press_path(40, depth=0.004)
+    probe.run_path(path, t0)
+    stamps = {t0 + k * 1_000_000 for k in range(len(path))}
+    assert probe.node.spin_until(
+        lambda: stamps <= {stamp_ns(m.header) for m in probe.metrics}, 10.0)
+    mine = [m for m in probe.metrics if stamp_ns(m.header) in stamps]
+    assert len(mine) == len(path)
+    last = mine[-1]
+    assert last.header.frame_id == 'tissue'
+    assert last.n_particles == N_BLOCK
+    assert last.scheme == SimMetrics.SCHEME_TLSPH and last.mode == SimMetrics.MODE_LOCAL
+    assert last.contact_index >= 0 and last.penetration > 0.0
+    assert last.contact_force.z > 0.02                 # tissue frame: up, out of the tissue
+    assert 0.0 < last.max_displacement < 0.01
+    assert last.substeps >= 1 and 0.0 < last.substep_dt <= 0.001
+    assert last.step_wall_time > 0.0 and last.kinetic_energy >= 0.0
+    assert last.n_interaction > 0 and len(last.n_layer) == 2
+    sim_times = [m.sim_time for m in mine]
+    assert all(b > a for a, b in zip(sim_times, sim_times[1:]))
+    # first pose after the reset steps nominal_dt, then 1 ms per pose
+    assert sim_times[-1] == pytest.approx(len(path) * 1e-3, rel=1e-6)
+
+
+def test_particle_cloud_fields_and_count_match_the_model(probe):
+    from sensor_msgs.msg import PointField
+
+    from sph_tissue_sim.cloud import unpack_points
+
+    probe.run_path(press_path(40, depth=0.004), _unique_t0(3))
+    n0 = len(probe.clouds)
+    assert probe.node.spin_until(lambda: len(probe.clouds) > n0 + 1, 10.0)
+    cloud = probe.clouds[-1]
+    assert cloud.header.frame_id == 'tissue'
+    assert (cloud.height, cloud.width) == (1, N_BLOCK)
+    assert cloud.point_step == 24 and cloud.row_step == 24 * N_BLOCK and len(cloud.data) == 24 * N_BLOCK
+    fields = {f.name: (f.offset, f.datatype, f.count) for f in cloud.fields}
+    f32, u8 = PointField.FLOAT32, PointField.UINT8
+    assert fields == {'x': (0, f32, 1), 'y': (4, f32, 1), 'z': (8, f32, 1),
+                      'displacement': (12, f32, 1), 'von_mises': (16, f32, 1), 'region': (20, u8, 1)}
+    pts = unpack_points(cloud.data, cloud.width)
+    xyz = np.stack([pts['x'], pts['y'], pts['z']], axis=1)
+    assert np.all(np.isfinite(xyz))
+    # the block spans 8 x 8 x 4 cm (particles 5 mm inside the faces), pressed by at most 4 mm
+    assert xyz.min(axis=0) == pytest.approx([0.005, 0.005, 0.005], abs=1e-3)
+    assert xyz.max(axis=0) == pytest.approx([0.075, 0.075, 0.035], abs=1e-3)
+    assert pts['displacement'].max() > 1e-4
+    assert set(np.unique(pts['region'])) >= {0, 1}     # still particles and an interaction area
+    assert pts['von_mises'].max() > 0.0 and np.all(pts['von_mises'] >= 0.0)
+
+
+def test_reset_in_contact_returns_tissue_to_rest_and_force_stays_bounded(probe, rclpy_node):
+    t0 = _unique_t0(4)
+    path = press_path(40, depth=0.004)
+    probe.run_path(path, t0)
+    res = call_reset(rclpy_node, keep_material=False)
+    assert res.success and res.n_particles == N_BLOCK
+    assert res.sim_time == pytest.approx(40e-3, rel=1e-6)
+    assert 'reset' in res.message
+    # the stylus is still 4 mm deep: the next steps start from the undeformed tissue
+    t1 = t0 + 100_000_000
+    forces = probe.run_path(np.repeat(path[-1:], 20, axis=0), t1)
+    assert finite_and_bounded(forces, FORCE_LIMIT)
+    assert forces[-1][1] > 0.0
+    metrics = [m for m in probe.metrics if stamp_ns(m.header) == t1]
+    assert probe.node.spin_until(
+        lambda: any(stamp_ns(m.header) == t1 for m in probe.metrics), 10.0)
+    metrics = [m for m in probe.metrics if stamp_ns(m.header) == t1]
+    assert metrics[0].sim_time == pytest.approx(1e-3, rel=1e-6)  # sim time restarted
+
+
+# -- bad input ---------------------------------------------------------------------------------------
+def test_bad_poses_get_zero_force_and_the_node_keeps_running(probe, live_sim):
+    t0 = _unique_t0(5)
+    probe.run_path(press_path(30, depth=0.004), t0)    # in contact
+    nan, inf = float('nan'), float('inf')
+    bad = [((nan, 0.0, 0.0), 'omni_base'), ((0.0, inf, 0.0), 'omni_base'),
+           ((0.0, -1e6, 0.0), 'omni_base'), ((0.0, -0.004, 0.0), 'tissue')]
+    t1 = t0 + 100_000_000
+    for k, (pos, frame) in enumerate(bad):
+        w = probe.exchange(pos, t1 + k * 1_000_000, frame=frame)
+        assert np.all(force_of(w) == 0.0)
+        assert w.header.frame_id == frame
+    # stamps going backwards, a repeat, and a jump of 5 s: answered, finite and bounded
+    # (the last valid stamp is t0 + 29 ms; rejected poses do not advance the clock)
+    seq = [t0 + 10_000_000, t0 + 5_000_000, t0 + 5_000_000, t0 + 5_005_000_000]
+    forces = [force_of(probe.exchange((1e-3, -0.004, 0.0), ns)) for ns in seq]
+    assert finite_and_bounded(forces, FORCE_LIMIT)
+    assert forces[1][1] > 0.0 and np.array_equal(forces[1], forces[2])  # repeat answers the same
+    out = live_sim.output()
+    for text in ('rejected pose (non-finite position)', 'max_device_distance',
+                 "rejected pose (frame 'tissue' is not 'omni_base')", 'stamp went backwards',
+                 'stamp jumped'):
+        assert text in out
+    assert live_sim.alive()
+
+
+def test_flood_of_poses_in_live_mode_drops_to_the_newest_without_backlog(probe, live_sim):
+    t0 = _unique_t0(6)
+    n = 3000
+    path = press_path(n, depth=0.004)
+    for k in range(n):                                  # as fast as Python publishes
+        probe.publish(path[k], t0 + k * 100_000)
+    last_ns = t0 + n * 100_000
+    w = probe.exchange(path[-1], last_ns, timeout=5.0)  # answered promptly: no queue of old poses
+    replies = [ns for ns in probe.force_order if t0 <= ns <= last_ns]
+    assert replies == sorted(replies)                   # never an older pose after a newer one
+    assert len(replies) <= n + 1
+    forces = [force_of(probe.forces[ns]) for ns in replies]
+    assert finite_and_bounded(forces, FORCE_LIMIT)
+    assert force_of(w)[1] > 0.0
+    assert live_sim.alive()
+
+
+# -- parameters ----------------------------------------------------------------------------------------
+def test_runtime_parameters_are_applied_or_refused_with_a_reason(probe, rclpy_node):
+    bad = set_parameters(rclpy_node, {'force_limit': 10.0})
+    assert not bad[0].successful and bad[0].reason
+    bad = set_parameters(rclpy_node, {'mode': 'sideways'})
+    assert not bad[0].successful and 'mode must be one of' in bad[0].reason
+    bad = set_parameters(rclpy_node, {'k1_min': 50.0})             # above k1_max 6
+    assert not bad[0].successful and 'k1_min' in bad[0].reason
+    bad = set_parameters(rclpy_node, {'model': 'beam'})            # read-only
+    assert not bad[0].successful
+    bad = set_parameters(rclpy_node, {'material': 'unobtainium'})
+    assert not bad[0].successful and 'unobtainium' in bad[0].reason
+    # accepted: a tighter force limit, applied at the next step
+    ok = set_parameters(rclpy_node, {'force_limit': 0.05})
+    assert ok[0].successful
+    try:
+        forces = probe.run_path(press_path(40, depth=0.006), _unique_t0(7))
+        assert finite_and_bounded(forces, 0.05)
+        assert np.linalg.norm(forces[-1]) == pytest.approx(0.05, rel=1e-6)
+        # accepted: global mode (solver rebuilt between steps)
+        ok = set_parameters(rclpy_node, {'mode': 'global', 'material': 'liver_soft'})
+        assert ok[0].successful and ok[1].successful
+        probe.run_path(press_path(20, depth=0.004), _unique_t0(8))
+        assert probe.node.spin_until(lambda: probe.metrics and probe.metrics[-1].mode == 0, 10.0)
+        assert probe.metrics[-1].n_interaction == N_BLOCK - 64     # every free particle
+    finally:
+        assert all(r.successful for r in set_parameters(
+            rclpy_node, {'force_limit': FORCE_LIMIT, 'mode': 'local', 'material': 'liver'}))
+
+
+@pytest.mark.parametrize('params, message', [
+    ({'n_particles': 3}, r'parameter n_particles'),
+    ({'scheme': 'magic'}, r'scheme must be one of'),
+    ({'k1_min': 9.0, 'k1_max': 2.0}, r'k1_min .* must be <= k1_max'),
+    ({'rotation': [0.0, 0.0, 0.0, 0.0]}, r'rotation quaternion'),
+])
+def test_invalid_start_parameters_exit_with_code_2_and_say_why(ros_domain, params, message):
+    with sim({**params, 'warmup': False}) as proc:
+        assert proc.wait(60) == 2
+        out = proc.output()
+    assert re.search(r'invalid parameters: .*' + message, out), out
+    assert 'Traceback' not in out
+
+
+def test_missing_mesh_exits_with_code_1(ros_domain, tmp_path):
+    with sim({'model': 'mesh', 'mesh_path': str(tmp_path / 'nope.stl'), 'warmup': False}) as proc:
+        assert proc.wait(60) == 1
+        out = proc.output()
+    assert 'cannot build the tissue: mesh file not found' in out and 'Traceback' not in out
+
+
+# -- lockstep ---------------------------------------------------------------------------------------------
+def test_lockstep_answers_every_pose_in_order_and_replays_bit_identically(rclpy_node):
+    n = 300
+    path = press_path(n, depth=0.005, start_height=0.002)
+    path[:, 0] += np.linspace(0.0, 0.006, n)              # press and drag
+    # own namespace: the module's live node is running on the same domain
+    with sim({'timing_mode': 'lockstep'}, ros_args=['-r', '__ns:=/lock']) as proc:
+        probe = SimProbe(rclpy_node, reliable=True, ns='/lock/')
+        probe.wait_matched(proc)
+        runs = []
+        for run in range(2):
+            t0 = _unique_t0(20 + run)                     # different stamps, same differences
+            probe.force_order.clear()
+            for k in range(n):                            # all at once: the node queues them
+                probe.publish(path[k], t0 + k * 1_000_000)
+            assert rclpy_node.spin_until(lambda: len(probe.force_order) >= n, 60.0), proc.output()
+            assert probe.force_order == [t0 + k * 1_000_000 for k in range(n)]
+            runs.append(np.array([force_of(probe.forces[ns]) for ns in probe.force_order]))
+            assert call_reset(rclpy_node, ns='/lock/').success
+        assert 'timing lockstep' in proc.output()
+    a, b = runs
+    assert finite_and_bounded(a, FORCE_LIMIT)
+    assert np.abs(a[:, 1]).max() > 0.05                    # the sequence did touch the tissue
+    assert a.tobytes() == b.tobytes()                      # bit-identical
