@@ -83,6 +83,18 @@ def test_latency_is_matched_by_stamp_and_unanswered_poses_count_as_missed():
     assert stats.matcher.unmatched_forces == 1 and stats.matcher.pending == 0
 
 
+def test_reply_loss_in_the_diagnostics_covers_the_window_only():
+    stats = VizStats(window=1.0, latency_timeout=0.1)
+    for k in range(4):                                   # 4 poses at t = 0, none answered
+        stats.on_pose(0.0, (k + 1) * MS, (0, 0, 0))
+    assert stats.snapshot(0.5).replies_missed_pct == pytest.approx(100.0)
+    for k in range(10):                                  # later, 10 poses all answered
+        stats.on_pose(2.0 + k * 0.01, (10 + k) * MS, (0, 0, 0))
+        stats.on_force(2.0 + k * 0.01 + 0.001, (10 + k) * MS, (0, 0, 1.0))
+    assert stats.snapshot(2.2).replies_missed_pct == 0.0
+    assert stats.summary(2.2)['replies_missed_pct'] == pytest.approx(100 * 4 / 14)
+
+
 def test_latency_matcher_keeps_the_first_of_repeated_stamps_and_bounds_its_memory():
     matcher = LatencyMatcher(timeout=1.0, max_pending=3)
     matcher.on_pose(1, 0.0, (0, 0, 0))

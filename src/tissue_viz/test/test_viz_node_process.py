@@ -7,7 +7,9 @@ import math
 import re
 import time
 
+import numpy as np
 import pytest
+from PIL import Image
 
 import harness
 
@@ -187,9 +189,14 @@ def test_sigint_writes_a_report_whose_summary_matches_what_was_sent(rclpy_node, 
     assert summary['max_active_particles'] == 165
     assert summary['step_p50_s'] == pytest.approx(1e-4)
     assert summary['rates_hz']['metrics'] == pytest.approx(200.0, rel=0.3)
-    for name in ('force_vs_time.png', 'step_time_hist.png', 'rates.png', 'metrics.csv',
-                 'index.html', 'summary.md'):
+    for name in ('metrics.csv', 'index.html', 'summary.md'):
         assert (report / name).stat().st_size > 0, name
+    for name in ('force_vs_time.png', 'force_vs_displacement.png', 'step_time_hist.png',
+                 'rates.png'):
+        with Image.open(report / name) as img:
+            rgb = np.asarray(img.convert('RGB'), dtype=int)
+        assert rgb.shape[:2] == (450, 800), name
+        assert 0.02 < np.mean(rgb.sum(axis=2) < 750) < 0.8, name   # drawn on, not blank
 
 
 def test_write_report_service_writes_a_folder_while_running(rclpy_node, tmp_path):
@@ -263,3 +270,60 @@ def test_inconsistent_rate_targets_are_rejected_at_start_with_a_clear_message():
         rc = viz.wait(timeout=30)
         assert rc != 0
         assert 'min_rate <= max_rate' in viz.output()
+
+
+def test_pose_to_force_latency_is_matched_by_stamp_and_lost_replies_raise_an_error(rclpy_node):
+    from geometry_msgs.msg import PoseStamped, WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    # Generous latency limits: the point is the matching, not this loaded machine's DDS speed.
+    params = dict(FAST, pose_required=True, force_required=True, pose_min_rate=150.0,
+                  pose_max_rate=250.0, force_min_rate=50.0, force_max_rate=250.0,
+                  latency_timeout=0.2, latency_p50_warn=0.1, latency_p99_warn=0.4,
+                  latency_p99_error=0.5, reply_loss_warn_pct=5.0, reply_loss_error_pct=20.0)
+    qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        probe = Probe(rclpy_node)
+        pose_pub = rclpy_node.create_publisher(PoseStamped, 'omni/pose', qos)
+        force_pub = rclpy_node.create_publisher(WrenchStamped, 'omni/force_feedback', qos)
+        for endpoint in (probe.pub, pose_pub, force_pub, probe.diag_sub):
+            harness.wait_for_matching(rclpy_node, endpoint)
+
+        def loop(answer_every: int):
+            def make(p):
+                pose = PoseStamped()
+                pose.header.frame_id = 'omni_base'
+                pose.header.stamp.sec, pose.header.stamp.nanosec = divmod(p.stamp_ns, 1_000_000_000)
+                pose.pose.position.z = -0.001
+                pose.pose.orientation.w = 1.0
+                pose_pub.publish(pose)
+                if p.sent % answer_every == 0:
+                    wrench = WrenchStamped()
+                    wrench.header = pose.header      # the simulator answers with the pose's stamp
+                    wrench.wrench.force.z = 0.4
+                    force_pub.publish(wrench)
+                return _metrics(p.stamp_ns, fz=0.4)
+            return make
+
+        def latency(level: int):
+            def check():
+                s = probe.status('pose to force latency')
+                return s is not None and _level(s) == level
+            return check
+
+        # Every pose answered: OK with a measured median.
+        assert probe.run(200.0, latency(0), 20, make=loop(1)), probe.status('pose to force latency')
+        status = probe.status('pose to force latency')
+        values = dict((kv.key, kv.value) for kv in status.values)
+        assert 0.0 <= float(values['p50 [ms]']) < 100.0
+        assert float(values['poses without reply [%]']) < 5.0
+        assert _level(probe.status('omni/pose rate')) == 0
+
+        # Only every 2nd pose answered: half the replies are lost in the window, ERROR.
+        assert probe.run(200.0, latency(2), 20, make=loop(2)), probe.status('pose to force latency')
+        status = probe.status('pose to force latency')
+        assert 'without reply' in status.message
+        assert float(dict((kv.key, kv.value) for kv in status.values)
+                     ['poses without reply [%]']) > 20.0
+        assert viz.alive() and 'Traceback' not in viz.output(), viz.output()

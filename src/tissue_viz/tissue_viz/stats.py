@@ -247,7 +247,7 @@ class Snapshot:
     latency_p50: float = math.nan                      # [s] pose -> force
     latency_p99: float = math.nan
     latency_max: float = math.nan
-    replies_missed_pct: float = math.nan               # poses without a force reply (whole run)
+    replies_missed_pct: float = math.nan               # poses without a force reply (in window)
     active: float = math.nan                           # particles computed in the latest step
     n_interaction: float = math.nan
     force: float = math.nan                            # [N] latest force magnitude
@@ -293,6 +293,8 @@ class VizStats:
         self.nan_window = WindowedSeries(window)
         self.backwards_window = WindowedSeries(window)
         self.matcher = LatencyMatcher(latency_timeout)
+        self.missed_window = WindowedSeries(window)    # one entry per expiry, value = poses missed
+        self._missed_seen = 0
         self.nan_total = 0
         self.steps_total = 0
         self.deadline_misses_total = 0
@@ -403,9 +405,17 @@ class VizStats:
         return latency
 
     # -- outputs ----------------------------------------------------------------------------------
+    def _expire(self, now: float) -> None:
+        """Expire unanswered poses and note the new misses in the window."""
+        self.matcher.expire(now)
+        new = self.matcher.missed - self._missed_seen
+        if new:
+            self.missed_window.add(now, float(new))
+            self._missed_seen = self.matcher.missed
+
     def snapshot(self, now: float) -> Snapshot:
         """Rolling statistics over the window ending at ``now`` (also expires unanswered poses)."""
-        self.matcher.expire(now)
+        self._expire(now)
         snap = Snapshot(now=now, window=self.window)
         for topic, meter in self.meters.items():
             snap.rates[topic] = meter.rate(now)
@@ -423,9 +433,10 @@ class VizStats:
             snap.latency_p50 = percentile(lat, 50)
             snap.latency_p99 = percentile(lat, 99)
             snap.latency_max = float(lat.max())
-        decided = self.matcher.answered + self.matcher.missed
-        if decided:
-            snap.replies_missed_pct = 100.0 * self.matcher.missed / decided
+        # Poses decided in the window: answered (a latency sample each) or expired unanswered.
+        missed = float(self.missed_window.values(now).sum())
+        if missed + lat.size:
+            snap.replies_missed_pct = 100.0 * missed / (missed + lat.size)
         snap.active = self.last_active
         snap.n_interaction = self.last_interaction
         snap.force = self.last_force if self.meters['force'].count else self.last_metrics_force
@@ -446,7 +457,7 @@ class VizStats:
 
     def summary(self, now: float) -> dict:
         """Whole-run summary (the content of summary.json)."""
-        self.matcher.expire(now)
+        self._expire(now)
         metrics = self.metrics_table.as_dict()
         lat = self.latency_table.as_dict()['latency']
         steps = metrics['step_wall_time']

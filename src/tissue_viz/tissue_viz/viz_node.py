@@ -159,6 +159,7 @@ class VizNode(Node):
         self._report_lock = threading.Lock()
         self._report_thread: threading.Thread | None = None
         self.last_statuses: list[Status] = []
+        self.errors = 0
 
         # Pose/force/particles best effort so the viz can never slow the loop down (a best-effort
         # reader also matches reliable writers); metrics reliable as the contract says.
@@ -169,22 +170,36 @@ class VizNode(Node):
                                  if self.p['metrics_reliable'] else ReliabilityPolicy.BEST_EFFORT)
         cloud_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
                                reliability=ReliabilityPolicy.BEST_EFFORT)
-        self.create_subscription(SimMetrics, 'tissue/metrics', self._on_metrics, metrics_qos)
-        self.create_subscription(PointCloud2, 'tissue/particles', self._on_particles, cloud_qos)
-        self.create_subscription(PoseStamped, 'omni/pose', self._on_pose, fast)
-        self.create_subscription(WrenchStamped, 'omni/force_feedback', self._on_force, fast)
+        guard = self._guarded
+        self.create_subscription(SimMetrics, 'tissue/metrics', guard(self._on_metrics), metrics_qos)
+        self.create_subscription(PointCloud2, 'tissue/particles', guard(self._on_particles),
+                                 cloud_qos)
+        self.create_subscription(PoseStamped, 'omni/pose', guard(self._on_pose), fast)
+        self.create_subscription(WrenchStamped, 'omni/force_feedback', guard(self._on_force), fast)
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.marker_pub = self.create_publisher(MarkerArray, 'viz/markers', 10)
         self.create_service(Trigger, 'viz/write_report', self._on_write_report)
 
-        self.create_timer(1.0 / self.p['diagnostics_rate'], self._on_diagnostics_timer)
+        self.create_timer(1.0 / self.p['diagnostics_rate'], guard(self._on_diagnostics_timer))
         if self.p['summary_period'] > 0:
-            self.create_timer(self.p['summary_period'], self._on_summary_timer)
+            self.create_timer(self.p['summary_period'], guard(self._on_summary_timer))
         if self.p['marker_rate'] > 0:
-            self.create_timer(1.0 / self.p['marker_rate'], self._on_marker_timer)
+            self.create_timer(1.0 / self.p['marker_rate'], guard(self._on_marker_timer))
         self.get_logger().info(
             f'ready: window {self.p["window"]} s, haptic period {self.stats.period * 1e3:.3f} ms, '
             f'diagnostics at {self.p["diagnostics_rate"]} Hz')
+
+    def _guarded(self, callback):
+        """``callback`` that logs (throttled) instead of raising: a monitor must never take itself down."""
+        def run(*args):
+            try:
+                callback(*args)
+            except Exception as exc:  # noqa: BLE001 -- logged with its type, the node keeps running
+                self.errors += 1
+                self.get_logger().error(f'{callback.__name__} failed ({self.errors} errors so '
+                                        f'far): {type(exc).__name__}: {exc}',
+                                        throttle_duration_sec=5.0)
+        return run
 
     # -- parameters -------------------------------------------------------------------------------
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
