@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from .contact import contact_forces
-from .tlsph import tlsph_force_one, tlsph_stress_one
+from .tlsph import tlsph_pass
 
 SCHEME_TLSPH = 1
 SCHEME_MASS_SPRING = 2
@@ -45,7 +45,7 @@ def spring_force_one(i, x, v, offsets, indices, k_spring, rest, tau, out):
 
 @njit(cache=True, fastmath=True)
 def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
-              offsets, indices, dw, w0, Linv, F, Fd, A,
+              offsets, indices, dw, w0, Linv, F, Fd, A, H,
               G, K, eta_s, eta_v, hg_k, hg_c, tau,
               stress_list, n_stress, sph_list, n_sph, layer_list, layer_w, n_lp,
               cand, n_cand, contact_idx,
@@ -54,6 +54,7 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
     """Advance ``n_sub`` sub-steps; returns ``(last overlap [m], ok)``.
 
     ``react`` (3,) receives the mean reaction force on the tool over the sub-steps [N].
+    ``H`` (N, 3, 3) is scratch for the TLSPH hourglass map of the stressed particles.
     ``ok`` is False if a velocity became non-finite or exceeded ``v_limit`` (caller restores state).
     ``ext_force[t]`` [N] is a constant external load on free particle ``ext_idx[t]`` (``t < n_ext``).
     """
@@ -70,15 +71,8 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
             tool[a] = tool0[a] + frac * (tool1[a] - tool0[a])
         # internal forces
         if scheme == SCHEME_TLSPH:
-            for t in range(n_stress):
-                tlsph_stress_one(stress_list[t], X, x, v, offsets, indices, dw, Linv, volume,
-                                 G, K, eta_s, eta_v, F, Fd, A)
-            for t in range(n_sph):
-                i = sph_list[t]
-                tlsph_force_one(i, X, x, v, offsets, indices, dw, w0, F, Fd, A, hg_k, hg_c, fbuf)
-                acc[i, 0] = fbuf[0] * inv_mass
-                acc[i, 1] = fbuf[1] * inv_mass
-                acc[i, 2] = fbuf[2] * inv_mass
+            tlsph_pass(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
+                       offsets, indices, dw, w0, Linv, F, Fd, A, H, G, K, eta_s, eta_v, hg_k, hg_c)
         else:
             for t in range(n_sph):
                 i = sph_list[t]

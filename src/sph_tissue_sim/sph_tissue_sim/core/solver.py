@@ -225,6 +225,7 @@ class Solver:
         self.F[:] = np.eye(3)
         self.Fd = np.zeros((n, 3, 3))
         self.A = np.zeros((n, 3, 3))
+        self.H = np.zeros((n, 3, 3))
         self.region_arr = np.zeros(n, dtype=np.int8)
         self.in_active = np.zeros(n, dtype=np.int8)
         self.in_area = np.zeros(n, dtype=np.int8)
@@ -305,6 +306,7 @@ class Solver:
         self.F[:] = np.eye(3)
         self.Fd[:] = 0.0
         self.A[:] = 0.0
+        self.H[:] = 0.0
         self.region_arr[:] = 0
         self.in_active[:] = 0
         self.in_area[:] = 0
@@ -452,7 +454,7 @@ class Solver:
         (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
         overlap, ok = run_frame(
             sid, self.X, self.x, self.v, self.acc, self.fixed, self.inv_mass, self.volume,
-            off, idx, dw, w0, self.Linv, self.F, self.Fd, self.A,
+            off, idx, dw, w0, self.Linv, self.F, self.Fd, self.A, self.H,
             m.G, m.K, m.eta_shear, m.eta_bulk, self.hg_k, self.hg_c, m.retardation_time,
             stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand, contact,
             tool0, tool1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,

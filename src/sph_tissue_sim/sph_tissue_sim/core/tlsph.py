@@ -87,8 +87,10 @@ def _pair_terms(X, offsets, indices, h, volume):
 
 
 @njit(cache=True, fastmath=True)
-def tlsph_stress_one(i, X, x, v, offsets, indices, dw, Linv, volume, G, K, eta_s, eta_v, F, Fd, A):
-    """F_i, dF_i/dt and ``A_i = V^2 P_i L_i^-T`` for particle ``i`` (writes rows of F, Fd, A)."""
+def tlsph_stress_one(i, X, x, v, offsets, indices, dw, Linv, volume, G, K, eta_s, eta_v, F, Fd, A,
+                     hg_k, hg_c, H):
+    """F_i, dF_i/dt, ``A_i = V^2 P_i L_i^-T`` and the hourglass map ``H_i = hg_k F_i + hg_c dF_i/dt``
+    for particle ``i`` (writes rows of F, Fd, A, H)."""
     a00 = 0.0; a01 = 0.0; a02 = 0.0; a10 = 0.0; a11 = 0.0; a12 = 0.0; a20 = 0.0; a21 = 0.0; a22 = 0.0
     b00 = 0.0; b01 = 0.0; b02 = 0.0; b10 = 0.0; b11 = 0.0; b12 = 0.0; b20 = 0.0; b21 = 0.0; b22 = 0.0
     xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
@@ -177,11 +179,15 @@ def tlsph_stress_one(i, X, x, v, offsets, indices, dw, Linv, volume, G, K, eta_s
         Am[0, q] = v2 * (p00 * l0 + p01 * l1 + p02 * l2)
         Am[1, q] = v2 * (p10 * l0 + p11 * l1 + p12 * l2)
         Am[2, q] = v2 * (p20 * l0 + p21 * l1 + p22 * l2)
+    Hm = H[i]
+    for p in range(3):
+        for q in range(3):
+            Hm[p, q] = hg_k * Fm[p, q] + hg_c * Fdm[p, q]
 
 
 @njit(cache=True, fastmath=True)
-def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, F, Fd, A, hg_k, hg_c, out):
-    """Internal force on particle ``i`` (gather over its reference neighbours) into ``out`` (3,).
+def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c):
+    """Internal force ``(f0, f1, f2)`` [N] on particle ``i`` (gather over its reference neighbours).
 
     ``hgw[k] = W(R0) / R0^2`` per pair; ``hg_k`` [Pa m^6] = alpha E V^2 and ``hg_c`` [Pa s m^6] =
     alpha eta V^2 scale the hourglass bonds: ``f_i -= hgw (hg_k eps_ij + hg_c deps_ij/dt)`` with
@@ -189,7 +195,8 @@ def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, F, Fd, A, hg_k, hg_c,
     bond, so no square root) is antisymmetric in i, j and zero for rigid motions and linear fields.
 
     One fused pass over the neighbours. With ``X'_k = X_j - X_i``, ``DWIJ0 = -dw_k X'_k`` and
-    ``H = hg_k F + hg_c dF/dt`` the stress and hourglass sums regroup as
+    ``H = hg_k F + hg_c dF/dt`` (from :func:`tlsph_stress_one`) the stress and hourglass sums
+    regroup as
 
         f_i = -sum_k (dw_k A_j + hgw_k/2 H_j) X'_k + sum_k hgw_k (hg_k x'_k + hg_c v'_k)
               - A_i sum_k dw_k X'_k - H_i/2 sum_k hgw_k X'_k,
@@ -210,35 +217,41 @@ def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, F, Fd, A, hg_k, hg_c,
         X0 = X[j, 0] - Xi0; X1 = X[j, 1] - Xi1; X2 = X[j, 2] - Xi2
         s0 += d * X0; s1 += d * X1; s2 += d * X2
         c0 += c * X0; c1 += c * X1; c2 += c * X2
-        Aj = A[j]; Fj = F[j]; Fdj = Fd[j]
-        m00 = d * Aj[0, 0] + c * (hg_k * Fj[0, 0] + hg_c * Fdj[0, 0])
-        m01 = d * Aj[0, 1] + c * (hg_k * Fj[0, 1] + hg_c * Fdj[0, 1])
-        m02 = d * Aj[0, 2] + c * (hg_k * Fj[0, 2] + hg_c * Fdj[0, 2])
-        m10 = d * Aj[1, 0] + c * (hg_k * Fj[1, 0] + hg_c * Fdj[1, 0])
-        m11 = d * Aj[1, 1] + c * (hg_k * Fj[1, 1] + hg_c * Fdj[1, 1])
-        m12 = d * Aj[1, 2] + c * (hg_k * Fj[1, 2] + hg_c * Fdj[1, 2])
-        m20 = d * Aj[2, 0] + c * (hg_k * Fj[2, 0] + hg_c * Fdj[2, 0])
-        m21 = d * Aj[2, 1] + c * (hg_k * Fj[2, 1] + hg_c * Fdj[2, 1])
-        m22 = d * Aj[2, 2] + c * (hg_k * Fj[2, 2] + hg_c * Fdj[2, 2])
+        Aj = A[j]; Hj = H[j]
+        m00 = d * Aj[0, 0] + c * Hj[0, 0]
+        m01 = d * Aj[0, 1] + c * Hj[0, 1]
+        m02 = d * Aj[0, 2] + c * Hj[0, 2]
+        m10 = d * Aj[1, 0] + c * Hj[1, 0]
+        m11 = d * Aj[1, 1] + c * Hj[1, 1]
+        m12 = d * Aj[1, 2] + c * Hj[1, 2]
+        m20 = d * Aj[2, 0] + c * Hj[2, 0]
+        m21 = d * Aj[2, 1] + c * Hj[2, 1]
+        m22 = d * Aj[2, 2] + c * Hj[2, 2]
         cc = 2.0 * c
         f0 += cc * (hg_k * (x[j, 0] - xi0) + hg_c * (v[j, 0] - vi0)) - (m00 * X0 + m01 * X1 + m02 * X2)
         f1 += cc * (hg_k * (x[j, 1] - xi1) + hg_c * (v[j, 1] - vi1)) - (m10 * X0 + m11 * X1 + m12 * X2)
         f2 += cc * (hg_k * (x[j, 2] - xi2) + hg_c * (v[j, 2] - vi2)) - (m20 * X0 + m21 * X1 + m22 * X2)
-    Ai = A[i]; Fi = F[i]; Fdi = Fd[i]
-    for a in range(3):
-        t = -(Ai[a, 0] * s0 + Ai[a, 1] * s1 + Ai[a, 2] * s2
-              + (hg_k * Fi[a, 0] + hg_c * Fdi[a, 0]) * c0
-              + (hg_k * Fi[a, 1] + hg_c * Fdi[a, 1]) * c1
-              + (hg_k * Fi[a, 2] + hg_c * Fdi[a, 2]) * c2)
-        if a == 0:
-            f0 += t
-        elif a == 1:
-            f1 += t
-        else:
-            f2 += t
-    out[0] = f0
-    out[1] = f1
-    out[2] = f2
+    Ai = A[i]; Hi = H[i]
+    f0 -= Ai[0, 0] * s0 + Ai[0, 1] * s1 + Ai[0, 2] * s2 + Hi[0, 0] * c0 + Hi[0, 1] * c1 + Hi[0, 2] * c2
+    f1 -= Ai[1, 0] * s0 + Ai[1, 1] * s1 + Ai[1, 2] * s2 + Hi[1, 0] * c0 + Hi[1, 1] * c1 + Hi[1, 2] * c2
+    f2 -= Ai[2, 0] * s0 + Ai[2, 1] * s1 + Ai[2, 2] * s2 + Hi[2, 0] * c0 + Hi[2, 1] * c1 + Hi[2, 2] * c2
+    return f0, f1, f2
+
+
+@njit(cache=True)
+def tlsph_pass(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
+               offsets, indices, dw, hgw, Linv, F, Fd, A, H, G, K, eta_s, eta_v, hg_k, hg_c):
+    """One sub-step of TLSPH internal forces: stresses of ``stress_list[:n_stress]``, then
+    ``acc = f / m`` of ``sph_list[:n_sph]`` (serial: no thread-pool wake-up on small sets)."""
+    for t in range(n_stress):
+        tlsph_stress_one(stress_list[t], X, x, v, offsets, indices, dw, Linv, volume,
+                         G, K, eta_s, eta_v, F, Fd, A, hg_k, hg_c, H)
+    for t in range(n_sph):
+        i = sph_list[t]
+        f0, f1, f2 = tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c)
+        acc[i, 0] = f0 * inv_mass
+        acc[i, 1] = f1 * inv_mass
+        acc[i, 2] = f2 * inv_mass
 
 
 @njit(cache=True)
