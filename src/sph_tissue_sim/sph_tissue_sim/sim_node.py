@@ -171,8 +171,8 @@ class SimNode(Node):
         if self._worker is not None:
             self._worker.join(2.0)
         c = self.counts
-        # not the node logger: the context may already be shut down (no rosout publisher)
-        rclpy.logging.get_logger(self.get_name()).info(
+        # not the node logger: after Ctrl-C the context is shut down and rosout would fail
+        rclpy.logging.get_logger(self.get_name() + '.shutdown').info(
             f'totals: {c["poses"]} poses, {c["steps"]} steps, {c["dropped"]} dropped (newer pose '
             f'arrived first), {c["rejected"]} rejected, {c["sim_errors"]} unstable steps, '
             f'{c["overflow"]} lockstep overflows')

@@ -136,7 +136,6 @@ def test_reset_in_contact_returns_tissue_to_rest_and_force_stays_bounded(probe, 
     forces = probe.run_path(np.repeat(path[-1:], 20, axis=0), t1)
     assert finite_and_bounded(forces, FORCE_LIMIT)
     assert forces[-1][1] > 0.0
-    metrics = [m for m in probe.metrics if stamp_ns(m.header) == t1]
     assert probe.node.spin_until(
         lambda: any(stamp_ns(m.header) == t1 for m in probe.metrics), 10.0)
     metrics = [m for m in probe.metrics if stamp_ns(m.header) == t1]
@@ -146,21 +145,26 @@ def test_reset_in_contact_returns_tissue_to_rest_and_force_stays_bounded(probe, 
 # -- bad input ---------------------------------------------------------------------------------------
 def test_bad_poses_get_zero_force_and_the_node_keeps_running(probe, live_sim):
     t0 = _unique_t0(5)
-    probe.run_path(press_path(30, depth=0.004), t0)    # in contact
+    hold = np.repeat(press_path(1, depth=0.0, start_height=-0.004), 120, axis=0)
+    path = np.concatenate([press_path(30, depth=0.004), hold])
+    probe.run_path(path, t0)                           # pressed in and settled
+    last_valid = t0 + (len(path) - 1) * 1_000_000
     nan, inf = float('nan'), float('inf')
     bad = [((nan, 0.0, 0.0), 'omni_base'), ((0.0, inf, 0.0), 'omni_base'),
            ((0.0, -1e6, 0.0), 'omni_base'), ((0.0, -0.004, 0.0), 'tissue')]
-    t1 = t0 + 100_000_000
+    t1 = t0 + 1_000_000_000
     for k, (pos, frame) in enumerate(bad):
         w = probe.exchange(pos, t1 + k * 1_000_000, frame=frame)
         assert np.all(force_of(w) == 0.0)
         assert w.header.frame_id == frame
     # stamps going backwards, a repeat, and a jump of 5 s: answered, finite and bounded
-    # (the last valid stamp is t0 + 29 ms; rejected poses do not advance the clock)
-    seq = [t0 + 10_000_000, t0 + 5_000_000, t0 + 5_000_000, t0 + 5_005_000_000]
-    forces = [force_of(probe.exchange((1e-3, -0.004, 0.0), ns)) for ns in seq]
+    # (rejected poses do not advance the clock)
+    seq = [last_valid - 10_000_000, last_valid - 20_000_000, last_valid - 20_000_000,
+           last_valid + 5_000_000_000]
+    forces = [force_of(probe.exchange(hold[0], ns)) for ns in seq]
     assert finite_and_bounded(forces, FORCE_LIMIT)
-    assert forces[1][1] > 0.0 and np.array_equal(forces[1], forces[2])  # repeat answers the same
+    assert forces[1][1] > 0.02                         # still pressed: the tissue pushes back
+    assert np.array_equal(forces[1], forces[2])        # a repeated stamp is answered the same
     out = live_sim.output()
     for text in ('rejected pose (non-finite position)', 'max_device_distance',
                  "rejected pose (frame 'tissue' is not 'omni_base')", 'stamp went backwards',
