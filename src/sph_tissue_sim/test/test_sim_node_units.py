@@ -1,0 +1,201 @@
+"""The pure parts of sim_node without processes: device mapping, cloud packing, stamp clock,
+parameter builders."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sph_tissue_sim.cloud import FIELD_SPECS, POINT_DTYPE, pack_points, unpack_points
+from sph_tissue_sim.core.errors import ConfigError, ModelError
+from sph_tissue_sim.mapping import (DEFAULT_ROTATION, DeviceMapping, anchor_point, check_position,
+                                    clamp_norm, quaternion_matrix)
+from sph_tissue_sim.params import (SIM_PARAMS, block_model, build_config, build_material,
+                                   build_model, check_value)
+from sph_tissue_sim.timing import BACKWARDS, FIRST, JUMP, OK, REPEAT, StampClock
+
+
+def defaults(**over) -> dict:
+    p = {name: spec[0] for name, spec in SIM_PARAMS.items()}
+    p.update(over)
+    return p
+
+
+# -- mapping -----------------------------------------------------------------------------------------
+def test_default_rotation_maps_device_up_to_tissue_up_and_user_to_minus_y():
+    R = quaternion_matrix(DEFAULT_ROTATION)
+    assert R @ [0, 1, 0] == pytest.approx([0, 0, 1])      # device y (up) -> tissue z (up)
+    assert R @ [1, 0, 0] == pytest.approx([1, 0, 0])      # device x (right) -> tissue x
+    assert R @ [0, 0, 1] == pytest.approx([0, -1, 0])     # device z (to the user) -> tissue -y
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_quaternion_is_normalised_and_a_zero_quaternion_is_refused():
+    assert quaternion_matrix([0, 0, 0, 2.0]) == pytest.approx(np.eye(3))
+    half_turn_z = quaternion_matrix([0, 0, 1, 0])
+    assert half_turn_z @ [1, 0, 0] == pytest.approx([-1, 0, 0])
+    for bad in ([0, 0, 0, 0], [math.nan, 0, 0, 1], [1, 2, 3]):
+        with pytest.raises(ConfigError):
+            quaternion_matrix(bad)
+
+
+def test_device_origin_lands_on_the_anchor_and_a_press_goes_down_into_the_tissue():
+    m = DeviceMapping.build(DEFAULT_ROTATION, [0.0, 0.0, 0.001], 2.0, 1.0, anchor=[0.04, 0.04, 0.05])
+    assert m.to_tissue([0, 0, 0]) == pytest.approx([0.04, 0.04, 0.051])
+    # 8 mm down on the device (-y) is 16 mm down in the tissue at workspace scale 2
+    assert m.to_tissue([0, -0.008, 0]) == pytest.approx([0.04, 0.04, 0.051 - 0.016])
+    p = np.array([0.013, -0.021, 0.007])
+    assert m.to_device(m.to_tissue(p)) == pytest.approx(p)
+
+
+def test_tissue_force_up_is_device_force_up_scaled_by_force_scale():
+    m = DeviceMapping.build(DEFAULT_ROTATION, [0, 0, 0], 1.0, 0.5, anchor=[0, 0, 0])
+    assert m.force_to_device([0.0, 0.0, 2.0]) == pytest.approx([0.0, 1.0, 0.0])
+    assert m.force_to_device([0.0, -2.0, 0.0]) == pytest.approx([0.0, 0.0, 1.0])
+
+
+def test_mapping_refuses_bad_translation_and_scales():
+    with pytest.raises(ConfigError, match='translation'):
+        DeviceMapping.build(DEFAULT_ROTATION, [0, math.inf, 0], 1.0, 1.0, anchor=[0, 0, 0])
+    with pytest.raises(ConfigError, match='workspace_scale'):
+        DeviceMapping.build(DEFAULT_ROTATION, [0, 0, 0], 0.0, 1.0, anchor=[0, 0, 0])
+
+
+def test_anchor_points_of_a_block():
+    model = block_model([0.08, 0.08, 0.04], 256)              # 1 cm lattice, particles 5 mm inside
+    X, s = model.positions, model.spacing
+    assert anchor_point(X, s, 0.015, 'top_contact') == pytest.approx([0.04, 0.04, 0.035 + 0.015])
+    assert anchor_point(X, s, 0.015, 'top_surface') == pytest.approx([0.04, 0.04, 0.04])
+    assert anchor_point(X, s, 0.015, 'centre') == pytest.approx([0.04, 0.04, 0.02])
+    assert anchor_point(X, s, 0.015, 'origin') == pytest.approx([0, 0, 0])
+    with pytest.raises(ConfigError, match='anchor'):
+        anchor_point(X, s, 0.015, 'somewhere')
+
+
+def test_clamp_norm_keeps_direction_and_zeroes_non_finite():
+    f, clamped = clamp_norm(np.array([3.0, 4.0, 0.0]), 1.0)
+    assert clamped and f == pytest.approx([0.6, 0.8, 0.0])
+    f, clamped = clamp_norm(np.array([0.3, 0.4, 0.0]), 1.0)
+    assert not clamped and f == pytest.approx([0.3, 0.4, 0.0])
+    f, clamped = clamp_norm(np.array([math.nan, 0.0, 0.0]), 1.0)
+    assert clamped and np.all(f == 0.0)
+
+
+def test_check_position_names_the_problem():
+    assert check_position([0.01, 0.02, 0.0], 1.0) is None
+    assert check_position([math.nan, 0, 0], 1.0) == 'non-finite position'
+    assert check_position([0, math.inf, 0], 1.0) == 'non-finite position'
+    assert 'max_device_distance' in check_position([0, 2.0, 0], 1.0)
+
+
+# -- cloud ---------------------------------------------------------------------------------------------
+def test_cloud_packing_round_trips_every_field():
+    rng = np.random.default_rng(0)
+    n = 1000
+    pos = rng.normal(size=(n, 3))
+    disp, vm = rng.random(n), rng.random(n) * 1e3
+    region = rng.integers(0, 5, n).astype(np.int8)
+    pts = pack_points(pos, disp, vm, region)
+    back = unpack_points(pts.view(np.uint8).tobytes(), n)
+    assert np.array_equal(back['x'], pos[:, 0].astype(np.float32))
+    assert np.array_equal(back['z'], pos[:, 2].astype(np.float32))
+    assert np.array_equal(back['displacement'], disp.astype(np.float32))
+    assert np.array_equal(back['von_mises'], vm.astype(np.float32))
+    assert np.array_equal(back['region'], region.astype(np.uint8))
+    # reusing the buffer gives the same bytes
+    again = pack_points(pos, disp, vm, region, out=np.zeros(n, dtype=POINT_DTYPE))
+    assert again.tobytes() == pts.tobytes()
+
+
+def test_cloud_field_table_matches_the_point_layout():
+    assert POINT_DTYPE.itemsize == 24
+    for name, offset, datatype in FIELD_SPECS:
+        assert POINT_DTYPE.fields[name][1] == offset
+        size = POINT_DTYPE.fields[name][0].itemsize
+        assert (datatype, size) in ((7, 4), (2, 1))          # FLOAT32 4 bytes, UINT8 1 byte
+
+
+def test_cloud_message_header_and_layout():
+    pytest.importorskip('sensor_msgs')
+    from sph_tissue_sim.cloud import make_cloud
+
+    pts = pack_points(np.zeros((7, 3)), np.zeros(7), np.zeros(7), np.zeros(7, dtype=np.int8))
+    msg = make_cloud(pts, 'tissue')
+    assert (msg.header.frame_id, msg.height, msg.width, msg.point_step) == ('tissue', 1, 7, 24)
+    assert len(msg.data) == 7 * 24 and msg.row_step == 7 * 24 and not msg.is_bigendian
+    assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'displacement', 'von_mises', 'region']
+
+
+def test_cloud_packing_rejects_inconsistent_arrays():
+    with pytest.raises(ValueError):
+        pack_points(np.zeros((5, 3)), np.zeros(4), np.zeros(5), np.zeros(5))
+
+
+# -- stamp clock ---------------------------------------------------------------------------------------
+def test_stamp_clock_rules():
+    c = StampClock(nominal_dt=1e-3, max_dt=0.02)
+    t = 1_000_000_000_000
+    assert c.advance(t) == (1e-3, FIRST)
+    assert c.advance(t + 2_500_000) == (pytest.approx(2.5e-3), OK)
+    assert c.advance(t + 2_500_000) == (0.0, REPEAT)
+    assert c.advance(t + 1_000_000) == (1e-3, BACKWARDS)     # the clock restarts here
+    assert c.advance(t + 2_000_000) == (pytest.approx(1e-3), OK)
+    assert c.advance(t + 5_000_000_000) == (0.02, JUMP)
+    c.reset()
+    assert c.advance(t) == (1e-3, FIRST)
+
+
+# -- parameter builders ----------------------------------------------------------------------------
+def test_block_model_has_the_requested_count_on_an_exact_lattice():
+    model = block_model([0.08, 0.08, 0.04], 256)
+    assert model.n_particles == 256 and model.spacing == pytest.approx(0.01)
+    assert model.fixed.sum() == 64                           # the bottom layer
+
+
+def test_liver_model_falls_back_to_a_block_with_a_log_line_when_the_core_has_none():
+    lines = []
+    try:
+        import sph_tissue_sim.core.liver  # noqa: F401
+    except ImportError:
+        model = build_model(defaults(model='liver', n_particles=500), log=lines.append)
+        assert model.name == 'block' and lines and 'not available' in lines[0]
+    else:
+        model = build_model(defaults(model='liver', n_particles=500), log=lines.append)
+        assert model.name.startswith('liver') and not lines
+        assert abs(model.n_particles - 500) <= 50
+
+
+def test_mesh_model_needs_an_existing_file(tmp_path):
+    with pytest.raises(ConfigError, match='mesh_path'):
+        build_model(defaults(model='mesh', mesh_path=''))
+    with pytest.raises(ModelError, match='not found'):
+        build_model(defaults(model='mesh', mesh_path=str(tmp_path / 'none.stl')))
+
+
+def test_materials_by_name_and_custom():
+    liver = build_material(defaults(material='liver'))
+    assert liver.G == pytest.approx(1800.0) and liver.nu == pytest.approx(0.45)
+    custom = build_material(defaults(material='custom', E=3000.0, nu=0.3, eta_shear=2.0,
+                                     eta_bulk=-1.0, rho=1000.0))
+    assert custom.E == 3000.0 and custom.eta_bulk / custom.K == pytest.approx(custom.eta_shear / custom.G)
+    with pytest.raises(ConfigError, match='no material'):
+        build_material(defaults(material='granite'))
+
+
+def test_solver_config_cross_checks():
+    assert build_config(defaults()).scheme == 'tlsph'
+    with pytest.raises(ConfigError, match='k1_min'):
+        build_config(defaults(k1_min=5.0, k1_max=2.0))
+    with pytest.raises(ConfigError, match='max_dt'):
+        build_config(defaults(nominal_dt=0.05, max_dt=0.01))
+
+
+def test_check_value_catches_bad_choices_and_vectors():
+    assert check_value('mode', 'local') is None
+    assert 'must be one of' in check_value('mode', 'diagonal')
+    assert 'timing_mode' in check_value('timing_mode', 'fast')
+    assert check_value('translation', [0.0, 0.1, 0.0]) is None
+    assert '3 finite numbers' in check_value('translation', [0.0, 0.1])
+    assert '4 finite numbers' in check_value('rotation', [0.0, math.nan, 0.0, 1.0])
