@@ -199,3 +199,40 @@ def test_check_value_catches_bad_choices_and_vectors():
     assert check_value('translation', [0.0, 0.1, 0.0]) is None
     assert '3 finite numbers' in check_value('translation', [0.0, 0.1])
     assert '4 finite numbers' in check_value('rotation', [0.0, math.nan, 0.0, 1.0])
+
+
+# -- shipped files ---------------------------------------------------------------------------------
+PKG_DIR = __import__('pathlib').Path(__file__).resolve().parents[1]
+
+
+def test_config_files_name_only_declared_parameters_with_valid_values():
+    import yaml
+
+    base = yaml.safe_load((PKG_DIR / 'config' / 'sim_node.yaml').read_text())['sim_node']['ros__parameters']
+    assert set(base) == set(SIM_PARAMS)                     # every parameter documented there
+    for name, value in base.items():
+        default = SIM_PARAMS[name][0]
+        assert type(value) is type(default), name            # a ROS params file is typed
+        assert check_value(name, value) is None
+    paper = yaml.safe_load((PKG_DIR / 'config' / 'sim_node_paper.yaml').read_text())
+    paper = paper['sim_node']['ros__parameters']
+    assert set(paper) <= set(SIM_PARAMS)
+    merged = {**base, **paper}
+    assert merged['scheme'] == 'paper' and merged['n_particles'] == 3670
+    assert build_material(merged).nu == 0.0                  # the paper's eq. 3 material
+    build_config(merged)
+
+
+def test_launch_file_imports_without_the_launch_packages():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location('sim_launch', PKG_DIR / 'launch' / 'sim.launch.py')
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert callable(mod.generate_launch_description)
+    try:  # (a bare 'import launch' can find some folder named launch as a namespace package)
+        from launch import LaunchDescription  # noqa: F401
+        from launch_ros.actions import Node  # noqa: F401
+    except ImportError:
+        return
+    assert mod.generate_launch_description() is not None
