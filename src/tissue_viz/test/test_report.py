@@ -51,7 +51,9 @@ def _ink(path) -> tuple[tuple[int, int], float, int]:
 def report(tmp_path_factory):
     stats = _press_run()
     out = tmp_path_factory.mktemp('report') / 'run'
-    write_report(out, ReportData.from_stats(stats, 2.0, title='Press test'))
+    targets = {'metrics': (450.0, 550.0), 'particles': (25.0, 35.0), 'pose': (450.0, 550.0),
+               'force': (450.0, 550.0)}
+    write_report(out, ReportData.from_stats(stats, 2.0, title='Press test', rate_targets=targets))
     return out, stats
 
 
@@ -118,6 +120,7 @@ def test_csv_series_round_trip_with_the_recorded_values(report):
 
 def test_tissue_report_rebuilds_a_report_from_its_csv_files(report, tmp_path, capsys):
     out, _ = report
+    assert load_report_data(out).rate_targets['metrics'] == (450.0, 550.0)
     again = tmp_path / 'again'
     assert main([str(out), '-o', str(again), '--recompute-summary']) == 0
     assert 'wrote' in capsys.readouterr().out

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from tissue_viz.errors import ReportError
-from tissue_viz.stats import TOPICS, VizStats, percentile, press_displacement
+from tissue_viz.stats import VizStats, percentile, press_displacement
 
 TABLES = {
     'metrics': VizStats.METRICS_COLUMNS,
@@ -47,6 +47,7 @@ class ReportData:
     title: str = 'SPH soft-tissue simulation run'
     haptic_period: float = 1e-3          # [s] for the deadline line in the step-time histogram
     contact_threshold: float = 0.01      # [N] force that counts as first contact
+    rate_targets: dict = field(default_factory=dict)   # topic -> (min, max) [Hz], drawn as bands
 
     @classmethod
     def from_stats(cls, stats: VizStats, now: float, **kw) -> 'ReportData':
@@ -124,12 +125,13 @@ def _force_source(data: ReportData) -> tuple[np.ndarray, np.ndarray, np.ndarray,
 
 
 def _break_gaps(t: np.ndarray, *series: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Insert a NaN row where the stream paused (> 10 median periods) so lines do not bridge it."""
+    """Insert a NaN row where the stream paused (> 10 median periods and > 0.1 s) so lines do not
+    bridge it; shorter hiccups of a loaded machine stay joined."""
     if len(t) < 3:
         return (t, *series)
     dt = np.diff(t)
     typical = np.median(dt[dt > 0]) if np.any(dt > 0) else 0.0
-    gaps = np.flatnonzero(dt > 10.0 * typical) + 1 if typical > 0 else np.array([], dtype=int)
+    gaps = np.flatnonzero(dt > max(10.0 * typical, 0.1)) + 1 if typical > 0 else np.array([], dtype=int)
     if gaps.size == 0:
         return (t, *series)
     out_t = np.insert(np.asarray(t, dtype=float), gaps, np.nan)
@@ -214,18 +216,32 @@ def plot_step_hist(data: ReportData, path: Path) -> None:
 
 
 def plot_rates(data: ReportData, path: Path) -> None:
-    plt, fig, ax = _figure()
+    """Haptic-loop topics (metrics, pose, force) above, the particle cloud below, linear scales."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 4.5), dpi=100, sharex=True,
+                                      gridspec_kw={'height_ratios': [2, 1]})
     rates = data.table('rates')
-    if len(rates['t']):
-        for topic in TOPICS:
-            ax.plot(rates['t'], rates[topic], lw=1.2, label=topic)
-        ax.legend(fontsize=8)
-        ax.set_yscale('symlog', linthresh=10)
-    else:
-        _no_data(ax, 'rate')
-    ax.set_title('Topic rates over time (sliding window)')
-    ax.set_xlabel('time [s]')
-    ax.set_ylabel('rate [Hz]')
+    colours = {'metrics': 'tab:blue', 'pose': 'tab:green', 'force': 'tab:red',
+               'particles': 'tab:orange'}
+    for ax, topics in ((top, ('metrics', 'pose', 'force')), (bottom, ('particles',))):
+        ax.grid(True, alpha=0.3)
+        ax.set_ylabel('rate [Hz]')
+        if not len(rates['t']):
+            _no_data(ax, 'rate')
+            continue
+        target = data.rate_targets.get(topics[0])
+        if target:
+            ax.axhspan(target[0], target[1], color=colours[topics[0]], alpha=0.12,
+                       label=f'{topics[0]} target {target[0]:g}-{target[1]:g} Hz')
+        for topic in topics:
+            ax.plot(rates['t'], rates[topic], lw=1.4, color=colours[topic],
+                    marker='.' if len(rates['t']) < 30 else None, label=topic)
+        ax.set_ylim(bottom=0)
+        ax.legend(fontsize=8, loc='lower right')
+    top.set_title('Topic rates over time (sliding window)')
+    bottom.set_xlabel('time [s]')
     _save(plt, fig, path)
 
 
@@ -390,6 +406,8 @@ def write_report(directory: str | Path, data: ReportData) -> Path:
         for png, plotter in PLOTTERS.items():
             plotter(data, out / png)
         summary = dict(_json_safe(data.summary))
+        if data.rate_targets:
+            summary['rate_targets_hz'] = {k: list(v) for k, v in data.rate_targets.items()}
         summary['created'] = created
         summary['files'] = sorted([p for p, _ in PLOTS] + [f'{n}.csv' for n in TABLES] +
                                   ['summary.md', 'index.html'])
@@ -424,8 +442,10 @@ def load_report_data(directory: str | Path) -> ReportData:
         except json.JSONDecodeError as exc:
             raise ReportError(f'{js} is not valid JSON: {exc}') from exc
     period = summary.get('haptic_period_s') or 1e-3
-    summary = {k: v for k, v in summary.items() if k not in ('created', 'files')}
-    return ReportData(tables=tables, summary=summary, haptic_period=float(period))
+    targets = summary.get('rate_targets_hz') or {}
+    summary = {k: v for k, v in summary.items() if k not in ('created', 'files', 'rate_targets_hz')}
+    return ReportData(tables=tables, summary=summary, haptic_period=float(period),
+                      rate_targets={k: tuple(v) for k, v in targets.items()})
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,6 +12,7 @@ in timers at a few hertz.
 from __future__ import annotations
 
 import math
+import signal
 import threading
 import time
 from pathlib import Path
@@ -27,6 +28,7 @@ from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 from tissue_msgs.msg import SimMetrics
@@ -309,7 +311,9 @@ class VizNode(Node):
         return Path(self.p['report_dir']) if self.p['report_dir'] else default_report_dir()
 
     def report_data(self) -> ReportData:
+        targets = {t: (r.min_rate, r.max_rate) for t, r in self.targets.rates.items()}
         return ReportData.from_stats(self.stats, time.monotonic(), title=self.p['report_title'],
+                                     rate_targets=targets,
                                      contact_threshold=self.p['contact_threshold'])
 
     def write_report_now(self) -> Path:
@@ -353,7 +357,12 @@ class VizNode(Node):
 
 
 def main(args=None) -> None:
-    rclpy.init(args=args)
+    # Ctrl-C / SIGTERM only set a flag: a KeyboardInterrupt raised inside a callback called from the
+    # EventsExecutor's C++ surfaces as a RuntimeError from spin_once, not as KeyboardInterrupt.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     node = None
     try:
         node = VizNode()
@@ -361,8 +370,8 @@ def main(args=None) -> None:
         executor.add_node(node)
         # EventsExecutor.spin() of this rclpy (7.1.x wheels) never runs a callback and does not
         # return on Ctrl-C (it busy-waits in C++); spin_once in a loop runs timers and
-        # subscriptions and lets the SIGINT handler stop the loop.
-        while rclpy.ok():
+        # subscriptions and checks the stop flag at least every 0.1 s.
+        while rclpy.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
