@@ -144,3 +144,25 @@ def test_report_into_an_unwritable_place_raises_a_report_error(tmp_path):
     blocker.write_text('not a folder')
     with pytest.raises(ReportError, match='cannot create report folder'):
         write_report(blocker / 'report', ReportData())
+
+
+def test_plot_thinning_keeps_every_peak_of_a_long_run():
+    from tissue_viz.report import MAX_PLOT_POINTS, _thin
+
+    force = np.zeros(100_000)
+    force[[12_345, 77_777]] = 3.3                        # two 1-sample force spikes
+    force[50_000] = -1.0
+    idx = _thin(len(force), force)
+    assert len(idx) <= MAX_PLOT_POINTS
+    assert {12_345, 77_777, 50_000} <= set(idx.tolist())
+    assert np.all(np.diff(idx) > 0)
+    assert _thin(10, force[:10]).tolist() == list(range(10))
+
+
+def test_csv_marks_missing_values_as_empty_cells(tmp_path):
+    from tissue_viz.report import write_csv
+
+    write_csv(tmp_path / 'x.csv', ('t', 'v'), {'t': np.array([0.0, 0.5]), 'v': np.array([np.nan, 2.5])})
+    assert (tmp_path / 'x.csv').read_text() == 't,v\n0,\n0.5,2.5\n'
+    back = read_csv(tmp_path / 'x.csv')
+    assert np.isnan(back['v'][0]) and back['v'][1] == 2.5

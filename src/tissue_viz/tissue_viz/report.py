@@ -12,6 +12,7 @@ import argparse
 import csv
 import datetime as _dt
 import html
+import io
 import json
 import math
 import sys
@@ -64,13 +65,16 @@ class ReportData:
 
 # -- CSV ------------------------------------------------------------------------------------------
 def write_csv(path: Path, columns: tuple, table: dict) -> None:
+    """One header row, then 12 significant digits per value; NaN (no value) as an empty cell."""
+    n = len(table[columns[0]]) if columns[0] in table else 0
     with open(path, 'w', newline='') as fh:
-        writer = csv.writer(fh)
-        writer.writerow(columns)
-        n = len(table[columns[0]]) if columns[0] in table else 0
-        arrays = [np.asarray(table[c], dtype=float) for c in columns]
-        for i in range(n):
-            writer.writerow(['' if not math.isfinite(a[i]) else repr(float(a[i])) for a in arrays])
+        fh.write(','.join(columns) + '\n')
+        if n:
+            arr = np.column_stack([np.asarray(table[c], dtype=float) for c in columns])
+            buf = io.StringIO()
+            # savetxt formats a row per call (the csv module would format each value in Python).
+            np.savetxt(buf, arr, fmt='%.12g', delimiter=',')
+            fh.write(buf.getvalue().replace('nan', ''))
 
 
 def read_csv(path: Path) -> dict:
@@ -124,6 +128,27 @@ def _force_source(data: ReportData) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return m['t'], vec, np.full_like(vec, np.nan), 'tissue/metrics contact_force'
 
 
+MAX_PLOT_POINTS = 8000
+
+
+def _thin(n: int, keep: np.ndarray | None = None) -> np.ndarray:
+    """Indices of at most ~MAX_PLOT_POINTS samples of ``n``: each bucket's min and max of ``keep``
+    (so peaks survive thinning), or every k-th sample without ``keep``."""
+    if n <= MAX_PLOT_POINTS:
+        return np.arange(n)
+    if keep is None:
+        return np.arange(0, n, int(math.ceil(n / MAX_PLOT_POINTS)))
+    buckets = MAX_PLOT_POINTS // 2
+    edges = np.linspace(0, n, buckets + 1).astype(int)
+    values = np.where(np.isfinite(keep), keep, -np.inf)
+    lo_values = np.where(np.isfinite(keep), keep, np.inf)
+    idx = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        if b > a:
+            idx += [a + int(np.argmin(lo_values[a:b])), a + int(np.argmax(values[a:b]))]
+    return np.unique(np.asarray(idx, dtype=int))
+
+
 def _break_gaps(t: np.ndarray, *series: np.ndarray) -> tuple[np.ndarray, ...]:
     """Insert a NaN row where the stream paused (> 10 median periods and > 0.1 s) so lines do not
     bridge it; shorter hiccups of a loaded machine stay joined."""
@@ -143,7 +168,8 @@ def plot_force_vs_time(data: ReportData, path: Path) -> None:
     plt, fig, ax = _figure()
     t, vec, _, label = _force_source(data)
     if len(t):
-        t, vec = _break_gaps(t, vec)
+        sel = _thin(len(t), np.linalg.norm(vec, axis=1))
+        t, vec = _break_gaps(t[sel], vec[sel])
         mag = np.linalg.norm(vec, axis=1)
         for i, (axis, colour) in enumerate(zip('xyz', ('tab:red', 'tab:green', 'tab:blue'))):
             ax.plot(t, vec[:, i], color=colour, lw=0.8, alpha=0.7, label=f'F{axis}')
@@ -165,7 +191,9 @@ def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
     ok = np.isfinite(disp)
     if ok.any():
         mag = np.linalg.norm(vec, axis=1)
-        sc = ax.scatter(disp[ok] * 1e3, mag[ok], c=t[ok], s=4, cmap='viridis')
+        sel = np.flatnonzero(ok)
+        sel = sel[_thin(len(sel), mag[sel])]
+        sc = ax.scatter(disp[sel] * 1e3, mag[sel], c=t[sel], s=4, cmap='viridis')
         fig.colorbar(sc, ax=ax, label='time [s]')
         ax.set_title('Force against tool displacement (from first contact, along the press)')
     else:
@@ -173,7 +201,9 @@ def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
         m = data.table('metrics')
         pen_ok = np.isfinite(m['penetration']) & (m['penetration'] > 0)
         if pen_ok.any():
-            sc = ax.scatter(m['penetration'][pen_ok] * 1e3, m['force'][pen_ok], c=m['t'][pen_ok],
+            sel = np.flatnonzero(pen_ok)
+            sel = sel[_thin(len(sel), m['force'][sel])]
+            sc = ax.scatter(m['penetration'][sel] * 1e3, m['force'][sel], c=m['t'][sel],
                             s=4, cmap='viridis')
             fig.colorbar(sc, ax=ax, label='time [s]')
             ax.set_title('Force against tool penetration (tissue/metrics)')
