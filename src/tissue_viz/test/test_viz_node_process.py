@@ -327,3 +327,34 @@ def test_pose_to_force_latency_is_matched_by_stamp_and_lost_replies_raise_an_err
         assert float(dict((kv.key, kv.value) for kv in status.values)
                      ['poses without reply [%]']) > 20.0
         assert viz.alive() and 'Traceback' not in viz.output(), viz.output()
+
+
+def test_inconsistent_targets_set_at_run_time_are_refused_and_consistent_ones_applied(rclpy_node):
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    def set_param(client, name, value):
+        request = SetParameters.Request(parameters=[Parameter(
+            name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))])
+        future = client.call_async(request)
+        assert rclpy_node.spin_until(future.done, 10)
+        return future.result().results[0]
+
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=FAST) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        client = rclpy_node.create_client(SetParameters, 'viz_node/set_parameters')
+        assert client.wait_for_service(timeout_sec=10)
+        refused = set_param(client, 'metrics_min_rate', 5000.0)      # above metrics_max_rate 250
+        assert not refused.successful and 'min_rate <= max_rate' in refused.reason
+        out_of_range = set_param(client, 'rate_tolerance', 2.0)      # descriptor range [0, 0.99]
+        assert not out_of_range.successful
+        probe = Probe(rclpy_node)
+        harness.wait_for_matching(rclpy_node, probe.diag_sub)
+        assert set_param(client, 'metrics_min_rate', 20.0).successful
+
+        def new_target():
+            s = probe.status('tissue/metrics rate')
+            return s is not None and dict((kv.key, kv.value) for kv in s.values)[
+                'min rate [Hz]'] == '20.0'
+        assert probe.run(0, new_target, 10), probe.status('tissue/metrics rate')
+        assert viz.alive()
