@@ -121,17 +121,11 @@ def test_uniaxial_tension_recovers_youngs_modulus_and_poisson_ratio():
     assert nu_meas == pytest.approx(nu, rel=0.05)
 
 
-@pytest.mark.xfail(reason='the vector hourglass force is not central: drift 3.9e-4 of the scale',
-                   strict=True)
-def test_internal_forces_conserve_angular_momentum():
-    """Internal (elastic, viscous and hourglass) forces exert no net torque on a free body.
-
-    A free block with random initial velocities (no loads, no contact) deforms for 200 frames;
-    the total angular momentum about the centre of mass must not change (linear momentum is
-    checked in test_core_solver.py).
-    """
+def _angular_momentum_drift(hourglass: float) -> float:
+    """Relative change of the angular momentum of a free, unloaded block deforming for 0.2 s."""
     model = make_block(6, 5, 4, spacing=0.0075, fix='none')
-    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode='global'))
+    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0),
+                    SolverConfig(mode='global', hourglass=hourglass))
     rng = np.random.default_rng(1)
     solver.velocities[:] = rng.normal(0.0, 0.02, solver.velocities.shape)
     solver.velocities[:] -= solver.velocities.mean(axis=0)
@@ -146,9 +140,25 @@ def test_internal_forces_conserve_angular_momentum():
     for _ in range(200):
         solver.step(None, 1e-3)
     assert solver.displacement().max() > 5e-4          # the body did deform
-    drift = np.abs(angular_momentum() - L0).max() / scale
-    print(f'angular momentum drift / scale: {drift:.2e}')
-    assert drift < 1e-9
+    drift = float(np.abs(angular_momentum() - L0).max() / scale)
+    print(f'hourglass {hourglass}: angular momentum drift / scale {drift:.2e}')
+    return drift
+
+
+def test_stress_forces_conserve_angular_momentum():
+    """Elastic and viscous TLSPH forces derive from an objective energy: no net torque.
+
+    A free block with random initial velocities (no loads, no contact) deforms for 200 frames;
+    the total angular momentum about the centre of mass must not change (linear momentum is
+    checked in test_core_solver.py). Hourglass control is off here; see the next test.
+    """
+    assert _angular_momentum_drift(0.0) < 1e-12
+
+
+@pytest.mark.xfail(reason='the vector-form hourglass force is not central (not along the bond): '
+                          'measured drift 3.9e-4 of the scale over 0.2 s', strict=True)
+def test_hourglass_forces_conserve_angular_momentum():
+    assert _angular_momentum_drift(1.0) < 1e-9
 
 
 def _cantilever_frequency(n_across: int, slenderness: float, nu: float = 0.3):
@@ -188,13 +198,15 @@ def _crossings(t: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason='first-order gradients at free surfaces: f1 about 18 % low (4 particles '
-                          'across)', strict=True)
+@pytest.mark.xfail(reason='the first-order consistent (Bonet-Lok) gradient underestimates the '
+                          'bending strain of surface particles (by the curvature times the offset '
+                          'of their neighbourhood centroid): bending energy 0.66 of exact with 4 '
+                          'particles across, f1 measured 19.6 % low', strict=True)
 def test_cantilever_first_bending_frequency_matches_euler_bernoulli():
     """f1 = 1.8751^2 / (2 pi L^2) sqrt(E I / (rho A)) for a clamped-free beam.
 
     Beam of 4 x 4 particles across and slenderness L/H = 8 (Timoshenko shear and rotary-inertia
-    corrections below 1 %), clamped by two fixed particle layers, set swinging in its first mode
+    corrections about 1 %), clamped by two fixed particle layers, set swinging in its first mode
     shape with a tip amplitude of 1 % of L; the period is the mean spacing of the tip
     displacement's zero crossings.
     """
@@ -275,9 +287,18 @@ def _press_and_hold(mode: str, depth: float, **config) -> np.ndarray:
     return res.force
 
 
-@pytest.mark.parametrize('k1_min', [3.0])
+@pytest.mark.parametrize('k1_min', [
+    pytest.param(1.0, marks=pytest.mark.xfail(
+        reason='default k1_min = 1: the area (Dr = h, 7 particles) is too small, the still tissue '
+               'around it stiffens the contact: measured +11 %', strict=True)),
+    3.0])
 def test_local_area_contact_force_matches_global_at_same_indentation(k1_min):
-    """Quasi-static press: the local-area model gives the global model's force within 10 %."""
+    """Quasi-static press: the local-area model gives the global model's force within 10 %.
+
+    The block is pressed 4 mm by the tool over 0.4 s and held 0.3 s (the retardation time is
+    1.7 ms, so the hold is quasi-static). ``k1_min`` bounds the interaction radius Dr = k1 h from
+    below; the paper's k1 = f/2 (f in N) gives k1 < 1 at these forces.
+    """
     f_global = _press_and_hold('global', 0.004, k1_min=k1_min)
     f_local = _press_and_hold('local', 0.004, k1_min=k1_min)
     err = f_local[2] / f_global[2] - 1.0
