@@ -99,6 +99,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'timing_mode': ('live', 'live (newest pose only, never a backlog) | lockstep (every pose in '
                             'order, reliable deep queue; bit-identical replays)', TIMING_MODES, True,
                     None),
+    'step_thread': (False, 'step in a worker thread fed by an inbox (live: only the newest pose is '
+                           'kept; lockstep: a FIFO) instead of in the subscription callback (default: '
+                           'measured slower here, the GIL hand-over costs more than it saves)',
+                    None, True, None),
     'nominal_dt': (0.001, '[s] step of the first pose and of a pose whose stamp went backwards',
                    (1e-5, 0.1), False, None),
     'max_dt': (0.02, '[s] largest frame step; longer stamp gaps are clamped to it', (1e-4, 1.0),

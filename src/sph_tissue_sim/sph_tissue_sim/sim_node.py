@@ -87,12 +87,16 @@ class SimNode(Node):
         config = build_config(p)
         t0 = time.perf_counter()
         if p['warmup']:
-            warmup(config.scheme)
+            try:
+                warmup(config.scheme)
+            except SimError as exc:  # the probe step below still compiles what this model needs
+                log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
         self.solver = make_solver(self.model, self.material, config, p['nominal_dt'])
         self.compile_time = time.perf_counter() - t0
         self.mapping = self._make_mapping(p, self.solver)
         self.clock = StampClock(p['nominal_dt'], p['max_dt'])
         self.lockstep = p['timing_mode'] == 'lockstep'
+        self.use_thread = p['step_thread']
 
         self._lock = threading.Lock()            # the solver and its state
         self._cv = threading.Condition()         # the pose inbox
@@ -156,9 +160,10 @@ class SimNode(Node):
 
     # -- lifecycle -------------------------------------------------------------------------------
     def start(self) -> None:
-        """Start the stepping thread and report ready."""
-        self._worker = threading.Thread(target=self._work, name='sim_step', daemon=True)
-        self._worker.start()
+        """Start the stepping thread (if configured) and report ready."""
+        if self.use_thread:
+            self._worker = threading.Thread(target=self._work, name='sim_step', daemon=True)
+            self._worker.start()
         self.get_logger().info(f'numba warm-up (compile or cache load) and first step: '
                                f'{self.compile_time:.2f} s')
         self.get_logger().info('ready: ' + self.describe())
@@ -190,6 +195,12 @@ class SimNode(Node):
 
     # -- pose intake -------------------------------------------------------------------------------
     def _on_pose(self, msg: PoseStamped) -> None:
+        if not self.use_thread:
+            # stepping here: poses that arrive meanwhile wait in the reader history, which keeps
+            # only the newest qos_depth of them in live mode (DDS drops the rest, never a backlog)
+            self.counts['poses'] += 1
+            self._handle(msg)
+            return
         with self._cv:
             self.counts['poses'] += 1
             if self.lockstep:
@@ -213,12 +224,15 @@ class SimNode(Node):
                 if self._stop.is_set():
                     return
                 msg = self._inbox.popleft()
-            try:
-                self._process(msg)
-            except Exception:  # noqa: BLE001  (a bug must not kill the loop or leave the device pushing)
-                self._throttled('internal', 'error', 'internal error while stepping, answered '
-                                'zero force:\n' + traceback.format_exc())
-                self._publish_force(msg.header, np.zeros(3))
+            self._handle(msg)
+
+    def _handle(self, msg: PoseStamped) -> None:
+        try:
+            self._process(msg)
+        except Exception:  # noqa: BLE001  (a bug must not kill the loop or leave the device pushing)
+            self._throttled('internal', 'error', 'internal error while stepping, answered zero '
+                            'force:\n' + traceback.format_exc())
+            self._publish_force(msg.header, np.zeros(3))
 
     # -- one frame ---------------------------------------------------------------------------------
     def _reject_reason(self, msg: PoseStamped) -> str | None:
@@ -317,6 +331,13 @@ class SimNode(Node):
 
     # -- particles -------------------------------------------------------------------------------
     def _publish_cloud(self) -> None:
+        try:
+            self._publish_cloud_once()
+        except Exception:  # noqa: BLE001  (the picture is optional; the force loop must go on)
+            self._throttled('cloud', 'error', 'tissue/particles not published:\n'
+                            + traceback.format_exc())
+
+    def _publish_cloud_once(self) -> None:
         with self._lock:
             s = self.solver
             pts = pack_points(s.positions, s.displacement(), s.von_mises(), s.region, self._cloud_buf)
@@ -337,7 +358,12 @@ class SimNode(Node):
         with self._lock:
             response.sim_time = float(self.solver.sim_time)
             if material is not None:
-                self.solver.set_material(material)
+                try:
+                    self.solver.set_material(material)
+                except SimError as exc:
+                    response.success = False
+                    response.message = f'reset refused: {exc}'
+                    return response
             self.solver.reset()
             self.clock.reset()
             self._last_force_dev = np.zeros(3)
@@ -377,7 +403,7 @@ class SimNode(Node):
             elif {'force_scale'} & changed:
                 mapping = DeviceMapping(self.mapping.rotation, self.mapping.origin,
                                         self.mapping.scale, float(new['force_scale']))
-        except (ConfigError, ModelError) as exc:
+        except SimError as exc:  # ConfigError, ModelError, or the probe step of a new solver failed
             reason = f'refused: {exc}'
             self.get_logger().warn(f'parameter change {sorted(changed)} {reason}')
             return SetParametersResult(successful=False, reason=reason)

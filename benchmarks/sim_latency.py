@@ -1,0 +1,251 @@
+#!/usr/bin/env python3
+"""Closed-loop latency of sim_node: omni/pose at 1 kHz in, omni/force_feedback out.
+
+Starts ``sim_node`` (the installed executable, as ``ros2 run`` would) on an isolated DDS domain,
+publishes geometry_msgs/PoseStamped at ``--rate`` Hz along a pressing path (down 1 cm into the
+tissue and back, with a lateral sweep) for ``--duration`` seconds, and matches every
+geometry_msgs/WrenchStamped reply to its pose by header stamp. Reports the round trip (pose publish
+-> wrench receive, both measured in this process) median / p90 / p99 / max, the achieved pose and
+reply rates, the share of poses without a reply (live mode drops to the newest pose by design),
+and the node's own step wall time from tissue/metrics. Prints a table and writes CSV files.
+
+    source scripts/env.sh
+    python benchmarks/sim_latency.py --duration 10 --model liver --n-particles 3670
+    python benchmarks/sim_latency.py --model block --n-particles 256 --mode global --csv /tmp/x.csv
+
+This is a benchmark, not a test: it asserts nothing and reports what it measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / 'test'))
+
+import harness  # noqa: E402
+
+
+def pressing_path(t: float, depth: float, period: float) -> tuple[float, float, float]:
+    """Device-frame tip position [m] at time t: 4 mm above the surface point down to ``depth`` below
+    it and back every ``period`` s (cosine), sweeping +-5 mm along x twice as slowly."""
+    s = 0.5 - 0.5 * math.cos(2.0 * math.pi * t / period)
+    y = 0.004 - (0.004 + depth) * s
+    x = 0.005 * math.sin(math.pi * t / period)
+    return x, y, 0.0
+
+
+def percentile(a, q: float) -> float:
+    return float(np.percentile(a, q)) if len(a) else math.nan
+
+
+def run(args) -> dict:
+    # the probe's publisher thread and executor share the GIL: hand it over quickly
+    sys.setswitchinterval(args.switch_interval)
+    import rclpy
+    from geometry_msgs.msg import PoseStamped, WrenchStamped
+    from rclpy.experimental import EventsExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from tissue_msgs.msg import SimMetrics
+
+    domain = harness.new_domain_id()
+    os.environ['ROS_DOMAIN_ID'] = str(domain)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    params = {'model': args.model, 'n_particles': args.n_particles, 'mode': args.mode,
+              'scheme': args.scheme, 'timing_mode': args.timing,
+              'particles_rate': args.particles_rate, 'step_thread': args.step_thread == 'on'}
+    if args.model == 'block':
+        params['block_size'] = [0.08, 0.08, 0.04]
+    lockstep = args.timing == 'lockstep'
+    io_qos = QoSProfile(depth=1000 if lockstep else 1, history=HistoryPolicy.KEEP_LAST,
+                        reliability=ReliabilityPolicy.RELIABLE if lockstep
+                        else ReliabilityPolicy.BEST_EFFORT)
+    n_total = int(round(args.duration * args.rate))
+    send_ns = np.zeros(n_total, dtype=np.int64)
+    recv_ns = np.zeros(n_total, dtype=np.int64)
+    force = np.full((n_total, 3), np.nan)
+    step_wall: list[float] = []
+    stamp0 = time.time_ns()
+    period_ns = int(round(1e9 / args.rate))
+
+    with harness.NodeProcess('sph_tissue_sim', 'sim_node', params=params) as sim:
+        m = sim.wait_for_output(r'numba warm-up .*: ([0-9.]+) s', 600)
+        sim.wait_for_output(r'ready:', 60)
+        ready_line = [ln for ln in sim.output().splitlines() if 'ready:' in ln][-1]
+        rclpy.init()
+        node = rclpy.create_node('sim_latency_probe')
+        executor = EventsExecutor()
+        executor.add_node(node)
+        pub = node.create_publisher(PoseStamped, 'omni/pose', io_qos)
+
+        def on_wrench(msg: WrenchStamped) -> None:
+            now = time.monotonic_ns()
+            st = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            k = (st - stamp0) // period_ns
+            if 0 <= k < n_total and recv_ns[k] == 0:
+                recv_ns[k] = now
+                f = msg.wrench.force
+                force[k] = (f.x, f.y, f.z)
+
+        def on_metrics(msg: SimMetrics) -> None:
+            step_wall.append(msg.step_wall_time)
+
+        sub = node.create_subscription(WrenchStamped, 'omni/force_feedback', on_wrench,
+                                       QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+                                                  reliability=io_qos.reliability))
+        msub = node.create_subscription(SimMetrics, 'tissue/metrics', on_metrics,
+                                        QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+                                                   reliability=ReliabilityPolicy.RELIABLE))
+        deadline = time.monotonic() + 30
+        while (pub.get_subscription_count() < 1 or sub.get_publisher_count() < 1
+               or msub.get_publisher_count() < 1):
+            executor.spin_once(timeout_sec=0.01)
+            if time.monotonic() > deadline:
+                raise RuntimeError('sim_node did not match the probe within 30 s')
+
+        done = threading.Event()
+
+        def publisher() -> None:
+            msg = PoseStamped()
+            msg.header.frame_id = 'omni_base'
+            msg.pose.orientation.w = 1.0
+            t_start = time.monotonic_ns() + 50_000_000
+            for k in range(n_total):
+                target = t_start + k * period_ns
+                rest = target - time.monotonic_ns()
+                if rest > 0:  # sleep, never spin: a spinning thread would hold the GIL
+                    time.sleep(rest * 1e-9)
+                stamp = stamp0 + k * period_ns
+                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+                x, y, z = pressing_path(k / args.rate, args.depth, args.press_period)
+                msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = x, y, z
+                send_ns[k] = time.monotonic_ns()
+                pub.publish(msg)
+            done.set()
+
+        thread = threading.Thread(target=publisher, daemon=True)
+        thread.start()
+        while not done.is_set():
+            executor.spin_once(timeout_sec=0.01)
+        end = time.monotonic() + 0.5  # late replies
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+        code = sim.stop()
+        totals = [ln for ln in sim.output().splitlines() if 'totals' in ln]
+        if code != 0:
+            raise RuntimeError(f'sim_node exited with {code}:\n{sim.output()}')
+
+    skip = int(args.skip * args.rate)
+    sel = slice(skip, n_total)
+    got = recv_ns[sel] > 0
+    rtt_ms = (recv_ns[sel][got] - send_ns[sel][got]) * 1e-6
+    span = (send_ns[n_total - 1] - send_ns[skip]) * 1e-9
+    fnorm = np.linalg.norm(force[sel][got], axis=1)
+    sw = np.array(step_wall[int(len(step_wall) * skip / max(n_total, 1)):]) * 1e3
+    summary = {
+        'model': args.model, 'n_particles_requested': args.n_particles,
+        'particles': _particles(ready_line), 'scheme': args.scheme, 'mode': args.mode,
+        'timing': args.timing, 'rate_hz': args.rate, 'duration_s': args.duration,
+        'compile_s': float(m.group(1)),
+        'poses_sent': int(n_total - skip),
+        'send_rate_hz': (n_total - skip - 1) / span if span > 0 else math.nan,
+        'replies': int(got.sum()),
+        'reply_rate_hz': got.sum() / span if span > 0 else math.nan,
+        'no_reply_pct': 100.0 * (1.0 - got.mean()) if len(got) else math.nan,
+        'rtt_median_ms': percentile(rtt_ms, 50), 'rtt_p90_ms': percentile(rtt_ms, 90),
+        'rtt_p99_ms': percentile(rtt_ms, 99), 'rtt_max_ms': float(rtt_ms.max()) if len(rtt_ms) else math.nan,
+        'step_median_ms': percentile(sw, 50), 'step_p99_ms': percentile(sw, 99),
+        'max_force_n': float(fnorm.max()) if len(fnorm) else math.nan,
+        'forces_finite': bool(np.all(np.isfinite(force[sel][got]))),
+        'sim_totals': totals[-1].split('totals: ')[-1] if totals else '',
+    }
+    if args.csv:
+        path = Path(args.csv)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open('w', newline='') as fh:
+            w = csv.writer(fh)
+            w.writerow(['k', 'stamp_ns', 'send_ns', 'recv_ns', 'rtt_ms', 'fx', 'fy', 'fz'])
+            for k in range(n_total):
+                rtt = (recv_ns[k] - send_ns[k]) * 1e-6 if recv_ns[k] else ''
+                w.writerow([k, stamp0 + k * period_ns, send_ns[k], recv_ns[k] or '', rtt,
+                            *force[k].tolist()])
+        spath = path.with_name(path.stem + '_summary.csv')
+        new = not spath.exists()
+        with spath.open('a', newline='') as fh:
+            w = csv.DictWriter(fh, fieldnames=list(summary))
+            if new:
+                w.writeheader()
+            w.writerow(summary)
+        summary['csv'] = str(path)
+        summary['summary_csv'] = str(spath)
+    return summary
+
+
+def _particles(ready_line: str) -> int:
+    import re
+
+    m = re.search(r'\((\d+) particles', ready_line)
+    return int(m.group(1)) if m else -1
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--duration', type=float, default=10.0, help='seconds of poses')
+    ap.add_argument('--rate', type=float, default=1000.0, help='pose rate [Hz]')
+    ap.add_argument('--skip', type=float, default=1.0, help='seconds at the start left out of stats')
+    ap.add_argument('--model', default='liver', help='liver | block | beam')
+    ap.add_argument('--n-particles', type=int, default=3670)
+    ap.add_argument('--mode', default='local', help='local | global')
+    ap.add_argument('--scheme', default='tlsph', help='tlsph | mass_spring | paper')
+    ap.add_argument('--timing', default='live', help='live | lockstep')
+    ap.add_argument('--depth', type=float, default=0.006, help='[m] deepest press below the surface')
+    ap.add_argument('--press-period', type=float, default=2.0, help='[s] one press and release')
+    ap.add_argument('--particles-rate', type=float, default=30.0, help='[Hz] cloud rate of the node')
+    ap.add_argument('--step-thread', default='on', help='on | off: the node steps in a worker '
+                    'thread (on) or in the subscription callback (off)')
+    ap.add_argument('--switch-interval', type=float, default=1e-4,
+                    help='[s] this process\'s GIL switch interval (Python default 0.005)')
+    ap.add_argument('--csv', default=str(ROOT / 'benchmarks' / 'results' / 'sim_latency.csv'),
+                    help='per-pose CSV ("" = none); a *_summary.csv next to it gets one row per run')
+    args = ap.parse_args(argv)
+    s = run(args)
+    rows = [
+        ('configuration', f"{s['model']} ({s['particles']} particles), {s['scheme']}, {s['mode']}, "
+                          f"{s['timing']}, cloud {args.particles_rate:g} Hz, step thread {args.step_thread}"),
+        ('numba warm-up + first step', f"{s['compile_s']:.2f} s"),
+        ('poses sent / replies', f"{s['poses_sent']} / {s['replies']}"),
+        ('pose rate sent', f"{s['send_rate_hz']:.1f} Hz (target {args.rate:g})"),
+        ('reply rate', f"{s['reply_rate_hz']:.1f} Hz"),
+        ('poses without reply', f"{s['no_reply_pct']:.2f} %"),
+        ('round trip median', f"{s['rtt_median_ms']:.3f} ms"),
+        ('round trip p90', f"{s['rtt_p90_ms']:.3f} ms"),
+        ('round trip p99', f"{s['rtt_p99_ms']:.3f} ms"),
+        ('round trip max', f"{s['rtt_max_ms']:.3f} ms"),
+        ('step wall time median / p99', f"{s['step_median_ms']:.3f} / {s['step_p99_ms']:.3f} ms"),
+        ('max |force|', f"{s['max_force_n']:.3f} N (all finite: {s['forces_finite']})"),
+        ('node totals', s['sim_totals']),
+    ]
+    width = max(len(r[0]) for r in rows)
+    print(f"sim_node pose -> wrench latency, {args.duration:g} s at {args.rate:g} Hz "
+          f"(first {args.skip:g} s left out)")
+    for name, value in rows:
+        print(f'  {name:<{width}}  {value}')
+    if 'csv' in s:
+        print(f"  per-pose CSV: {s['csv']}\n  summary CSV:  {s['summary_csv']}")
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
