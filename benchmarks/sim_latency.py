@@ -62,7 +62,9 @@ def run(args) -> dict:
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     params = {'model': args.model, 'n_particles': args.n_particles, 'mode': args.mode,
               'scheme': args.scheme, 'timing_mode': args.timing,
-              'particles_rate': args.particles_rate, 'step_thread': args.step_thread == 'on'}
+              'particles_rate': args.particles_rate}
+    if args.step_thread != 'default':
+        params['step_thread'] = args.step_thread == 'on'
     if args.model == 'block':
         params['block_size'] = [0.08, 0.08, 0.04]
     lockstep = args.timing == 'lockstep'
@@ -213,8 +215,8 @@ def main(argv=None) -> int:
     ap.add_argument('--depth', type=float, default=0.006, help='[m] deepest press below the surface')
     ap.add_argument('--press-period', type=float, default=2.0, help='[s] one press and release')
     ap.add_argument('--particles-rate', type=float, default=30.0, help='[Hz] cloud rate of the node')
-    ap.add_argument('--step-thread', default='on', help='on | off: the node steps in a worker '
-                    'thread (on) or in the subscription callback (off)')
+    ap.add_argument('--step-thread', default='default', help='on | off | default: the node steps '
+                    'in a worker thread (on) or in the subscription callback (off)')
     ap.add_argument('--switch-interval', type=float, default=1e-4,
                     help='[s] this process\'s GIL switch interval (Python default 0.005)')
     ap.add_argument('--csv', default=str(ROOT / 'benchmarks' / 'results' / 'sim_latency.csv'),

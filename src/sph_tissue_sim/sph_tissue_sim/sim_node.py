@@ -10,10 +10,14 @@ are the pose's, so the round trip can be measured). Publishes ``tissue/particles
 
 Timing modes (parameter ``timing_mode``):
 
-- ``live``: the subscription callback only keeps the newest pose; a worker thread steps for it, so
-  poses that arrive during a step are dropped (counted) and there is never a backlog.
-- ``lockstep``: every pose is queued and processed in order with ``dt`` from its stamp (reliable,
-  deep QoS), so replaying the same poses gives bit-identical forces.
+- ``live``: only the newest pose is stepped; poses that arrive during a step are dropped, so there
+  is never a backlog. By default the subscription callback steps and the pose reader's history
+  (best effort, depth ``qos_depth`` = 1) keeps only the newest pose; with ``step_thread: true`` the
+  callback only stores the newest pose in an inbox and a worker thread steps (drops are counted).
+  The default was chosen by measurement (benchmarks/sim_latency.py): on 2 cores the GIL hand-over
+  between the executor and a worker thread costs more than it saves.
+- ``lockstep``: every pose is processed in order with ``dt`` from its stamp (reliable QoS, depth
+  >= 1000; with ``step_thread`` a FIFO inbox), so replaying the same poses gives bit-identical forces.
 
 Bad input never stops the node and never sends an unsafe force: a pose that is non-finite, too far
 from the device origin or in a foreign frame is answered with a zero force (the device gets a
@@ -107,6 +111,8 @@ class SimNode(Node):
         self._last_stamp = None
         self._step_count = 0
         self._cloud_buf = np.zeros(self.model.n_particles, dtype=POINT_DTYPE)
+        self._wrench_msg = WrenchStamped()
+        self._metrics_msg = SimMetrics()
 
         if self.lockstep:
             io_qos = QoSProfile(depth=max(p['qos_depth'], LOCKSTEP_MIN_DEPTH),
@@ -298,7 +304,7 @@ class SimNode(Node):
             self.metrics_pub.publish(metrics)
 
     def _publish_force(self, header, force: np.ndarray) -> None:
-        msg = WrenchStamped()
+        msg = self._wrench_msg  # reused: building a message costs more than the step of a small area
         msg.header.stamp = header.stamp
         msg.header.frame_id = header.frame_id or self.p['device_frame']
         f = msg.wrench.force
@@ -309,7 +315,7 @@ class SimNode(Node):
         self._step_count += 1
         if self._step_count % self.p['metrics_decimation']:
             return None
-        m = SimMetrics()
+        m = self._metrics_msg
         m.header.stamp = header.stamp
         m.header.frame_id = self.p['tissue_frame']
         m.step_wall_time = float(res.wall_time)
