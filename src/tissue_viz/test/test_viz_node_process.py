@@ -55,6 +55,7 @@ class Probe:
                                                  self.arrays.append, 10)
         self.sent = 0
         self.stamp_ns = 1_000_000_000
+        self.send_times = []
 
     def status(self, name_part: str):
         """Newest status whose name contains ``name_part`` (None before any arrived)."""
@@ -78,6 +79,7 @@ class Probe:
                 self.stamp_ns += int(period * 1e9)
                 self.pub.publish(make(self) if make else _metrics(self.stamp_ns))
                 self.sent += 1
+                self.send_times.append(now)
                 next_pub += period
                 if now - next_pub > 0.1:  # fell far behind (loaded machine): do not burst
                     next_pub = now
@@ -188,7 +190,9 @@ def test_sigint_writes_a_report_whose_summary_matches_what_was_sent(rclpy_node, 
     assert summary['max_displacement_m'] == pytest.approx(0.019)
     assert summary['max_active_particles'] == 165
     assert summary['step_p50_s'] == pytest.approx(1e-4)
-    assert summary['rates_hz']['metrics'] == pytest.approx(200.0, rel=0.3)
+    # The rate actually sent (a loaded machine may have held the probe back), as received.
+    sent_rate = (len(forces) - 1) / (probe.send_times[-1] - probe.send_times[0])
+    assert summary['rates_hz']['metrics'] == pytest.approx(sent_rate, rel=0.25)
     for name in ('metrics.csv', 'index.html', 'summary.md'):
         assert (report / name).stat().st_size > 0, name
     for name in ('force_vs_time.png', 'force_vs_displacement.png', 'step_time_hist.png',

@@ -192,15 +192,29 @@ class VizNode(Node):
             f'diagnostics at {self.p["diagnostics_rate"]} Hz')
 
     def _guarded(self, callback):
-        """``callback`` that logs (throttled) instead of raising: a monitor must never take itself down."""
-        def run(*args):
+        """``callback`` that logs (throttled) instead of raising: a monitor must never take itself down.
+
+        The wrapper has the callback's own arity (message or none), since executors may look at a
+        timer callback's signature.
+        """
+        def failed(exc: Exception) -> None:
+            self.errors += 1
+            self.get_logger().error(f'{callback.__name__} failed ({self.errors} errors so far): '
+                                    f'{type(exc).__name__}: {exc}', throttle_duration_sec=5.0)
+
+        if callback.__name__.endswith('_timer'):
+            def run_timer() -> None:
+                try:
+                    callback()
+                except Exception as exc:  # noqa: BLE001 -- logged with its type, node keeps running
+                    failed(exc)
+            return run_timer
+
+        def run(msg) -> None:
             try:
-                callback(*args)
-            except Exception as exc:  # noqa: BLE001 -- logged with its type, the node keeps running
-                self.errors += 1
-                self.get_logger().error(f'{callback.__name__} failed ({self.errors} errors so '
-                                        f'far): {type(exc).__name__}: {exc}',
-                                        throttle_duration_sec=5.0)
+                callback(msg)
+            except Exception as exc:  # noqa: BLE001 -- logged with its type, node keeps running
+                failed(exc)
         return run
 
     # -- parameters -------------------------------------------------------------------------------
