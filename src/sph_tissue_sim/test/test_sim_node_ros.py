@@ -14,7 +14,7 @@ import pytest
 
 import harness
 from sim_probe import (N_BLOCK, START_TIMEOUT, T0_NS, SimProbe, call_reset, finite_and_bounded,
-                       force_of, press_path, set_parameters, sim, stamp_ns)
+                       force_of, press_path, qos, set_parameters, sim, stamp_ns)
 
 pytestmark = pytest.mark.ros
 
@@ -292,3 +292,50 @@ def test_threaded_live_mode_steps_only_the_newest_pose(rclpy_node):
     poses, steps, dropped = map(int, m.groups())
     # every received pose was stepped or dropped (a resent stamp, if any, is answered unstepped)
     assert dropped > 0 and steps + dropped <= poses and steps >= poses - dropped - 3
+
+
+def test_scripted_driver_press_is_felt_through_the_default_device_mapping(rclpy_node):
+    """omni_driver (scripted press of its target (0, 0, 0) by 8 mm along device -y) + sim_node with
+    the default mapping: the driver accepts every force reply and renders an upward push."""
+    from geometry_msgs.msg import WrenchStamped
+    from tissue_msgs.msg import DeviceState
+
+    forces, states = [], []
+    rclpy_node.create_subscription(WrenchStamped, '/sys/omni/force_feedback',
+                                   lambda m: forces.append(force_of(m)), qos(False, 10000))
+    rclpy_node.create_subscription(DeviceState, '/sys/omni/state', states.append, qos(True, 10000))
+    ns = ['-r', '__ns:=/sys']
+    script = {'backend': 'scripted', 'exit_on_end': True, 'wait_for_subscribers': 1,
+              'approach_time': 0.3, 'press_time': 0.6, 'hold_time': 0.6, 'pull_time': 0.3,
+              'release_time': 0.3, 'sweep_time': 0.6, 'return_time': 0.3, 'ramp_time': 0.05,
+              'watchdog_timeout': 0.05, 'state_rate': 200.0}
+    with sim({'particles_rate': 0.0}, ros_args=ns) as sim_proc:
+        sim_proc.wait_for_output(r'ready:', START_TIMEOUT)
+        with harness.NodeProcess('haptic_omni_driver', 'omni_driver', params=script,
+                                 ros_args=ns) as drv:
+            assert drv.wait(60) == 0, drv.output()
+            driver_out = drv.output()
+        rclpy_node.spin_until(lambda: False, 0.3)
+    assert len(forces) > 200, sim_proc.output()     # best effort on a loaded machine: not all
+    assert finite_and_bounded(forces, FORCE_LIMIT)
+    f = np.array(forces)
+    assert f[:, 1].max() > 0.1                                  # pressed: pushed up (device +y)
+    assert np.abs(f[:, 1]).max() >= np.abs(f[:, 0]).max()       # mostly along the press
+    commanded = [s.commanded_force.y for s in states if s.force_enabled]
+    assert commanded and max(commanded) > 0.1, driver_out
+    assert all(s.rejected_commands == 0 for s in states), driver_out
+
+
+def test_shipped_config_starts_the_liver_model(ros_domain):
+    share = harness.INSTALL / 'sph_tissue_sim' / 'share' / 'sph_tissue_sim' / 'config'
+    with harness.NodeProcess('sph_tissue_sim', 'sim_node', params_file=share / 'sim_node.yaml',
+                             params={'n_particles': 500, 'particles_rate': 0.0}) as proc:
+        m = proc.wait_for_output(r'ready: model (\S+) \((\d+) particles', START_TIMEOUT)
+        out = proc.output()
+        assert proc.stop() == 0
+    assert re.search(r'numba warm-up \(compile or cache load\) and first step: [0-9.]+ s', out)
+    assert 'scheme tlsph, mode local, material liver' in out and 'timing live' in out
+    assert m.group(1) in ('liver', 'block')        # block: a core without the liver generator
+    if m.group(1) == 'block':
+        assert 'model liver is not available' in out
+    assert abs(int(m.group(2)) - 500) <= 50
