@@ -217,7 +217,19 @@ def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
 
 def _hist(ax, values_s: np.ndarray, colour: str, p_lines: bool = True) -> None:
     ms = values_s[np.isfinite(values_s)] * 1e3
-    ax.hist(ms, bins=min(80, max(10, int(np.sqrt(ms.size)))), color=colour, alpha=0.8)
+    n_bins = min(80, max(10, int(np.sqrt(ms.size))))
+    positive = ms[ms > 0]
+    median = float(np.median(positive)) if positive.size else 0.0
+    if median > 0 and positive.max() > 20.0 * median:
+        # A long tail (a stalled step among fast ones): log-spaced bins on a log axis keep both
+        # the bulk and the tail readable.
+        bins = np.logspace(np.log10(positive.min()), np.log10(positive.max()), n_bins)
+        ax.hist(positive, bins=bins, color=colour, alpha=0.8)
+        ax.set_xscale('log')
+        from matplotlib.ticker import FuncFormatter
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f'{v:g}'))
+    else:
+        ax.hist(ms, bins=n_bins, color=colour, alpha=0.8)
     # Log counts: the rare slow steps that miss the deadline are the point of the plot.
     ax.set_yscale('log')
     if p_lines:
