@@ -225,12 +225,24 @@ def test_write_report_service_writes_a_folder_while_running(rclpy_node, tmp_path
     assert summary['steps'] >= 1
 
 
-def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node):
+S = math.sqrt(0.5)
+TISSUE_MAP = {'tool_in_tissue_frame': True, 'device_to_tissue_rotation': [S, 0.0, 0.0, S],
+              'device_to_tissue_translation': [0.1, 0.0, 0.05], 'workspace_scale': 2.0}
+
+
+@pytest.mark.parametrize('frame_params, frame, tip, end', [
+    ({}, 'omni_base', (0.01, 0.02, 0.03), (0.01, 0.02, 0.03 + 0.1 * 2.0)),
+    # 90 deg about x (device y up -> tissue z up): (x, y, z) -> (x, -z, y); tip = R (2 p) + t,
+    # force (0, 0, 2) -> (0, -2, 0)
+    (TISSUE_MAP, 'tissue', (0.12, -0.06, 0.09), (0.12, -0.06 - 0.1 * 2.0, 0.09)),
+], ids=['device_frame', 'tissue_frame'])
+def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node, frame_params, frame,
+                                                                tip, end):
     from geometry_msgs.msg import PoseStamped, WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from visualization_msgs.msg import Marker, MarkerArray
 
-    params = dict(FAST, marker_rate=20.0, force_arrow_scale=0.1)
+    params = dict(FAST, marker_rate=20.0, force_arrow_scale=0.1, **frame_params)
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
     with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
         viz.wait_for_output(r'ready:', timeout=30)
@@ -260,12 +272,13 @@ def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node):
         array = next(a for a in got if len(a.markers) >= 2)
         tool = next(m for m in array.markers if m.ns == 'tool')
         arrow = next(m for m in array.markers if m.type == Marker.ARROW)
-        assert tool.type == Marker.SPHERE and tool.header.frame_id == 'omni_base'
+        assert tool.type == Marker.SPHERE and tool.header.frame_id == frame
+        assert arrow.header.frame_id == frame
         assert (tool.pose.position.x, tool.pose.position.y, tool.pose.position.z) == \
-            pytest.approx((0.01, 0.02, 0.03))
-        start, end = arrow.points
-        assert (start.x, start.y, start.z) == pytest.approx((0.01, 0.02, 0.03))
-        assert (end.x, end.y, end.z) == pytest.approx((0.01, 0.02, 0.03 + 0.1 * 2.0))
+            pytest.approx(tip)
+        a, b = arrow.points
+        assert (a.x, a.y, a.z) == pytest.approx(tip)
+        assert (b.x, b.y, b.z) == pytest.approx(end)
 
 
 def test_inconsistent_rate_targets_are_rejected_at_start_with_a_clear_message():
