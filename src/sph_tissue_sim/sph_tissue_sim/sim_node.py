@@ -290,8 +290,8 @@ class SimNode(Node):
             if res is None:
                 force_dev = np.zeros(3)
             else:
-                force_dev, clamped = clamp_norm(self.mapping.force_to_device(res.force),
-                                                self.p['force_limit'])
+                force_dev, _ = clamp_norm(self.mapping.force_to_device(res.force),
+                                          self.p['force_limit'])
                 self.counts['steps'] += 1
                 if res.substeps_capped:
                     self._throttled('capped', 'warn', f'frame needed more than max_substeps '
@@ -466,10 +466,13 @@ def main(args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if node is not None:
-            node.shutdown()
-            node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            if node is not None:
+                node.shutdown()
+                node.destroy_node()
+            rclpy.try_shutdown()
+        except KeyboardInterrupt:  # a second Ctrl-C while shutting down
+            pass
     return code
 
 
