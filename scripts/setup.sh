@@ -49,10 +49,10 @@ fi
 
 # --- colcon build --------------------------------------------------------------------------------
 # Python packages are installed with --symlink-install, so edits to .py files need no rebuild; a
-# rebuild happens when package metadata, interfaces, configs or launch files change.
+# rebuild happens when package metadata, interfaces, configs, launch or viewer files change.
 SRC_HASH="$(cd "$ROOT" && find src -type f \( -name package.xml -o -name setup.py -o -name setup.cfg \
     -o -name CMakeLists.txt -o -name '*.msg' -o -name '*.srv' -o -path '*/config/*' -o -path '*/launch/*' \
-    -o -path '*/resource/*' \) -not -path '*/__pycache__/*' | sort | xargs sha256sum | sha256sum | cut -d' ' -f1)"
+    -o -path '*/resource/*' -o -path '*/rviz/*' -o -path '*/foxglove/*' \) -not -path '*/__pycache__/*' | sort | xargs sha256sum | sha256sum | cut -d' ' -f1)"
 BSTAMP="$ROOT/install/.sph_build.sha256"
 if [[ $FORCE == 1 || ! -f "$BSTAMP" || "$(cat "$BSTAMP")" != "$SRC_HASH$REQ_HASH" ]]; then
   log "building the workspace with colcon"
