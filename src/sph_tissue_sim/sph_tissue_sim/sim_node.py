@@ -197,7 +197,15 @@ class SimNode(Node):
         if now - self._log_times.get(kind, -1e18) < self.p['log_throttle']:
             return
         self._log_times[kind] = now
-        getattr(self.get_logger(), level)(f'{text} ({self.counts["ev_" + kind]} so far)')
+        text = f'{text} ({self.counts["ev_" + kind]} so far)'
+        # one call site per severity: rclpy refuses a call site whose severity changes
+        log = self.get_logger()
+        if level == 'error':
+            log.error(text)
+        elif level == 'warn':
+            log.warning(text)
+        else:
+            log.info(text)
 
     # -- pose intake -------------------------------------------------------------------------------
     def _on_pose(self, msg: PoseStamped) -> None:

@@ -245,31 +245,34 @@ def test_missing_mesh_exits_with_code_1(ros_domain, tmp_path):
 
 
 # -- lockstep ---------------------------------------------------------------------------------------------
-@pytest.mark.parametrize('step_thread', [False, True])
-def test_lockstep_answers_every_pose_in_order_and_replays_bit_identically(rclpy_node, step_thread):
+def test_lockstep_answers_every_pose_in_order_and_replays_bit_identically(rclpy_node):
+    """Two processes (stepping in the callback, then in a worker thread), each replaying the same
+    pose sequence twice with a reset between: four bit-identical force sequences."""
     n = 300
     path = press_path(n, depth=0.005, start_height=0.002)
     path[:, 0] += np.linspace(0.0, 0.006, n)              # press and drag
-    # own namespace: the module's live node is running on the same domain
-    with sim({'timing_mode': 'lockstep', 'step_thread': step_thread},
-             ros_args=['-r', '__ns:=/lock']) as proc:
-        probe = SimProbe(rclpy_node, reliable=True, ns='/lock/')
-        probe.wait_matched(proc)
-        runs = []
-        for run in range(2):
-            t0 = _unique_t0(20 + run)                     # different stamps, same differences
-            probe.force_order.clear()
-            for k in range(n):                            # all at once: the node queues them
-                probe.publish(path[k], t0 + k * 1_000_000)
-            assert rclpy_node.spin_until(lambda: len(probe.force_order) >= n, 60.0), proc.output()
-            assert probe.force_order == [t0 + k * 1_000_000 for k in range(n)]
-            runs.append(np.array([force_of(probe.forces[ns]) for ns in probe.force_order]))
-            assert call_reset(rclpy_node, ns='/lock/').success
-        assert 'timing lockstep' in proc.output()
-    a, b = runs
+    runs = []
+    for step_thread in (False, True):
+        ns = f'/lock{int(step_thread)}/'                   # the module's live node shares the domain
+        with sim({'timing_mode': 'lockstep', 'step_thread': step_thread},
+                 ros_args=['-r', f'__ns:={ns[:-1]}']) as proc:
+            probe = SimProbe(rclpy_node, reliable=True, ns=ns)
+            probe.wait_matched(proc)
+            for run in range(2):
+                t0 = _unique_t0(20 + 2 * step_thread + run)   # different stamps, same differences
+                probe.force_order.clear()
+                for k in range(n):                        # all at once: the node queues them
+                    probe.publish(path[k], t0 + k * 1_000_000)
+                assert rclpy_node.spin_until(lambda: len(probe.force_order) >= n, 60.0), proc.output()
+                assert probe.force_order == [t0 + k * 1_000_000 for k in range(n)]
+                runs.append(np.array([force_of(probe.forces[st]) for st in probe.force_order]))
+                assert call_reset(rclpy_node, ns=ns).success
+            assert 'timing lockstep' in proc.output()
+            assert proc.stop() == 0
+    a = runs[0]
     assert finite_and_bounded(a, FORCE_LIMIT)
     assert np.abs(a[:, 1]).max() > 0.05                    # the sequence did touch the tissue
-    assert a.tobytes() == b.tobytes()                      # bit-identical
+    assert all(r.tobytes() == a.tobytes() for r in runs[1:])   # bit-identical, run after run
 
 
 def test_threaded_live_mode_steps_only_the_newest_pose(rclpy_node):

@@ -1,0 +1,135 @@
+"""Error paths of sim_node's step, driven in-process (a real node object, poses handed to its
+callback directly, published forces captured): unstable steps, refused inputs, internal errors, and
+a fuzz of random poses and stamps."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+import harness
+from sim_probe import BLOCK, T0_NS, press_path
+
+pytestmark = pytest.mark.ros
+
+_spec = importlib.util.spec_from_file_location('sph_sim_err_shared_conftest',
+                                               harness.REPO_ROOT / 'test' / 'conftest.py')
+_shared = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_shared)
+ros_domain = _shared.ros_domain
+
+LIMIT = 0.5
+
+
+def pose(pos, ns: int, frame: str = 'omni_base'):
+    from geometry_msgs.msg import PoseStamped
+
+    msg = PoseStamped()
+    msg.header.frame_id = frame
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pos)
+    return msg
+
+
+@pytest.fixture
+def node(ros_domain):
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from sph_tissue_sim.sim_node import SimNode
+
+    ctx = rclpy.context.Context()
+    rclpy.init(context=ctx)
+    params = {**BLOCK, 'force_limit': LIMIT, 'particles_rate': 0.0, 'warmup': False}
+    n = SimNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+    n.sent = []
+    n._publish_force = lambda header, f: n.sent.append(
+        (header.stamp.sec * 1_000_000_000 + header.stamp.nanosec, np.array(f, dtype=float)))
+    try:
+        yield n
+    finally:
+        n.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def press(node, n: int = 60, t0: int = T0_NS) -> int:
+    for k, p in enumerate(press_path(n, depth=0.004)):
+        node._handle(pose(p, t0 + k * 1_000_000))
+    return t0 + n * 1_000_000
+
+
+def test_unstable_step_answers_zero_and_resets_the_tissue(node, monkeypatch):
+    from sph_tissue_sim.core.errors import SimError
+
+    t = press(node)
+    assert node.sent[-1][1][1] > 0.0 and node.solver.sim_time > 0.0
+
+    def unstable(tool, dt):
+        raise SimError('tlsph local step went unstable')
+
+    monkeypatch.setattr(node.solver, 'step', unstable)
+    node._handle(pose((0.0, -0.004, 0.0), t))
+    assert node.sent[-1][0] == t and np.all(node.sent[-1][1] == 0.0)
+    assert node.counts['sim_errors'] == 1
+    assert node.solver.sim_time == 0.0
+    assert np.array_equal(node.solver.positions, node.model.positions)
+    monkeypatch.undo()
+    node._handle(pose((0.0, 0.01, 0.0), t + 1_000_000))      # the clock restarted too
+    assert node.solver.sim_time == pytest.approx(node.p['nominal_dt'])
+
+
+def test_input_refused_by_the_core_answers_zero_and_leaves_the_state(node, monkeypatch):
+    from sph_tissue_sim.core.solver import InvalidInput
+
+    t = press(node)
+    before = node.solver.positions.copy()
+    monkeypatch.setattr(node.solver, 'step', lambda tool, dt: (_ for _ in ()).throw(
+        InvalidInput('tool position is more than 10 m from the tissue')))
+    node._handle(pose((0.0, -0.004, 0.0), t))
+    assert np.all(node.sent[-1][1] == 0.0)
+    assert np.array_equal(node.solver.positions, before)
+
+
+def test_an_unexpected_exception_answers_zero_and_the_node_goes_on(node, monkeypatch):
+    t = press(node)
+    step = node.solver.step
+    monkeypatch.setattr(node.solver, 'step', lambda tool, dt: 1 / 0)
+    node._handle(pose((0.0, -0.004, 0.0), t))
+    assert node.sent[-1][0] == t and np.all(node.sent[-1][1] == 0.0)
+    monkeypatch.setattr(node.solver, 'step', step)
+    node._handle(pose((0.0, -0.004, 0.0), t + 1_000_000))
+    assert node.sent[-1][1][1] > 0.0
+
+
+def test_random_poses_and_stamps_never_give_a_bad_force(node):
+    """Valid presses mixed with NaN/inf/huge positions, foreign frames, repeated, backwards and
+    jumping stamps: one reply per pose, always finite and within force_limit."""
+    rng = np.random.default_rng(1)
+    t = T0_NS
+    n = 600
+    for k in range(n):
+        r = rng.random()
+        p = np.array([rng.normal(0, 0.01), rng.uniform(-0.012, 0.01), rng.normal(0, 0.01)])
+        frame = 'omni_base'
+        if r < 0.05:
+            p[rng.integers(3)] = rng.choice([np.nan, np.inf, -np.inf])
+        elif r < 0.08:
+            p *= 1e6
+        elif r < 0.10:
+            frame = rng.choice(['', 'world', 'tissue'])
+        s = rng.random()
+        if s < 0.05:
+            t -= int(rng.integers(1, 50_000_000))             # backwards
+        elif s < 0.08:
+            t += int(rng.integers(1, 3_000_000_000))          # jump
+        elif s > 0.12:                                        # else: repeated stamp
+            t += int(rng.integers(100_000, 2_000_000))
+        node._handle(pose(p, t, frame))
+    assert len(node.sent) == n
+    forces = np.array([f for _, f in node.sent])
+    assert np.all(np.isfinite(forces))
+    assert np.all(np.linalg.norm(forces, axis=1) <= LIMIT + 1e-12)
+    assert np.any(np.linalg.norm(forces, axis=1) > 0.0)        # some presses were felt
+    assert node.counts["rejected"] > 0
