@@ -1,0 +1,161 @@
+#!/usr/bin/env python3
+"""The demo: the whole node graph on a recorded device session, with live metrics and a report.
+
+Starts, as separate processes from their installed executables (what ``ros2 run`` starts) on a
+private ROS_DOMAIN_ID: ``tissue_viz viz_node``, ``sph_tissue_sim sim_node`` and
+``haptic_omni_driver omni_driver`` replaying a bundled bag. Shows one live line: bag progress, the
+force sent to the device, pose->force latency, haptic rate and the simulation step time. At the end
+of the bag the nodes are stopped (SIGINT, as Ctrl-C) and the viz report folder is printed.
+
+Usage (``bash scripts/demo.sh`` sets up the workspace and runs this)::
+
+    python scripts/demo_run.py [--bag bags/long] [--mode timed|lockstep] [--rate 1.0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / 'test'))
+
+import harness  # noqa: E402
+import system_graph as graph  # noqa: E402
+
+
+def _fmt_line(mon: graph.Monitor, t_prev: tuple, step_ms: float | None) -> tuple[str, tuple]:
+    now = time.monotonic()
+    with mon.lock:
+        n_forces = mon.n_forces
+        lat = mon.latencies[-500:]
+        force = mon.last_force
+    rate = (n_forces - t_prev[1]) / max(now - t_prev[0], 1e-6)
+    fnorm = math.sqrt(sum(v * v for v in force))
+    lat_ms = statistics.median(lat) * 1e3 if lat else float('nan')
+    step = f'{step_ms:.3f} ms' if step_ms is not None else '-'
+    return (f'|F| {fnorm:5.2f} N  latency {lat_ms:5.2f} ms  rate {rate:6.0f} Hz  step {step}',
+            (now, n_forces))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--bag', type=Path, default=ROOT / 'bags' / 'long', help='bag folder to replay')
+    ap.add_argument('--mode', choices=('timed', 'lockstep'), default='timed',
+                    help='timed: the recorded 1 kHz timing, sim in live mode (default); lockstep: '
+                         'each pose waits for its force, sim in lockstep mode (deterministic)')
+    ap.add_argument('--rate', type=float, default=1.0, help='timed replay speed factor')
+    ap.add_argument('--report-dir', type=Path, default=None,
+                    help='report folder (default reports/demo_<date_time>)')
+    ap.add_argument('--golden', action='store_true',
+                    help='run the sim with the parameters the bag goldens were recorded with '
+                         '(bags/golden_sim_params.yaml) instead of its defaults')
+    ap.add_argument('--domain', type=int, default=None, help='ROS_DOMAIN_ID (default: a free one)')
+    args = ap.parse_args(argv)
+
+    from haptic_omni_driver import bagio
+
+    bag = args.bag.resolve()
+    try:
+        topics = bagio.bag_topics(bag)
+    except Exception as exc:  # noqa: BLE001
+        print(f'demo: error: {exc}', file=sys.stderr)
+        return 1
+    n_total = next((t.count for t in topics.values() if t.name.lstrip('/') == 'omni/pose'), 0)
+    report_dir = (args.report_dir or ROOT / 'reports' / time.strftime('demo_%Y%m%d_%H%M%S')).resolve()
+    env = harness.ros_env(args.domain)
+    tty = sys.stdout.isatty() and os.environ.get('CI', '').lower() not in ('1', 'true', 'yes')
+    print(f'demo: bag {bag} ({n_total} poses), replay {args.mode}, ROS_DOMAIN_ID '
+          f'{env["ROS_DOMAIN_ID"]}', flush=True)
+
+    sim_mode = 'lockstep' if args.mode == 'lockstep' else 'live'
+    viz = graph.viz(report_dir, env=env, params={'report_title': f'Demo: {bag.name} ({args.mode})',
+                                                 'summary_period': 5.0})
+    sim = graph.sim(sim_mode, env=env, golden=args.golden)
+    drv = graph.driver_replay(bag, args.mode, env=env, rate=args.rate, subscribers=2)
+    procs = [drv, sim, viz]
+    code = 0
+    t_start = time.monotonic()
+    try:
+        viz.start()
+        sim.start()
+        print('demo: starting viz_node and sim_node (the first start compiles the SPH kernels)',
+              flush=True)
+        viz.wait_for_output(graph.VIZ_READY, timeout=60)
+        sim.wait_for_output(graph.SIM_READY, timeout=240)
+        print(f'demo: nodes ready after {time.monotonic() - t_start:.1f} s; replaying', flush=True)
+        with graph.Monitor(env) as mon:
+            drv.start()
+            drv.wait_for_output(graph.DRIVER_READY, timeout=60)
+            bar = None
+            if tty:
+                from tqdm import tqdm
+
+                bar = tqdm(total=n_total, unit='pose', dynamic_ncols=True, smoothing=0.1)
+            prev = (time.monotonic(), 0)
+            last_print = 0.0
+            while drv.alive():
+                time.sleep(0.2)
+                m = mon.last_metrics
+                step_ms = m.step_wall_time * 1e3 if m is not None else None
+                if bar is not None:
+                    line, prev = _fmt_line(mon, prev, step_ms)
+                    bar.update(min(mon.n_poses, n_total) - bar.n)
+                    bar.set_postfix_str(line, refresh=True)
+                elif time.monotonic() - last_print >= 5.0:
+                    line, prev = _fmt_line(mon, prev, step_ms)
+                    last_print = time.monotonic()
+                    pct = 100.0 * min(mon.n_poses, n_total) / max(n_total, 1)
+                    print(f'demo: {pct:5.1f} % {min(mon.n_poses, n_total)}/{n_total} poses  {line}',
+                          flush=True)
+            if bar is not None:
+                bar.update(min(mon.n_poses, n_total) - bar.n)
+                bar.close()
+            if drv.returncode != 0:
+                print(f'demo: error: omni_driver exited with {drv.returncode}:\n'
+                      f'{drv.output()[-3000:]}', file=sys.stderr)
+                code = 1
+            with mon.lock:
+                lat = sorted(mon.latencies)
+                n_poses, n_forces = mon.n_poses, mon.n_forces
+            unanswered = mon.unanswered()
+        wall = time.monotonic() - t_start
+        if lat:
+            p99 = lat[min(len(lat) - 1, int(0.99 * len(lat)))]
+            print(f'demo: {n_poses} poses, {n_forces} forces, {unanswered} poses without a reply; '
+                  f'pose->force latency median {statistics.median(lat) * 1e3:.3f} ms, '
+                  f'p99 {p99 * 1e3:.3f} ms', flush=True)
+    except AssertionError as exc:
+        print(f'demo: error: {exc}', file=sys.stderr)
+        code = 1
+    except KeyboardInterrupt:
+        print('demo: interrupted', file=sys.stderr)
+        code = 130
+    finally:
+        graph.stop_all([drv, sim, viz], timeout=60)
+    m = None
+    import re
+
+    m = re.search(r'report written: (\S+)', viz.output())
+    if m:
+        index = Path(m.group(1))
+        folder = index.parent
+        pngs = sorted(p.name for p in folder.glob('*.png'))
+        print(f'demo: report folder: {folder}', flush=True)
+        print(f'demo: report: {index}' + (f' (plots: {", ".join(pngs)})' if pngs else ''),
+              flush=True)
+    else:
+        print(f'demo: error: viz_node wrote no report; its output:\n{viz.output()[-3000:]}',
+              file=sys.stderr)
+        code = code or 1
+    print(f'demo: done in {time.monotonic() - t_start:.1f} s', flush=True)
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())
