@@ -119,7 +119,13 @@ class SimNode(Node):
                                 history=HistoryPolicy.KEEP_LAST,
                                 reliability=ReliabilityPolicy.RELIABLE)
         else:
-            io_qos = QoSProfile(depth=p['qos_depth'], history=HistoryPolicy.KEEP_LAST,
+            depth = p['qos_depth']
+            if not self.use_thread and depth != 1:
+                # the callback steps every pose the reader holds: a deeper history is a backlog
+                log.warning(f'live mode stepping in the callback: pose history depth {depth} -> 1 '
+                            f'(never a backlog); use step_thread for a deeper transport queue')
+                depth = 1
+            io_qos = QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
                                 reliability=ReliabilityPolicy.RELIABLE if p['reliable']
                                 else ReliabilityPolicy.BEST_EFFORT)
         self.io_qos = io_qos

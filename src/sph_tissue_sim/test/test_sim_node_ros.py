@@ -337,12 +337,15 @@ def test_scripted_driver_press_is_felt_through_the_default_device_mapping(rclpy_
 def test_shipped_config_starts_the_liver_model(ros_domain):
     share = harness.INSTALL / 'sph_tissue_sim' / 'share' / 'sph_tissue_sim' / 'config'
     with harness.NodeProcess('sph_tissue_sim', 'sim_node', params_file=share / 'sim_node.yaml',
-                             params={'n_particles': 500, 'particles_rate': 0.0}) as proc:
+                             params={'n_particles': 500, 'particles_rate': 0.0,
+                                     'qos_depth': 5}) as proc:
         m = proc.wait_for_output(r'ready: model (\S+) \((\d+) particles', START_TIMEOUT)
         out = proc.output()
         assert proc.stop() == 0
     assert re.search(r'numba warm-up \(compile or cache load\) and first step: [0-9.]+ s', out)
     assert 'scheme tlsph, mode local, material liver' in out and 'timing live' in out
+    # stepping in the callback, a deeper pose history would be a backlog: forced to 1
+    assert 'pose history depth 5 -> 1' in out and 'pose QoS best effort depth 1' in out
     assert m.group(1) in ('liver', 'block')        # block: a core without the liver generator
     if m.group(1) == 'block':
         assert 'model liver is not available' in out
