@@ -9,7 +9,6 @@ states why the chosen geometry lets the closed-form answer apply.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -250,20 +249,17 @@ def _check_poke(solver: Solver, stats: dict, frames: int) -> None:
     assert stats['max_disp'] < 0.1                         # dents, no particle flung away
 
 
-@pytest.mark.slow
 def test_random_poking_of_block_for_10000_frames_stays_finite_and_bounded():
+    """10 s of random pokes at 1 kHz (local mode, liver material, 600-particle block): no SimError,
+    finite state, speeds below the blow-up limit, force within the device limit."""
     model = make_block(10, 10, 6, spacing=0.0075, fix='bottom')
     solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode='local'))
     stats = _random_poke(solver, 10000, seed=7)
     _check_poke(solver, stats, 10000)
 
 
-LIVER_MODULE = Path(__file__).resolve().parents[1] / 'sph_tissue_sim' / 'core' / 'liver.py'
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not LIVER_MODULE.is_file(), reason='no liver model')
 def test_random_poking_of_liver_for_10000_frames_stays_finite_and_bounded():
+    """The same on the 1289-particle liver (attached at its posterior layers)."""
     model = make_model('liver', n_particles=1289)
     solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode='local'))
     stats = _random_poke(solver, 10000, seed=11)
