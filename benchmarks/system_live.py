@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import os
 import re
 import statistics
 import sys
@@ -54,6 +55,7 @@ def percentile(values: list[float], q: float) -> float:
 
 def run_once(bag: Path, sim_params: dict, golden: bool, rate: float) -> dict:
     env = harness.ros_env()
+    load_before = os.getloadavg()[0]
     sim = graph.sim('live', env=env, golden=golden, params=sim_params)
     drv = graph.driver_replay(bag, 'timed', env=env, rate=rate, subscribers=2)
     try:
@@ -89,7 +91,8 @@ def run_once(bag: Path, sim_params: dict, golden: bool, rate: float) -> dict:
     trips = sum(1 for i in range(1, len(states))
                 if states[i][1].watchdog_tripped and not states[i - 1][1].watchdog_tripped)
     return {
-        'bag': bag.name, 'poses_sent': sent, 'poses_seen': n_poses, 'replies': len(forces),
+        'bag': bag.name, 'load_1min': f'{load_before:.1f}/{os.getloadavg()[0]:.1f}',
+        'poses_sent': sent, 'poses_seen': n_poses, 'replies': len(forces),
         'replay_s': round(replay_s, 3), 'haptic_rate_hz': round(rate_hz, 1),
         'latency_median_ms': round(statistics.median(lat) * 1e3, 4) if lat else float('nan'),
         'latency_p99_ms': round(percentile(lat, 99) * 1e3, 4),
@@ -127,13 +130,16 @@ def main(argv=None) -> int:
         rows.append(row)
     cols = ['run', 'bag', 'poses_sent', 'replies', 'haptic_rate_hz', 'latency_median_ms',
             'latency_p99_ms', 'latency_max_ms', 'dropped_poses', 'dropped_pct', 'max_force_n',
-            'watchdog_trips', 'step_median_ms', 'step_p99_ms', 'replay_s', 'sim_params']
+            'watchdog_trips', 'step_median_ms', 'step_p99_ms', 'replay_s', 'load_1min',
+            'sim_params']
     widths = [max(len(c), *(len(str(r[c])) for r in rows)) for c in cols]
     print('  '.join(c.rjust(w) for c, w in zip(cols, widths)))
     for r in rows:
         print('  '.join(str(r[c]).rjust(w) for c, w in zip(cols, widths)))
     print('targets (DESIGN.md section 6): latency median <= 1 ms, p99 <= 3 ms, < 1 % poses '
           'without a reply')
+    print(f'load_1min: 1-minute load average before/after the run on {os.cpu_count()} CPUs '
+          '(other processes compete for the cores; the numbers are only as good as the machine)')
     args.csv.parent.mkdir(parents=True, exist_ok=True)
     with open(args.csv, 'w', newline='') as f:
         w = csv.DictWriter(f, fieldnames=cols + ['poses_seen'])

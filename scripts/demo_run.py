@@ -138,9 +138,14 @@ def main(argv=None) -> int:
         code = 130
     finally:
         graph.stop_all([drv, sim, viz], timeout=60)
-    m = None
     import re
 
+    totals = re.search(r'totals: ([^\n]*)', sim.output())
+    if totals:
+        print(f'demo: sim_node {totals.group(1)}', flush=True)
+    finished = re.search(r'replay finished: ([^\n]*)', drv.output())
+    if finished:
+        print(f'demo: omni_driver {finished.group(1)}', flush=True)
     m = re.search(r'report written: (\S+)', viz.output())
     if m:
         index = Path(m.group(1))
