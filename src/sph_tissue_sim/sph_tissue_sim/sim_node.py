@@ -57,6 +57,7 @@ from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 
 EXIT_OK, EXIT_INPUT, EXIT_PARAMS = 0, 1, 2
 LOCKSTEP_MIN_DEPTH = 1000
+STEP_TIME_HISTORY = 100_000
 
 
 def make_solver(model, material, config: SolverConfig, nominal_dt: float) -> Solver:
@@ -112,6 +113,7 @@ class SimNode(Node):
         self._step_count = 0
         self._cloud_buf = np.zeros(self.model.n_particles, dtype=POINT_DTYPE)
         self._wrench_msg = WrenchStamped()
+        self._wall = np.zeros(STEP_TIME_HISTORY)   # ring of step wall times [s] for the totals
         self._metrics_msg = SimMetrics()
 
         if self.lockstep:
@@ -193,6 +195,11 @@ class SimNode(Node):
             f'totals: {c["poses"]} poses, {c["steps"]} steps, {c["dropped"]} dropped (newer pose '
             f'arrived first), {c["rejected"]} rejected, {c["sim_errors"]} unstable steps, '
             f'{c["overflow"]} lockstep overflows')
+        if c['steps']:
+            w = self._wall[:min(c['steps'], STEP_TIME_HISTORY)] * 1e3
+            rclpy.logging.get_logger(self.get_name() + '.shutdown').info(
+                f'step wall time median {np.median(w):.4f} ms, p99 {np.percentile(w, 99):.4f} ms '
+                f'(last {len(w)} steps)')
 
     # -- logging -----------------------------------------------------------------------------------
     def _throttled(self, kind: str, level: str, text: str) -> None:
@@ -306,6 +313,7 @@ class SimNode(Node):
             else:
                 force_dev, _ = clamp_norm(self.mapping.force_to_device(res.force),
                                           self.p['force_limit'])
+                self._wall[self.counts['steps'] % STEP_TIME_HISTORY] = res.wall_time
                 self.counts['steps'] += 1
                 if res.substeps_capped:
                     self._throttled('capped', 'warn', f'frame needed more than max_substeps '
