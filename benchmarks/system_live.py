@@ -62,6 +62,7 @@ def run_once(bag: Path, sim_params: dict, golden: bool, rate: float) -> dict:
         sim.start()
         sim.wait_for_output(graph.SIM_READY, timeout=240)
         with graph.Monitor(env, keep=True) as mon:
+            mon.probe_sim()
             drv.start()
             t0 = time.monotonic()
             code = drv.wait(timeout=600)

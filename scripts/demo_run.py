@@ -77,7 +77,8 @@ def main(argv=None) -> int:
     viz = graph.viz(report_dir, env=env, params={'report_title': f'Demo: {bag.name} ({args.mode})',
                                                  'summary_period': 5.0})
     sim = graph.sim(sim_mode, env=env, golden=args.golden)
-    drv = graph.driver_replay(bag, args.mode, env=env, rate=args.rate, subscribers=2)
+    # pose subscribers to wait for: sim, viz and this script's monitor
+    drv = graph.driver_replay(bag, args.mode, env=env, rate=args.rate, subscribers=3)
     procs = [drv, sim, viz]
     code = 0
     t_start = time.monotonic()
@@ -89,14 +90,20 @@ def main(argv=None) -> int:
         viz.wait_for_output(graph.VIZ_READY, timeout=60)
         sim.wait_for_output(graph.SIM_READY, timeout=240)
         print(f'demo: nodes ready after {time.monotonic() - t_start:.1f} s; replaying', flush=True)
-        with graph.Monitor(env) as mon:
+        with graph.Monitor(env, reliable=args.mode == 'lockstep') as mon:
+            mon.probe_sim()
             drv.start()
             drv.wait_for_output(graph.DRIVER_READY, timeout=60)
             bar = None
             if tty:
+                import shutil
+
                 from tqdm import tqdm
 
-                bar = tqdm(total=n_total, unit='pose', dynamic_ncols=True, smoothing=0.1)
+                # a pty without a size (0 x 0) makes tqdm hide the bar: give it one
+                size = shutil.get_terminal_size((120, 24))
+                bar = tqdm(total=n_total, unit='pose', ncols=max(size.columns, 100),
+                           nrows=max(size.lines, 10), smoothing=0.1, file=sys.stdout)
             prev = (time.monotonic(), 0)
             last_print = 0.0
             while drv.alive():

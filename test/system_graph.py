@@ -243,6 +243,8 @@ class Monitor:
 
     def _on_pose(self, msg) -> None:
         now = time.monotonic()
+        if msg.header.frame_id == PROBE_FRAME:
+            return
         stamp = self._ns(msg.header)
         with self.lock:
             self.n_poses += 1
