@@ -350,3 +350,50 @@ def test_shipped_config_starts_the_liver_model(ros_domain):
     if m.group(1) == 'block':
         assert 'model liver is not available' in out
     assert abs(int(m.group(2)) - 500) <= 50
+
+
+def test_driver_lockstep_bag_replay_gives_bit_identical_forces_run_after_run(rclpy_node, tmp_path):
+    """The regression use: omni_driver replays a bag in lockstep (each pose waits for its force),
+    sim_node in lockstep; two separate runs (fresh processes) give the same force bytes."""
+    from geometry_msgs.msg import WrenchStamped
+    from haptic_omni_driver import bagio
+
+    n = 200
+    ts = bagio.typestore().types
+    Time, Header = ts['builtin_interfaces/msg/Time'], ts['std_msgs/msg/Header']
+    Pose, Point, Quat = (ts['geometry_msgs/msg/Pose'], ts['geometry_msgs/msg/Point'],
+                         ts['geometry_msgs/msg/Quaternion'])
+    path = press_path(n, depth=0.005, start_height=0.003)
+    path[:, 0] += np.linspace(0.0, 0.005, n)
+    records = []
+    for k, p in enumerate(path):
+        stamp = T0_NS + k * 1_000_000
+        msg = ts['geometry_msgs/msg/PoseStamped'](
+            Header(Time(*divmod(stamp, 1_000_000_000)), 'omni_base'),
+            Pose(Point(*map(float, p)), Quat(0.0, 0.0, 0.0, 1.0)))
+        records.append(('/omni/pose', bagio.POSE_TYPE, stamp, msg))
+    bagio.write_bag(tmp_path / 'press', records)
+
+    runs = []
+    for run in range(2):
+        ns = f'/rep{run}'
+        got = []
+        sub = rclpy_node.create_subscription(WrenchStamped, f'{ns}/omni/force_feedback',
+                                             lambda m, got=got: got.append(m), qos(True, 10000))
+        with sim({'timing_mode': 'lockstep', 'particles_rate': 0.0},
+                 ros_args=['-r', f'__ns:={ns}']) as sim_proc:
+            sim_proc.wait_for_output(r'ready:', START_TIMEOUT)
+            harness.wait_for_matching(rclpy_node, sub)
+            with harness.NodeProcess('haptic_omni_driver', 'omni_driver', ros_args=['-r', f'__ns:={ns}'],
+                                     params={'backend': 'replay', 'bag': str(tmp_path / 'press'),
+                                             'replay_mode': 'lockstep', 'exit_on_end': True,
+                                             'lockstep_timeout': 5.0}) as drv:
+                assert rclpy_node.spin_until(lambda: not drv.alive(), 120), drv.output()
+                assert drv.wait(5) == 0, drv.output()
+                assert re.search(rf'replay finished: {n} poses .*{n} replies, 0 timeouts',
+                                 drv.output()), drv.output()
+            rclpy_node.spin_until(lambda: len(got) >= n, 10.0)
+        assert [stamp_ns(m.header) for m in got] == [T0_NS + k * 1_000_000 for k in range(n)]
+        runs.append(np.array([force_of(m) for m in got]))
+    assert finite_and_bounded(runs[0], FORCE_LIMIT) and runs[0][:, 1].max() > 0.05
+    assert runs[0].tobytes() == runs[1].tobytes()
