@@ -45,7 +45,7 @@ def spring_force_one(i, x, v, offsets, indices, k_spring, rest, tau, out):
 
 @njit(cache=True, fastmath=True)
 def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
-              offsets, indices, dw, w0, Linv, F, Fd, A, H,
+              offsets, indices, dw, w0, Linv, F, Fd, A, H, gv,
               G, K, eta_s, eta_v, hg_k, hg_c, tau,
               stress_list, n_stress, sph_list, n_sph, layer_list, layer_w, n_lp,
               cand, n_cand, contact_idx,
@@ -55,6 +55,7 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
 
     ``react`` (3,) receives the mean reaction force on the tool over the sub-steps [N].
     ``H`` (N, 3, 3) is scratch for the TLSPH hourglass map of the stressed particles.
+    ``gv`` (nnz, 3) holds the TLSPH reference pair gradients ``V_j DWIJ0`` (:func:`~.tlsph.pair_gradients`).
     ``ok`` is False if a velocity became non-finite or exceeded ``v_limit`` (caller restores state).
     ``ext_force[t]`` [N] is a constant external load on free particle ``ext_idx[t]`` (``t < n_ext``).
     """
@@ -72,7 +73,7 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
         # internal forces
         if scheme == SCHEME_TLSPH:
             tlsph_pass(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
-                       offsets, indices, dw, w0, Linv, F, Fd, A, H, G, K, eta_s, eta_v, hg_k, hg_c)
+                       offsets, indices, dw, gv, w0, Linv, F, Fd, A, H, G, K, eta_s, eta_v, hg_k, hg_c)
         else:
             for t in range(n_sph):
                 i = sph_list[t]

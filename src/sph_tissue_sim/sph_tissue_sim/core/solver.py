@@ -28,7 +28,7 @@ from .material import Material
 from .models import TissueModel
 from .neighbours import CellGrid, find_neighbours
 from .paper import PaperScheme
-from .tlsph import reference_pairs, tlsph_von_mises
+from .tlsph import pair_gradients, reference_pairs, tlsph_von_mises
 
 SCHEMES = ('paper', 'tlsph', 'mass_spring')
 MODES = ('global', 'local')
@@ -210,6 +210,7 @@ class Solver:
                               f'neighbour within 2h (spacing {self.model.spacing:.3g} m)')
         self.dw, self.w0, self.Linv = reference_pairs(self.X, self.offsets, self.indices, self.h,
                                                       self.volume)
+        self.gv = pair_gradients(self.X, self.offsets, self.indices, self.dw, self.volume)
         # mass-spring: springs to reference neighbours within spring_radius spacings
         s = self.model.spacing
         self.s_offsets, self.s_indices = find_neighbours(self.X, self.config.spring_radius * s * 1.0001)
@@ -454,7 +455,7 @@ class Solver:
         (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
         overlap, ok = run_frame(
             sid, self.X, self.x, self.v, self.acc, self.fixed, self.inv_mass, self.volume,
-            off, idx, dw, w0, self.Linv, self.F, self.Fd, self.A, self.H,
+            off, idx, dw, w0, self.Linv, self.F, self.Fd, self.A, self.H, self.gv,
             m.G, m.K, m.eta_shear, m.eta_bulk, self.hg_k, self.hg_c, m.retardation_time,
             stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand, contact,
             tool0, tool1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,

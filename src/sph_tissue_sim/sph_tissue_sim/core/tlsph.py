@@ -94,8 +94,23 @@ def _pair_terms(X, offsets, indices, h, volume):
     return dw, w0, L
 
 
+@njit(cache=True)
+def pair_gradients(X, offsets, indices, dw, volume):
+    """Per-pair ``V_j DWIJ0 = V dW/dr(R0)/R0 (X_i - X_j)`` (nnz, 3): reference data the stress pass
+    would otherwise rebuild from ``X_j`` for every pair and sub-step."""
+    gv = np.empty((indices.shape[0], 3))
+    for i in range(X.shape[0]):
+        for k in range(offsets[i], offsets[i + 1]):
+            j = indices[k]
+            f = dw[k] * volume
+            gv[k, 0] = f * (X[i, 0] - X[j, 0])
+            gv[k, 1] = f * (X[i, 1] - X[j, 1])
+            gv[k, 2] = f * (X[i, 2] - X[j, 2])
+    return gv
+
+
 @njit(cache=True, fastmath=True)
-def tlsph_stress_one(i, X, x, v, offsets, indices, dw, Linv, volume, G, K, eta_s, eta_v, F, Fd, A,
+def tlsph_stress_one(i, gv, x, v, offsets, indices, Linv, volume, G, K, eta_s, eta_v, F, Fd, A,
                      hg_k, hg_c, H):
     """F_i, dF_i/dt, ``A_i = V^2 P_i L_i^-T`` and the hourglass map ``H_i = hg_k F_i + hg_c dF_i/dt``
     for particle ``i`` (writes rows of F, Fd, A, H)."""
@@ -103,13 +118,9 @@ def tlsph_stress_one(i, X, x, v, offsets, indices, dw, Linv, volume, G, K, eta_s
     b00 = 0.0; b01 = 0.0; b02 = 0.0; b10 = 0.0; b11 = 0.0; b12 = 0.0; b20 = 0.0; b21 = 0.0; b22 = 0.0
     xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
     vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
-    Xi0 = X[i, 0]; Xi1 = X[i, 1]; Xi2 = X[i, 2]
     for k in range(offsets[i], offsets[i + 1]):
         j = indices[k]
-        f = dw[k] * volume
-        g0 = f * (Xi0 - X[j, 0])
-        g1 = f * (Xi1 - X[j, 1])
-        g2 = f * (Xi2 - X[j, 2])
+        g0 = gv[k, 0]; g1 = gv[k, 1]; g2 = gv[k, 2]      # V_j DWIJ0 (see pair_gradients)
         d0 = x[j, 0] - xi0; d1 = x[j, 1] - xi1; d2 = x[j, 2] - xi2
         e0 = v[j, 0] - vi0; e1 = v[j, 1] - vi1; e2 = v[j, 2] - vi2
         a00 += d0 * g0; a01 += d0 * g1; a02 += d0 * g2
@@ -245,11 +256,11 @@ def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c):
 
 @njit(cache=True)
 def tlsph_pass(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
-               offsets, indices, dw, hgw, Linv, F, Fd, A, H, G, K, eta_s, eta_v, hg_k, hg_c):
+               offsets, indices, dw, gv, hgw, Linv, F, Fd, A, H, G, K, eta_s, eta_v, hg_k, hg_c):
     """One sub-step of TLSPH internal forces: stresses of ``stress_list[:n_stress]``, then
     ``acc = f / m`` of ``sph_list[:n_sph]`` (serial: no thread-pool wake-up on small sets)."""
     for t in range(n_stress):
-        tlsph_stress_one(stress_list[t], X, x, v, offsets, indices, dw, Linv, volume,
+        tlsph_stress_one(stress_list[t], gv, x, v, offsets, indices, Linv, volume,
                          G, K, eta_s, eta_v, F, Fd, A, hg_k, hg_c, H)
     for t in range(n_sph):
         i = sph_list[t]
