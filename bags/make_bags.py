@@ -174,6 +174,7 @@ def stream_digest(bag: Path, topic: str) -> tuple[int, str]:
 
 
 def make(name: str, out_dir: Path, geometry: Geometry) -> dict:
+    """Script -> lockstep recording -> ``out_dir/name`` (retried if the recording is incomplete)."""
     rate, seed, t0 = PLAN[name]
     out = out_dir / name
     with tempfile.TemporaryDirectory(prefix=f'make_bags_{name}_') as tmp:
@@ -202,7 +203,9 @@ def make(name: str, out_dir: Path, geometry: Geometry) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    ap.add_argument('names', nargs='*', default=list(PLAN), help=f'sessions ({", ".join(PLAN)})')
+    ap.add_argument('names', nargs='*', default=list(PLAN),
+                    help='sessions (default all): ' + '; '.join(f'{n}: {SESSIONS[n][1]}'
+                                                                for n in PLAN))
     ap.add_argument('--out', type=Path, default=HERE, help='output folder (default: bags/)')
     ap.add_argument('--check', action='store_true',
                     help='regenerate into a temp dir and compare pose/force streams with bags/')

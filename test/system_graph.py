@@ -8,7 +8,6 @@ Every node is started from its installed executable (what ``ros2 run`` starts) w
 from __future__ import annotations
 
 import os
-import re
 import signal
 import time
 from pathlib import Path
@@ -107,21 +106,6 @@ def stop_all(procs, timeout: float = 15.0) -> dict[str, int | None]:
             except subprocess.TimeoutExpired:
                 pass
     return {p.name: p.stop(5.0) for p in procs}
-
-
-def wait_exit_or_output(proc: harness.NodeProcess, pattern: str, timeout: float) -> re.Match | None:
-    """Wait until ``proc`` prints ``pattern`` (returns the match) or exits (returns None)."""
-    regex = re.compile(pattern)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        m = regex.search(proc.output())
-        if m:
-            return m
-        if not proc.alive():
-            return regex.search(proc.output())
-        time.sleep(0.05)
-    raise AssertionError(f'{proc.name}: neither {pattern!r} nor exit within {timeout} s; '
-                         f'output:\n{proc.output()[-4000:]}')
 
 
 class Monitor:
