@@ -31,6 +31,7 @@ Exit codes: 0 normal (Ctrl-C), 1 the model cannot be built (missing mesh, ...), 
 from __future__ import annotations
 
 import collections
+import os
 import sys
 import threading
 import time
@@ -56,6 +57,7 @@ from .params import (SIM_PARAMS, build_config, build_material, build_model, chec
 from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 
 EXIT_OK, EXIT_INPUT, EXIT_PARAMS = 0, 1, 2
+REEXEC_ENV = 'SPH_SIM_NODE_REEXEC'
 LOCKSTEP_MIN_DEPTH = 1000
 STEP_TIME_HISTORY = 100_000
 
@@ -70,6 +72,25 @@ def make_solver(model, material, config: SolverConfig, nominal_dt: float) -> Sol
     solver.step(None, nominal_dt)
     solver.reset()
     return solver
+
+
+def numba_cache_stats() -> tuple[int, int]:
+    """(kernels compiled in this process, kernels loaded from numba's disk cache) of the core."""
+    from numba.core.registry import CPUDispatcher
+
+    compiled = loaded = 0
+    for name, mod in list(sys.modules.items()):
+        if mod is None or not name.startswith('sph_tissue_sim.core'):
+            continue
+        for obj in vars(mod).values():
+            if isinstance(obj, CPUDispatcher):
+                compiled += sum(obj.stats.cache_misses.values())
+                loaded += sum(obj.stats.cache_hits.values())
+    return compiled, loaded
+
+
+class Reexec(Exception):
+    """Start the process again (its kernels were compiled here, see SimNode.__init__)."""
 
 
 def stamp_to_ns(stamp) -> int:
@@ -98,6 +119,15 @@ class SimNode(Node):
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
         self.solver = make_solver(self.model, self.material, config, p['nominal_dt'])
         self.compile_time = time.perf_counter() - t0
+        self.kernels_compiled, self.kernels_loaded = numba_cache_stats()
+        if (self.kernels_compiled and p['timing_mode'] == 'lockstep'
+                and not os.environ.get(REEXEC_ENV)):
+            # A kernel compiled in this process and the same kernel loaded from numba's cache can
+            # differ in the last bits (measured: 4e-15 N); every later start loads from the cache,
+            # so run cached code now too, or the first replay after a core change is not identical.
+            log.warning(f'{self.kernels_compiled} numba kernels were compiled in this process: '
+                        f'restarting once to run them from the cache (bit-identical lockstep)')
+            raise Reexec()
         self.mapping = self._make_mapping(p, self.solver)
         self.clock = StampClock(p['nominal_dt'], p['max_dt'])
         self.lockstep = p['timing_mode'] == 'lockstep'
@@ -179,7 +209,12 @@ class SimNode(Node):
             self._worker = threading.Thread(target=self._work, name='sim_step', daemon=True)
             self._worker.start()
         self.get_logger().info(f'numba warm-up (compile or cache load) and first step: '
-                               f'{self.compile_time:.2f} s')
+                               f'{self.compile_time:.2f} s ({self.kernels_compiled} kernels '
+                               f'compiled, {self.kernels_loaded} loaded from the cache)')
+        if self.kernels_compiled and self.lockstep:
+            self.get_logger().warning('kernels compiled in this process (numba cache not writable?): '
+                                      'forces may differ in the last bits from a run on cached '
+                                      'kernels')
         self.get_logger().info('ready: ' + self.describe())
 
     def shutdown(self) -> None:
@@ -462,6 +497,7 @@ def main(args=None) -> int:
     rclpy.init(args=args)
     node = None
     code = EXIT_OK
+    reexec = False
     try:
         try:
             node = SimNode()
@@ -471,6 +507,9 @@ def main(args=None) -> int:
         except (ModelError, SimError) as exc:
             rclpy.logging.get_logger('sim_node').fatal(f'cannot build the tissue: {exc}')
             return EXIT_INPUT
+        except Reexec:
+            reexec = True
+            return EXIT_OK
         except Exception:
             if not rclpy.ok():  # Ctrl-C during the warm-up shut the context down under us
                 rclpy.logging.get_logger('sim_node').info('interrupted during start-up')
@@ -495,6 +534,11 @@ def main(args=None) -> int:
             rclpy.try_shutdown()
         except KeyboardInterrupt:  # a second Ctrl-C while shutting down
             pass
+        if reexec:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.environ[REEXEC_ENV] = '1'
+            os.execv(sys.executable, [sys.executable, *sys.argv])
     return code
 
 

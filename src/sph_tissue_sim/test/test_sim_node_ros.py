@@ -272,7 +272,8 @@ def test_lockstep_answers_every_pose_in_order_and_replays_bit_identically(rclpy_
     a = runs[0]
     assert finite_and_bounded(a, FORCE_LIMIT)
     assert np.abs(a[:, 1]).max() > 0.05                    # the sequence did touch the tissue
-    assert all(r.tobytes() == a.tobytes() for r in runs[1:])   # bit-identical, run after run
+    same = [r.tobytes() == a.tobytes() for r in runs[1:]]
+    assert all(same), (same, [np.abs(r - a).max() for r in runs[1:]])   # bit-identical, run after run
 
 
 def test_threaded_live_mode_steps_only_the_newest_pose(rclpy_node):
