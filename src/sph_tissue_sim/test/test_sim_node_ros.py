@@ -7,6 +7,7 @@ between tests); lockstep and bad start-up parameters get their own processes.
 from __future__ import annotations
 
 import importlib.util
+import os
 import re
 
 import numpy as np
@@ -397,4 +398,32 @@ def test_driver_lockstep_bag_replay_gives_bit_identical_forces_run_after_run(rcl
         assert [stamp_ns(m.header) for m in got] == [T0_NS + k * 1_000_000 for k in range(n)]
         runs.append(np.array([force_of(m) for m in got]))
     assert finite_and_bounded(runs[0], FORCE_LIMIT) and runs[0][:, 1].max() > 0.05
+    assert runs[0].tobytes() == runs[1].tobytes()
+
+
+@pytest.mark.slow
+def test_lockstep_first_start_on_a_cold_numba_cache_matches_later_starts(rclpy_node, tmp_path):
+    """First start after a core change: the kernels are compiled (in a fresh cache here); the
+    lockstep node restarts itself once to run them from the cache, so its forces equal a later start's."""
+    n = 150
+    path = press_path(n, depth=0.005, start_height=0.002)
+    path[:, 0] += np.linspace(0.0, 0.004, n)
+    env = harness.ros_env(int(os.environ['ROS_DOMAIN_ID']))
+    env['NUMBA_CACHE_DIR'] = str(tmp_path / 'numba_cache')
+    runs, outputs = [], []
+    for start in range(2):
+        ns = f'/cold{start}/'
+        with sim({'timing_mode': 'lockstep', 'particles_rate': 0.0},
+                 ros_args=['-r', f'__ns:={ns[:-1]}'], env=env) as proc:
+            probe = SimProbe(rclpy_node, reliable=True, ns=ns)
+            probe.wait_matched(proc)
+            for k in range(n):
+                probe.publish(path[k], T0_NS + k * 1_000_000)
+            assert rclpy_node.spin_until(lambda: len(probe.force_order) >= n, 60.0), proc.output()
+            runs.append(np.array([force_of(probe.forces[st]) for st in probe.force_order]))
+            assert proc.stop() == 0
+            outputs.append(proc.output())
+    assert 'restarting once to run them from the cache' in outputs[0], outputs[0]
+    assert '(0 kernels compiled' in outputs[0] and '(0 kernels compiled' in outputs[1]
+    assert 'restarting once' not in outputs[1]
     assert runs[0].tobytes() == runs[1].tobytes()
