@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import statistics
 import sys
 import time
@@ -57,6 +58,11 @@ def main(argv=None) -> int:
                          '(bags/golden_sim_params.yaml) instead of its defaults')
     ap.add_argument('--domain', type=int, default=None, help='ROS_DOMAIN_ID (default: a free one)')
     args = ap.parse_args(argv)
+
+    def _terminate(signum, frame):
+        raise KeyboardInterrupt  # SIGTERM (e.g. from `timeout`): stop the nodes as Ctrl-C does
+
+    signal.signal(signal.SIGTERM, _terminate)
 
     from haptic_omni_driver import bagio
 

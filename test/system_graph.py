@@ -15,6 +15,12 @@ from typing import Mapping
 
 import harness
 
+# A shell runs background jobs with SIGINT ignored, and child processes inherit an ignored signal:
+# the nodes would then ignore the SIGINT that stops them cleanly. A handler here (reset to the
+# default at exec) gives them back their Ctrl-C.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
 REPO_ROOT = harness.REPO_ROOT
 BAGS = REPO_ROOT / 'bags'
 #: sim_node parameters the goldens in bags/ were recorded with (a ROS 2 params file)
@@ -158,7 +164,10 @@ class Monitor:
                     os.environ[k] = self.env[k]
         try:
             self.context = rclpy.context.Context()
-            rclpy.init(context=self.context)
+            # No rclpy signal handlers: Ctrl-C must reach the caller as KeyboardInterrupt so it
+            # can stop the node processes (rclpy's handler would only shut this context down).
+            rclpy.init(context=self.context,
+                       signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
             self.node = rclpy.create_node('system_monitor', context=self.context)
         finally:
             for k, v in saved.items():
