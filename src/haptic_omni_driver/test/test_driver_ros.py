@@ -145,8 +145,9 @@ def test_watchdog_zeroes_force_within_timeout_after_commands_stop(rclpy_node):
             results.append((t_seen - t_last, trip.command_age))
         print('watchdog: (observed delay, driver command_age) [s] =', results)
         for observed, age in results:
-            # The driver detects the silence one servo tick after the timeout...
-            assert timeout <= age <= timeout + 0.01
+            # The driver detects the silence one servo tick after the timeout (plus the wait of its
+            # Python servo thread for a core when the 2-core machine is loaded: measured up to 17 ms)...
+            assert timeout <= age <= timeout + 0.03
             # ...and a test process sees the zeroed state within the timeout plus DDS/scheduling
             # (bounded loosely: another process on a loaded 2-core machine may wait for a core).
             assert observed <= timeout + 0.15
