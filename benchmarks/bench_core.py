@@ -81,11 +81,12 @@ class Settings:
     palpate_amp: float = 0.001      # [m] amplitude of the palpation during timed frames
     palpate_hz: float = 2.0
     press_frames: int = 300         # frames of the press (local mode, cheap models)
-    min_press_frames: int = 20      # ... at least this many for expensive (global) cases
+    min_press_frames: int = 20      # ... at least this many when a frame is expensive (local)
+    min_press_frames_global: int = 5    # global: the cost does not depend on the indentation
     timed_frames: int = 200
     min_timed_frames: int = 5
-    warm_budget_s: float = 4.0      # wall-clock budgets per case (expensive cases take fewer frames)
-    timed_budget_s: float = 4.0
+    warm_budget_s: float = 3.0      # wall-clock budgets per case (expensive cases take fewer frames)
+    timed_budget_s: float = 3.0
     sizes: tuple = PAPER_SIZES
     h_values: tuple = PAPER_H
     scaling_sizes: tuple = (3670, 10000, 25000, 50000, 100000, 150000)
@@ -97,7 +98,8 @@ class Settings:
 
     @classmethod
     def make_quick(cls) -> 'Settings':
-        return cls(quick=True, press_frames=30, min_press_frames=5, timed_frames=10, min_timed_frames=3,
+        return cls(quick=True, press_frames=30, min_press_frames=5, min_press_frames_global=3,
+                   timed_frames=10, min_timed_frames=3,
                    warm_budget_s=0.5, timed_budget_s=0.5, sizes=(289, 572), h_values=(0.3, 0.6),
                    scaling_sizes=(289, 1289), scaling_global_max=1289, memory_n=1289,
                    targets_local_big=1289, targets_global_big=1289)
@@ -225,7 +227,8 @@ class Runner:
             self.status = 'unstable'
             return
         self.first_ms = dt * 1e3
-        press = int(min(st.press_frames, max(st.min_press_frames, st.warm_budget_s / max(dt, 1e-6))))
+        floor = st.min_press_frames if self.case.mode == 'local' else st.min_press_frames_global
+        press = int(min(st.press_frames, max(floor, st.warm_budget_s / max(dt, 1e-6))))
         self.script.press_frames = press
         self.k = 0
         self.solver.reset()
@@ -547,6 +550,7 @@ def print_tables(rows: list[dict], meta: dict) -> str:
     p(f"numba warmup (compile or disk-cache load): {meta['numba_warmup_s']:.2f} s "
       f"(cache was {'warm' if meta['numba_cache_warm'] else 'cold'}); times are medians of Solver.step "
       f"(one 1 kHz frame incl. sub-steps) in ms; paper = Liu et al. 2015 (AMD Phenom II X2, 2009).")
+    p(f"core: {meta.get('core_path', '?')} (workspace git {meta.get('git', '?')})")
     p(f"h mapping: paper h x {meta['h_unit_mm']:.2f} mm = our h (paper h=0.3 at 3670 <-> h/s = "
       f"{SolverConfig().h_ratio}); k1 for Tables 4/5 pinned to gain x {TABLE4_FEXT} N.")
     t1 = [r for r in rows if r.get('table') == '1']
@@ -748,6 +752,8 @@ def main(argv: list[str] | None = None) -> int:
                                      text=True).stdout.strip()
     except OSError:
         meta['git'] = ''
+    import sph_tissue_sim
+    meta['core_path'] = str(Path(sph_tissue_sim.__file__).resolve().parent)
     material = liver_default()
     models = Models(args.model)
     meta['model_kind'] = models.kind
