@@ -622,6 +622,8 @@ def print_tables(rows: list[dict], meta: dict) -> str:
     if tg:
         p('')
         p('Targets and ratios (one interleaved run: all solvers alive, stepped round-robin)')
+        if meta.get('quick'):
+            p('  (--quick: small stand-in sizes, so the verdicts below do not judge the real targets)')
         p(f"{'config':<20} {'N':>7} {'step ms':>9} {'p90':>8} {'sub':>3} {'us/sub':>8} {'n_active':>8} {'ns/p-sub':>8} {'status'}")
         for r in tg:
             p(f"{r['label']:<20} {r.get('n_particles', ''):>7} {_cell(r):>9} {_cell(r, 'step_p90_ms'):>8} "
