@@ -7,6 +7,7 @@ discovery to localhost, so parallel runs on one machine never see each other's t
 
 from __future__ import annotations
 
+import ctypes
 import os
 import random
 import re
@@ -21,6 +22,17 @@ from typing import Callable, Iterable, Mapping
 import yaml
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: SIGKILL when the test process dies, even if it is killed itself.
+
+    Nodes run in their own session (so a Ctrl-C of pytest is not delivered twice); without this a
+    killed test run would leave them running, e.g. a 1 kHz driver on a test domain.
+    """
+    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+
 INSTALL = REPO_ROOT / 'install'
 
 # Domain ids 0..101 are the ones whose ports never collide with the ephemeral range on Linux.
@@ -103,7 +115,7 @@ class NodeProcess:
         self._log = open(self._log_path, 'wb')
         self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=self._log,
                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     start_new_session=True)
+                                     start_new_session=True, preexec_fn=_die_with_parent)
         return self
 
     def alive(self) -> bool:
