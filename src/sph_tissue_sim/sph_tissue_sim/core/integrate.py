@@ -50,7 +50,8 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
               stress_list, n_stress, sph_list, n_sph, layer_list, layer_w, n_lp,
               cand, n_cand, contact_idx,
               tool0, tool1, tool_on, reach, k_c, c_c,
-              n_sub, dt, frame_dt, v_limit, react, fbuf, ext_idx, ext_force, n_ext):
+              n_sub, dt, frame_dt, v_limit, react, fbuf, ext_idx, ext_force, n_ext, surf,
+              touch_idx, touch_w, n_touch):
     """Advance ``n_sub`` sub-steps; returns ``(last overlap [m], ok)``.
 
     ``react`` (3,) receives the mean reaction force on the tool over the sub-steps [N].
@@ -58,6 +59,9 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
     ``gv`` (nnz, 3) holds the TLSPH reference pair gradients ``V_j DWIJ0`` (:func:`~.tlsph.pair_gradients`).
     ``ok`` is False if a velocity became non-finite or exceeded ``v_limit`` (caller restores state).
     ``ext_force[t]`` [N] is a constant external load on free particle ``ext_idx[t]`` (``t < n_ext``).
+    ``surf`` is the contact surface geometry (see :func:`~.contact.contact_forces`).
+    Layers follow the ``touch_w``-weighted mean velocity of the touched particles ``touch_idx[:n_touch]``
+    (the contact particle alone when ``n_touch`` is 0).
     """
     react[0] = 0.0; react[1] = 0.0; react[2] = 0.0
     tool = np.empty(3)
@@ -90,7 +94,7 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
         if tool_on:
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
             overlap = contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, tool, tool_vel, reach,
-                                     k_c, c_c, rsum)
+                                     k_c, c_c, rsum, surf)
             react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
         # symplectic Euler
         for t in range(n_sph):
@@ -105,7 +109,18 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
         # into the solved area: deep random poking blew up within 1 s that way.
         if n_lp > 0:
             vc0 = 0.0; vc1 = 0.0; vc2 = 0.0
-            if contact_idx >= 0 and not fixed[contact_idx]:
+            if n_touch > 0:
+                # weighted by overlap, so a particle entering or leaving contact changes it smoothly
+                wsum = 0.0
+                for t in range(n_touch):
+                    i = touch_idx[t]
+                    w = touch_w[t]
+                    wsum += w
+                    if not fixed[i]:
+                        vc0 += w * v[i, 0]; vc1 += w * v[i, 1]; vc2 += w * v[i, 2]
+                if wsum > 0.0:
+                    vc0 /= wsum; vc1 /= wsum; vc2 /= wsum
+            elif contact_idx >= 0 and not fixed[contact_idx]:
                 vc0 = v[contact_idx, 0]; vc1 = v[contact_idx, 1]; vc2 = v[contact_idx, 2]
             for t in range(n_lp):
                 i = layer_list[t]

@@ -21,6 +21,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .contact import contact_vector
 from .neighbours import query_ball
 
 
@@ -28,11 +29,13 @@ from .neighbours import query_ball
 def local_prepare(X, x, fixed, offsets, indices,
                   origin, cell, dims, cell_start, cell_particles,
                   in_active, active_list, n_active, region, in_area, stamp, stamp_val,
-                  contact_idx, Dr, layer_dr, n_layers,
+                  contact_idx, centre, Dr, layer_dr, n_layers,
                   cand_centre, cand_radius,
                   sph_list, layer_list, layer_w, stress_list, cand_list, tmp, layer_counts):
     """Build the index sets of one local frame.
 
+    The area is centred on ``centre`` (reference space; the overlap-weighted centroid of the
+    touched particles, so it moves continuously when the deepest particle changes).
     Returns ``(n_active, n_sph, n_lp, n_stress, n_cand, n_interaction, n_relaxing)``;
     ``layer_counts[i-1]`` receives the particle count of layer i.
     """
@@ -43,15 +46,15 @@ def local_prepare(X, x, fixed, offsets, indices,
     # 1. the interaction area and transmission layers around the contact particle
     if contact_idx >= 0:
         radius = Dr + n_layers * layer_dr
-        nq = query_ball(X[contact_idx], radius, X, origin, cell, dims, cell_start, cell_particles, tmp)
+        nq = query_ball(centre, radius, X, origin, cell, dims, cell_start, cell_particles, tmp)
         nq = min(nq, tmp.shape[0])
         for q in range(nq):
             j = tmp[q]
             if fixed[j]:
                 continue
-            d0 = X[j, 0] - X[contact_idx, 0]
-            d1 = X[j, 1] - X[contact_idx, 1]
-            d2 = X[j, 2] - X[contact_idx, 2]
+            d0 = X[j, 0] - centre[0]
+            d1 = X[j, 1] - centre[1]
+            d2 = X[j, 2] - centre[2]
             d = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
             if d < Dr:
                 reg = 1
@@ -167,26 +170,57 @@ def active_stats(x, X, v, idx, n, mass):
 
 @njit(cache=True)
 def detect_local(X, x, active_list, n_active, origin, cell, dims, cell_start, cell_particles,
-                 tool, reach, margin, tmp):
+                 tool, reach, margin, tmp, surf, touch_idx, touch_w, centre):
     """Deepest-overlap particle at ``tool`` in local mode, O(active + cells near the tool), or -1.
 
     Inactive particles sit within ``margin`` of their reference position, so the reference grid
-    finds them; active ones (possibly far from home) are checked directly.
+    finds them; active ones (possibly far from home) are checked directly. The overlap is measured
+    to the contact shape of :func:`~.contact.contact_forces` (``surf``).
+
+    Also returns the touched particles with their overlaps as weights (``touch_idx``,
+    ``touch_w``; count as second return value) and their overlap-weighted reference centroid in
+    ``centre``: the layers follow the weighted mean velocity of the touched particles and the area
+    is centred on that centroid, so neither jumps when the deepest particle changes.
     """
     best = -1
     best_d = 0.0
-    nq = query_ball(tool, reach + margin, X, origin, cell, dims, cell_start, cell_particles, tmp)
+    n_touch = 0
+    wsum = 0.0
+    c0 = 0.0; c1 = 0.0; c2 = 0.0
+    disc = surf[6]
+    nq = query_ball(tool, reach + margin + np.max(disc), X, origin, cell, dims, cell_start, cell_particles, tmp)
     nq = min(nq, tmp.shape[0])
     for q in range(nq + n_active):
         j = tmp[q] if q < nq else active_list[q - nq]
         d0 = x[j, 0] - tool[0]
         d1 = x[j, 1] - tool[1]
         d2 = x[j, 2] - tool[2]
-        overlap = reach - math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        lim = reach + disc[j]
+        if d0 * d0 + d1 * d1 + d2 * d2 >= lim * lim:
+            continue
+        u0, u1, u2, s0, s1, s2 = contact_vector(j, x, tool, surf)
+        overlap = reach - math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+        if overlap <= 0.0:
+            continue
+        dup = False
+        for t in range(n_touch):
+            if touch_idx[t] == j:
+                dup = True
+                break
+        if dup:
+            continue
+        if n_touch < touch_idx.shape[0]:
+            touch_idx[n_touch] = j
+            touch_w[n_touch] = overlap
+            n_touch += 1
+            wsum += overlap
+            c0 += overlap * X[j, 0]; c1 += overlap * X[j, 1]; c2 += overlap * X[j, 2]
         if overlap > best_d:
             best_d = overlap
             best = j
-    return best
+    if wsum > 0.0:
+        centre[0] = c0 / wsum; centre[1] = c1 / wsum; centre[2] = c2 / wsum
+    return best, n_touch
 
 
 @njit(cache=True)

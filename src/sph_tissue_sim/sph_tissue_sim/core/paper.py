@@ -289,7 +289,7 @@ def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
                 layer_list, layer_w, n_lp, cand, n_cand, contact_idx,
                 tool0, tool1, tool_on, reach, k_c, c_c,
                 n_sub, dt, frame_dt, v_limit, react, ext_idx, ext_force, n_ext,
-                rho, eps, epsd, sig, pos, nb_off, nb_idx, nb_dw, nb_w):
+                rho, eps, epsd, sig, pos, nb_off, nb_idx, nb_dw, nb_w, surf):
     """Advance ``n_sub`` sub-steps of the paper scheme.
 
     ``rows[:n_sph]`` are the fully solved (free) particles, ``rows[:n_rows]`` get density, strain
@@ -341,7 +341,7 @@ def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
         if tool_on:
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
             overlap = contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, tool, tool_vel, reach,
-                                     k_c, c_c, rsum)
+                                     k_c, c_c, rsum, surf)
             react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
         # transmission layers follow the contact particle's acceleration (eqs. 20-21)
         if n_lp > 0:
@@ -539,7 +539,7 @@ class PaperScheme:
             tool0, tool1, tool_on, reach, s.config.contact_stiffness, s.contact_damping,
             n_sub, sub_dt, dt, s.config.velocity_limit, s.react, s.ext_idx, s.ext_force, len(s.ext_idx),
             self.rho, self.eps, self.epsd, self.sig, self.pos, self.nb_off,
-            self.nb_idx, self.nb_dw, self.nb_w)
+            self.nb_idx, self.nb_dw, self.nb_w, s.contact_surf)
         self._vm_rows = rows
         self.n_rows_last = n_rows if ok else 0
         return overlap, ok
