@@ -26,12 +26,16 @@ _PR_SET_PDEATHSIG = 1
 
 
 def _die_with_parent() -> None:
-    """In the child before exec: SIGKILL when the test process dies, even if it is killed itself.
+    """In the child before exec: default SIGINT; SIGKILL when the test process dies (even killed).
 
     Nodes run in their own session (so a Ctrl-C of pytest is not delivered twice); without this a
     killed test run would leave them running, e.g. a 1 kHz driver on a test domain.
     """
     ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    # a test run started as a background job ignores SIGINT, and exec would pass that on: nodes
+    # must still stop on SIGINT like ros2 run does on Ctrl-C
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
 
 INSTALL = REPO_ROOT / 'install'
 
