@@ -9,6 +9,7 @@ known discrete answer; the continuum answer is then met within that lattice erro
 
 import numpy as np
 import pytest
+from press import press
 
 from sph_tissue_sim.core.errors import ConfigError, SimError
 from sph_tissue_sim.core.kernel import kernel_dwdr_array, kernel_w_array
@@ -59,17 +60,6 @@ def _kelvin_voigt(eps, epsd, G, K, eta_s, eta_v):
     dev = lambda T: T - np.trace(T) / 3.0 * I  # noqa: E731
     return (2 * G * dev(eps) + K * np.trace(eps) * I
             + 2 * eta_s * dev(epsd) + eta_v * np.trace(epsd) * I)
-
-
-def _press(solver, depth, frames, dt=1e-3):
-    X = solver.model.positions
-    top = X[:, 2].max()
-    centre = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean() + 5e-4, top + solver.contact_reach])
-    res = None
-    for k in range(frames):
-        d = depth * min(1.0, (k + 1) / (0.7 * frames))
-        res = solver.step(centre - np.array([0.0, 0.0, d]), dt)
-    return res
 
 
 def test_warmup_compiles_the_paper_scheme():
@@ -209,7 +199,7 @@ def test_pressing_the_block_pushes_the_tool_up_with_the_same_order_of_force_as_t
     forces = {}
     for scheme in ('paper', 'tlsph'):
         solver = Solver(model, LIVER, SolverConfig(scheme=scheme, mode='global'))
-        res = _press(solver, 0.003, frames=100)
+        res = press(solver, 0.003, frames=100)
         assert res.contact_index >= 0
         assert np.all(np.isfinite(solver.positions)) and np.all(np.isfinite(res.force))
         assert res.force[2] > 0.0
@@ -222,7 +212,7 @@ def test_pressing_the_block_pushes_the_tool_up_with_the_same_order_of_force_as_t
 
 def test_local_mode_solves_the_area_and_pushes_the_tool_up():
     solver = Solver(make_block(8, 8, 5, spacing=0.0075), LIVER, SolverConfig(scheme='paper', mode='local'))
-    res = _press(solver, 0.002, frames=40)
+    res = press(solver, 0.002, frames=40)
     assert res.contact_index >= 0 and res.n_interaction > 0 and res.n_layer.sum() > 0
     assert res.n_active < solver.n_particles // 2
     assert res.force[2] > 0.0 and np.all(np.isfinite(solver.positions))
@@ -235,7 +225,7 @@ def test_von_mises_is_zero_at_rest_and_reset_restores_the_reference():
     solver = Solver(make_block(6, 6, 4, spacing=0.0075), LIVER, SolverConfig(scheme='paper', mode='global'))
     solver.step(None, 1e-3)
     assert np.max(solver.von_mises()) < 1e-9
-    res = _press(solver, 0.002, frames=50)
+    res = press(solver, 0.002, frames=50)
     assert solver.von_mises()[res.contact_index] > 1.0
     solver.reset()
     assert np.array_equal(solver.positions, solver.model.positions)

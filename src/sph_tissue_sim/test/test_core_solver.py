@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from press import press
 
 from sph_tissue_sim.core.errors import ConfigError, ModelError, SimError
 from sph_tissue_sim.core.material import Material
@@ -16,18 +17,6 @@ def _block(fix='bottom', n=(8, 8, 5), spacing=0.0075):
     return make_block(*n, spacing=spacing, fix=fix)
 
 
-def _press(solver, depth, frames=300, dt=1e-3):
-    """Lower the tool onto the top centre of the block to ``depth`` [m] below first touch."""
-    X = solver.model.positions
-    top = X[:, 2].max()
-    centre = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean() + 5e-4, top + solver.contact_reach])
-    res = None
-    for k in range(frames):
-        d = depth * min(1.0, (k + 1) / (0.7 * frames))
-        res = solver.step(centre - np.array([0.0, 0.0, d]), dt)
-    return res
-
-
 def test_scheme_and_mode_order_matches_simmetrics_constants():
     assert SCHEMES == ('paper', 'tlsph', 'mass_spring')
     assert MODES == ('global', 'local')
@@ -40,7 +29,7 @@ def test_warmup_compiles_and_returns_seconds():
 @pytest.mark.parametrize('mode', MODES)
 def test_pressing_pushes_tissue_down_and_tissue_pushes_tool_up(mode):
     solver = Solver(_block(), LIVER, SolverConfig(mode=mode))
-    res = _press(solver, 0.004)
+    res = press(solver, 0.004)
     assert isinstance(res, StepResult)
     assert res.contact_index >= 0
     assert res.force[2] > 0.02                      # reaction points out of the tissue
@@ -54,13 +43,13 @@ def test_pressing_pushes_tissue_down_and_tissue_pushes_tool_up(mode):
 def test_fixed_particles_never_move():
     model = _block()
     solver = Solver(model, LIVER, SolverConfig(mode='global'))
-    _press(solver, 0.006, frames=200)
+    press(solver, 0.006, frames=200)
     assert np.array_equal(solver.positions[model.fixed], model.positions[model.fixed])
 
 
 def test_force_is_clamped_to_the_device_limit_and_finite():
     solver = Solver(_block(), LIVER, SolverConfig(mode='global', force_limit=0.05, contact_stiffness=300.0))
-    res = _press(solver, 0.008, frames=200)
+    res = press(solver, 0.008, frames=200)
     assert res.clamped
     assert np.linalg.norm(res.force) == pytest.approx(0.05, rel=1e-9)
     assert np.linalg.norm(res.force_raw) > 0.05
@@ -70,7 +59,7 @@ def test_force_is_clamped_to_the_device_limit_and_finite():
                                  np.array([1e3, 0.0, 0.0]), 'not a position', np.zeros(2)])
 def test_bad_tool_position_raises_invalid_input_and_leaves_state_untouched(bad):
     solver = Solver(_block(), LIVER, SolverConfig(mode='local'))
-    _press(solver, 0.003, frames=50)
+    press(solver, 0.003, frames=50)
     x, v, t = solver.positions.copy(), solver.velocities.copy(), solver.sim_time
     with pytest.raises(InvalidInput):
         solver.step(bad, 1e-3)
@@ -120,7 +109,7 @@ def test_internal_forces_conserve_linear_momentum():
 
 def test_local_mode_releases_particles_after_they_relax():
     solver = Solver(_block(n=(10, 10, 5)), LIVER, SolverConfig(mode='local'))
-    res = _press(solver, 0.004, frames=200)
+    res = press(solver, 0.004, frames=200)
     assert res.n_interaction > 0 and res.n_layer.sum() > 0
     assert res.n_active < solver.n_particles // 2      # the area, not the model
     region = solver.region
@@ -138,7 +127,7 @@ def test_local_mode_releases_particles_after_they_relax():
 
 def test_reset_restores_reference_configuration():
     solver = Solver(_block(), LIVER, SolverConfig(mode='local'))
-    _press(solver, 0.004, frames=100)
+    press(solver, 0.004, frames=100)
     solver.reset()
     assert np.array_equal(solver.positions, solver.model.positions)
     assert not solver.velocities.any() and solver.sim_time == 0.0 and not solver.region.any()
@@ -148,7 +137,7 @@ def test_von_mises_is_zero_at_rest_and_positive_under_the_tool():
     solver = Solver(_block(), LIVER, SolverConfig(mode='global'))
     solver.step(None, 1e-3)
     assert np.max(solver.von_mises()) < 1e-6
-    res = _press(solver, 0.004, frames=150)
+    res = press(solver, 0.004, frames=150)
     vm = solver.von_mises()
     assert vm.shape == (solver.n_particles,) and np.all(np.isfinite(vm))
     assert vm[res.contact_index] > 10.0
