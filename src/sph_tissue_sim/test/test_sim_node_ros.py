@@ -279,7 +279,7 @@ def test_lockstep_answers_every_pose_in_order_and_replays_bit_identically(rclpy_
 
 def test_threaded_live_mode_steps_only_the_newest_pose(rclpy_node):
     n = 2000
-    path = press_path(n, depth=0.004)
+    path = press_path(n, depth=0.004, start_height=0.0)   # in contact throughout: slower steps
     with sim({'step_thread': True, 'particles_rate': 0.0}, ros_args=['-r', '__ns:=/thr']) as proc:
         probe = SimProbe(rclpy_node, ns='/thr/')
         probe.wait_matched(proc)

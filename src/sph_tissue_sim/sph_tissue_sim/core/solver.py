@@ -5,7 +5,8 @@ Schemes (index order = ``SimMetrics.SCHEME_*``): ``paper`` (updated-Lagrangian S
 Modes (``SimMetrics.MODE_*``): ``global`` (every free particle) and ``local`` (the paper's dynamic
 local interaction area, see :mod:`.local_area`).
 
-A frame of ``dt`` seconds is split into sub-steps bounded by the CFL, viscous and contact limits;
+A frame of ``dt`` seconds is split into sub-steps bounded by the CFL, viscous and (when a tool is
+given) contact limits;
 the tool moves linearly from its previous to its new position across the sub-steps, and the force
 returned is the mean reaction of the tissue on the tool over the frame, clamped to ``force_limit``.
 """
@@ -315,6 +316,8 @@ class Solver:
             # explicit dashpot: dt < 2 m / c; keep a factor 2 margin
             self.dt_bounds['contact_damping'] = self.mass / self.contact_damping
         self.dt_max = min(self.dt_bounds.values())
+        # without a tool no contact spring or dashpot acts, so only the material bounds apply
+        self.dt_max_free = min(v for k, v in self.dt_bounds.items() if not k.startswith('contact'))
 
     def reset(self) -> None:
         """Back to the reference configuration at rest, sim time 0, no active area."""
@@ -422,8 +425,9 @@ class Solver:
         tool = self._check_inputs(tool_pos, dt)
         dt = float(dt)
         cfg = self.config
-        n_sub, sub_dt, capped = substeps_for(dt, self.dt_max, cfg.max_substeps)
         tool_on = tool is not None
+        n_sub, sub_dt, capped = substeps_for(dt, self.dt_max if tool_on else self.dt_max_free,
+                                             cfg.max_substeps)
         tool1 = tool if tool_on else self.centre.copy()
         tool0 = self.tool_prev if (tool_on and self.tool_prev is not None) else tool1
         reach = self.contact_reach
