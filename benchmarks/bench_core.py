@@ -120,6 +120,7 @@ class Case:
     k1_pinned: float | None = None       # k1_min = k1_max = this (Tables 4/5)
     n_layers: int = 2
     paper_s: float | None = None
+    parallel_min: int = 0                # SolverConfig.parallel_min_particles (0: serial)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -189,7 +190,7 @@ class Runner:
     def __init__(self, case: Case, model: TissueModel, settings: Settings, material) -> None:
         self.case, self.model, self.st = case, model, settings
         cfg = SolverConfig(scheme=case.scheme, mode=case.mode, n_layers=case.n_layers,
-                           k1_gain=case.k1_gain)
+                           k1_gain=case.k1_gain, parallel_min_particles=case.parallel_min)
         if case.h_ratio is not None:
             cfg.h_ratio = float(case.h_ratio)
         if case.k1_pinned is not None:
@@ -375,6 +376,10 @@ def run_targets(st: Settings, models: Models, material, progress) -> list[dict]:
              Case('targets', 'global mass_spring', 'mass_spring', 'global', n, paper_s=PAPER_T1.get(n, (None,))[0]),
              Case('targets', f'local tlsph big', 'tlsph', 'local', st.targets_local_big),
              Case('targets', f'global tlsph 50k', 'tlsph', 'global', st.targets_global_big)]
+    if _numba_threads() > 1:
+        # the same tlsph cases on numba's thread pool (SolverConfig.parallel_min_particles=1)
+        cases += [Case('targets', f'{c.label} threads', c.scheme, c.mode, c.n_target, paper_s=c.paper_s,
+                       parallel_min=1) for c in cases if c.scheme == 'tlsph']
     runners = []
     for c in cases:
         try:
@@ -435,6 +440,17 @@ def target_lines(rows: list[dict]) -> list[str]:
         nb = by['global tlsph 50k']['n_particles']
         out.append(f'global tlsph step, {nb} particles: {gb:.2f} ms ({by["global tlsph 50k"]["substeps"]:.0f} sub-steps); '
                    f'target <= 16 ms: {verdict(gb <= 16.0)}')
+    lp, gp, lbp, gbp = (ms(f'{k} threads') for k in ('local tlsph', 'global tlsph', 'local tlsph big',
+                                                       'global tlsph 50k'))
+    if lp is not None and lt is not None:
+        paper = by['local tlsph'].get('paper_ms')
+        sp = paper / lp if paper else float('nan')
+        out.append(f'with {_numba_threads()} numba threads (parallel_min_particles=1; not the default, see '
+                   f'README): local {lp:.4f} ms ({lt / lp:.2f}x the serial step, {sp:.1f}x the paper): '
+                   f'{verdict(sp >= 30 and lp <= 0.1)}' + (
+                       f'; global {gp:.3f} ms ({gt / gp:.2f}x): {verdict(gp <= 1.0)}' if gp and gt else '') + (
+                       f'; local big {lbp / lp:.2f}x the local step: {verdict(lbp / lp <= 2.0)}' if lbp else '') + (
+                       f'; global 50k {gbp:.2f} ms: {verdict(gbp <= 16.0)}' if gbp else ''))
     for mode in ('global', 'local'):
         a, b = pps(f'{mode} tlsph'), pps(f'{mode} paper')
         if a is not None and b is not None:
@@ -761,7 +777,7 @@ def main(argv: list[str] | None = None) -> int:
     meta['model_kind'] = models.kind
     meta['h_unit_mm'] = h_unit(models) * 1e3
     cases = build_cases(tables, st, models)
-    n_total = len(cases) + (7 if 'targets' in tables else 0) + (1 if 'memory' in tables else 0)
+    n_total = len(cases) + ((11 if _numba_threads() > 1 else 7) if 'targets' in tables else 0) + (1 if 'memory' in tables else 0)
     rows: list[dict] = []
     with tqdm(total=n_total, desc='bench', unit='case', file=sys.stderr, dynamic_ncols=True) as bar:
         for case in cases:

@@ -71,6 +71,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'cfl': (0.3, '[-] Courant number of the sub-step bounds', (0.01, 1.0), False, 'solver'),
     'max_substeps': (64, 'sub-step cap per frame (beyond it simulated time lags; reported)',
                      (1, 100000), False, 'solver'),
+    'parallel_min_particles': (0, 'tlsph: use numba threads (NUMBA_NUM_THREADS) when at least this '
+                                  'many particles are stressed; 0 = never. Only on cores the sim '
+                                  'has to itself: a busy core stalls every parallel sub-step',
+                               (0, 10_000_000), False, 'solver'),
     # -- force ------------------------------------------------------------------------------------
     'force_limit': (HARD_FORCE_LIMIT, f'[N] norm clamp of the force sent to the device (Omni peak '
                                       f'{HARD_FORCE_LIMIT} N, continuous 0.88 N)',
@@ -272,7 +276,8 @@ def build_config(p: dict) -> SolverConfig:
                        contact_stiffness=float(p['contact_stiffness']),
                        contact_damping_ratio=float(p['contact_damping_ratio']),
                        force_limit=float(p['force_limit']), cfl=float(p['cfl']),
-                       max_substeps=int(p['max_substeps']))
+                       max_substeps=int(p['max_substeps']),
+                       parallel_min_particles=int(p['parallel_min_particles']))
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')

@@ -1,5 +1,6 @@
 """Solver behaviour: contact, bad input, boundary conditions, momentum, local-area bookkeeping."""
 
+import numba
 import numpy as np
 import pytest
 from press import press
@@ -77,7 +78,8 @@ def test_bad_dt_raises_invalid_input(dt):
 
 @pytest.mark.parametrize('kwargs', [dict(scheme='fem'), dict(mode='half'), dict(h_ratio=-1.0),
                                     dict(k1_min=3.0, k1_max=2.0), dict(n_layers=-1), dict(cfl=0.0),
-                                    dict(tool_radius=float('nan')), dict(max_substeps=0)])
+                                    dict(tool_radius=float('nan')), dict(max_substeps=0),
+                                    dict(parallel_min_particles=-1), dict(parallel_min_particles=2.5)])
 def test_invalid_config_raises_config_error(kwargs):
     with pytest.raises(ConfigError):
         SolverConfig(**kwargs).validate()
@@ -149,3 +151,29 @@ def test_substeps_respect_the_cfl_bound():
     c = LIVER.wave_speed
     assert res.substep_dt <= solver.config.cfl * solver.smoothing_length / c + 1e-15
     assert res.substeps * res.substep_dt == pytest.approx(1e-3)
+
+
+def test_substeps_without_a_tool_ignore_the_contact_bounds():
+    solver = Solver(_block(), LIVER, SolverConfig(contact_stiffness=1000.0))
+    assert solver.dt_max < 0.9 * solver.dt_max_free      # a contact bound is the smallest
+    frame = 0.95 * solver.dt_max_free
+    free = solver.step(None, frame)
+    touching = solver.step(solver.centre, frame)
+    assert free.substeps == 1 and touching.substeps == 2
+    assert free.substep_dt <= solver.dt_max_free + 1e-15 and touching.substep_dt <= solver.dt_max + 1e-15
+
+
+@pytest.mark.skipif(numba.get_num_threads() < 2, reason='needs at least two numba threads')
+@pytest.mark.parametrize('mode', MODES)
+def test_threaded_tlsph_step_is_bit_identical_to_the_serial_step(mode):
+    """parallel_min_particles=1 runs every sub-step on numba's thread pool; each particle's sums
+    keep their order, so positions and forces match the serial solver bit for bit."""
+    runs = []
+    for par in (0, 1):
+        solver = Solver(_block(), LIVER, SolverConfig(mode=mode, parallel_min_particles=par))
+        assert (solver.par_min == 1) == (par == 1)
+        res = press(solver, 0.004, frames=120)
+        runs.append((res.force.copy(), solver.positions.copy(), solver.velocities.copy()))
+    for a, b in zip(*runs):
+        assert np.array_equal(a, b)
+    assert np.linalg.norm(runs[0][0]) > 0.01          # the press did load the tissue

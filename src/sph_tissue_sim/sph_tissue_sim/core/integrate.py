@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from .contact import contact_forces
-from .tlsph import tlsph_pass
+from .tlsph import tlsph_pass, tlsph_pass_parallel
 
 SCHEME_TLSPH = 1
 SCHEME_MASS_SPRING = 2
@@ -51,7 +51,7 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
               cand, n_cand, contact_idx,
               tool0, tool1, tool_on, reach, k_c, c_c,
               n_sub, dt, frame_dt, v_limit, react, fbuf, ext_idx, ext_force, n_ext, surf,
-              touch_idx, touch_w, n_touch):
+              touch_idx, touch_w, n_touch, par_min):
     """Advance ``n_sub`` sub-steps; returns ``(last overlap [m], ok)``.
 
     ``react`` (3,) receives the mean reaction force on the tool over the sub-steps [N].
@@ -62,6 +62,8 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
     ``surf`` is the contact surface geometry (see :func:`~.contact.contact_forces`).
     Layers follow the ``touch_w``-weighted mean velocity of the touched particles ``touch_idx[:n_touch]``
     (the contact particle alone when ``n_touch`` is 0).
+    The TLSPH pass runs on numba's thread pool when at least ``par_min`` particles are stressed
+    (bit-identical to the serial pass; small local areas stay serial: no thread wake-up).
     """
     react[0] = 0.0; react[1] = 0.0; react[2] = 0.0
     tool = np.empty(3)
@@ -75,7 +77,11 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
         for a in range(3):
             tool[a] = tool0[a] + frac * (tool1[a] - tool0[a])
         # internal forces
-        if scheme == SCHEME_TLSPH:
+        if scheme == SCHEME_TLSPH and n_stress >= par_min:
+            tlsph_pass_parallel(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
+                                offsets, indices, dw, gv, w0, Linv, F, Fd, A, H, G, K, eta_s, eta_v,
+                                hg_k, hg_c)
+        elif scheme == SCHEME_TLSPH:
             tlsph_pass(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
                        offsets, indices, dw, gv, w0, Linv, F, Fd, A, H, G, K, eta_s, eta_v, hg_k, hg_c)
         else:

@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from .kernel import kernel_dwdr, kernel_w
 
@@ -263,6 +263,27 @@ def tlsph_pass(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, v
         tlsph_stress_one(stress_list[t], gv, x, v, offsets, indices, Linv, volume,
                          G, K, eta_s, eta_v, F, Fd, A, hg_k, hg_c, H)
     for t in range(n_sph):
+        i = sph_list[t]
+        f0, f1, f2 = tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c)
+        acc[i, 0] = f0 * inv_mass
+        acc[i, 1] = f1 * inv_mass
+        acc[i, 2] = f2 * inv_mass
+
+
+@njit(cache=True, parallel=True)
+def tlsph_pass_parallel(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
+                        offsets, indices, dw, gv, hgw, Linv, F, Fd, A, H, G, K, eta_s, eta_v,
+                        hg_k, hg_c):
+    """:func:`tlsph_pass` over numba's thread pool (``prange``).
+
+    Both loops are gathers (a particle writes only its own rows of F, Fd, A, H and acc) and each
+    particle's sums run in the same order as in the serial pass, so the result is bit-identical
+    to :func:`tlsph_pass` for any thread count.
+    """
+    for t in prange(n_stress):
+        tlsph_stress_one(stress_list[t], gv, x, v, offsets, indices, Linv, volume,
+                         G, K, eta_s, eta_v, F, Fd, A, hg_k, hg_c, H)
+    for t in prange(n_sph):
         i = sph_list[t]
         f0, f1, f2 = tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c)
         acc[i, 0] = f0 * inv_mass
