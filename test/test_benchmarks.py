@@ -112,3 +112,18 @@ def test_paper_smoothing_lengths_map_to_one_physical_length_anchored_at_3670():
             hr = bench.h_ratio_for(models, n, h)
             assert hr * models.get(n).spacing == pytest.approx(h / 0.3 * anchor * models.get(3670).spacing)
             assert hr > 0.5                     # 2h > spacing: every particle keeps neighbours
+
+
+def test_threads_under_load_benchmark_writes_rows_and_finds_threaded_steps_bit_identical(tmp_path):
+    script = ROOT / 'benchmarks' / 'threads_under_load.py'
+    proc = subprocess.run([sys.executable, str(script), '--particles', '289', '--busy', '0,1',
+                           '--local-frames', '20', '--global-frames', '6', '--out', str(tmp_path)],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    with open(tmp_path / 'threads_under_load.csv', newline='') as fh:
+        rows = list(csv.DictReader(fh))
+    assert {(r['busy'], r['mode'], r['run']) for r in rows} == {
+        (b, m, r) for b in ('0', '1') for m in ('local', 'global') for r in ('serial', 'threads')}
+    for r in rows:
+        assert r['identical'] == 'True' and int(r['frames']) > 0
+        assert 0.0 < float(r['median_ms']) <= float(r['p99_ms']) <= float(r['max_ms'])

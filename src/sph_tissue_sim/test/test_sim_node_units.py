@@ -192,6 +192,11 @@ def test_solver_config_cross_checks():
         build_config(defaults(nominal_dt=0.05, max_dt=0.01))
 
 
+def test_threads_are_off_by_default_and_the_parameter_reaches_the_solver_config():
+    assert build_config(defaults()).parallel_min_particles == 0
+    assert build_config(defaults(parallel_min_particles=2000)).parallel_min_particles == 2000
+
+
 def test_check_value_catches_bad_choices_and_vectors():
     assert check_value('mode', 'local') is None
     assert 'must be one of' in check_value('mode', 'diagonal')
