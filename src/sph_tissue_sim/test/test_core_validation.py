@@ -388,3 +388,43 @@ def test_local_area_contact_force_matches_global_at_same_indentation(k1_min):
     print(f'k1_min {k1_min}: global {f_global[2]:.4f} N, local {f_local[2]:.4f} N, error {err:+.4f}')
     assert f_global[2] > 0.1
     assert abs(err) < 0.10
+
+
+def _press_liver(model, mode: str, depth: float, xy: tuple, **config) -> float:
+    """Lower the tool ``depth`` into the liver's top surface above ``xy`` over 0.3 s, hold 0.1 s;
+    returns the force norm [N]."""
+    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode=mode, **config))
+    P = model.positions
+    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
+    start = np.array([xy[0] + 1e-3, xy[1] + 5e-4, P[column, 2].max() + solver.contact_reach])
+    res = None
+    for k in range(400):
+        res = solver.step(start - np.array([0.0, 0.0, depth * min(1.0, (k + 1) / 300.0)]), 1e-3)
+    return float(np.linalg.norm(res.force))
+
+
+@pytest.mark.slow
+def test_local_area_force_on_the_liver_is_within_10_percent_of_global_with_k1_min_3():
+    """The 3671-particle liver pressed 2, 4 and 10 mm at four places: with k1_min = 3 (Dr >= 3h
+    beyond the touched patch, N = 2) the local force is within 10 % of the global one everywhere
+    (measured: at most +8.6 %).
+
+    The local area is stiffer than the whole organ because everything beyond its layers is held
+    still, and the smaller the area the larger the error: the default k1_min = 1 (faster, 0.2-0.4
+    ms per frame instead of 0.7-1.9 ms) gives +24 / +14 / +11 % at the centre at 2 / 4 / 10 mm
+    (printed below for reference, not asserted). Global runs use numba threads when there are
+    two (bit-identical to serial, only faster).
+    """
+    model = make_model('liver', n_particles=3670)
+    worst = 0.0
+    for xy in ((0.0, 0.0), (0.03, 0.0), (-0.04, 0.01), (0.0, -0.03)):
+        for depth in (0.002, 0.004, 0.010):
+            f_global = _press_liver(model, 'global', depth, xy, parallel_min_particles=1)
+            f_local = _press_liver(model, 'local', depth, xy, k1_min=3.0)
+            err = f_local / f_global - 1.0
+            default = (_press_liver(model, 'local', depth, xy) / f_global - 1.0) if xy == (0.0, 0.0) else None
+            print(f'liver at {xy} m, {depth * 1e3:.0f} mm: global {f_global:.4f} N, local (k1_min 3) '
+                  f'{f_local:.4f} N ({err:+.3f})' + (f', default k1_min 1: {default:+.3f}' if default is not None else ''))
+            assert f_global > 0.02
+            worst = max(worst, abs(err))
+    assert worst < 0.10
