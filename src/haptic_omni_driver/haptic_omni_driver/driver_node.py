@@ -265,6 +265,11 @@ class OmniDriver(Node):
         return False
 
     def on_finished(self, summary: str, exit_code: int) -> None:
+        if exit_code != 0 and not self.context.ok():
+            # Ctrl-C shut the context down while the backend thread was publishing: its publish
+            # fails, but that is the shutdown, not a device or input failure (exit code stays 0)
+            self.get_logger().debug(f'{summary} (during shutdown)')
+            return
         if exit_code == 0:
             self.get_logger().info(summary)
         else:

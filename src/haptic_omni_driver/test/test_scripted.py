@@ -108,3 +108,27 @@ def test_script_bag_replays_the_generated_trajectory_with_buttons(tmp_path):
     assert [p.stamp_ns for p in poses] == [2_000_000_000 + 2_000_000 * k for k in range(t.size)]
     pressed = [e.buttons[0] for e in events if e.buttons is not None]
     assert any(pressed) and not pressed[0]
+
+
+@pytest.mark.parametrize('shut_down', [False, True])
+def test_backend_failure_is_an_error_unless_ctrl_c_shut_the_context_down(shut_down):
+    """A backend thread whose publish fails because Ctrl-C already shut the context down must not
+    turn a clean stop into exit code 1; any other backend failure ends the node with 1."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+
+    from haptic_omni_driver.driver_node import OmniDriver
+
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = OmniDriver(context=ctx, parameter_overrides=[Parameter('backend', value='scripted')])
+    try:
+        if shut_down:
+            ctx.shutdown()
+        node.on_finished("scripted backend failed: Failed to publish: publisher's context is invalid", 1)
+        assert node.exit_code == (0 if shut_down else 1)
+        assert node.finished.is_set() == (not shut_down)
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
