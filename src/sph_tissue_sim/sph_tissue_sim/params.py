@@ -71,6 +71,12 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'cfl': (0.3, '[-] Courant number of the sub-step bounds', (0.01, 1.0), False, 'solver'),
     'max_substeps': (64, 'sub-step cap per frame (beyond it simulated time lags; reported)',
                      (1, 100000), False, 'solver'),
+    'contact_disc': (0.0, 'surface-disc contact radius in spacings: 0 = particles are balls; 0.5 keeps '
+                          'a pressed surface particle under a small tool (no sideways slip) but '
+                          'spreads the load (local mode then needs k1_min >= 3)', (0.0, 0.5), False,
+                     'solver'),
+    'paper_momentum': (14, 'paper scheme: momentum equation 14 (the paper\'s eq. 14) or 12 (eq. 12, '
+                           'steadier at free surfaces)', (12, 14), False, 'solver'),
     'parallel_min_particles': (0, 'tlsph: use numba threads (NUMBA_NUM_THREADS) when at least this '
                                   'many particles are stressed; 0 = never. Only on cores the sim '
                                   'has to itself: a busy core stalls every parallel sub-step',
@@ -277,7 +283,9 @@ def build_config(p: dict) -> SolverConfig:
                        contact_damping_ratio=float(p['contact_damping_ratio']),
                        force_limit=float(p['force_limit']), cfl=float(p['cfl']),
                        max_substeps=int(p['max_substeps']),
-                       parallel_min_particles=int(p['parallel_min_particles']))
+                       parallel_min_particles=int(p['parallel_min_particles']),
+                       contact_disc=float(p['contact_disc']),
+                       paper_momentum=int(p['paper_momentum']))
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')

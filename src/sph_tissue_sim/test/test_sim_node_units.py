@@ -192,9 +192,13 @@ def test_solver_config_cross_checks():
         build_config(defaults(nominal_dt=0.05, max_dt=0.01))
 
 
-def test_threads_are_off_by_default_and_the_parameter_reaches_the_solver_config():
-    assert build_config(defaults()).parallel_min_particles == 0
-    assert build_config(defaults(parallel_min_particles=2000)).parallel_min_particles == 2000
+def test_threads_disc_contact_and_paper_momentum_parameters_reach_the_solver_config():
+    cfg = build_config(defaults())
+    assert (cfg.parallel_min_particles, cfg.contact_disc, cfg.paper_momentum) == (0, 0.0, 14)
+    cfg = build_config(defaults(parallel_min_particles=2000, contact_disc=0.5, paper_momentum=12))
+    assert (cfg.parallel_min_particles, cfg.contact_disc, cfg.paper_momentum) == (2000, 0.5, 12)
+    with pytest.raises(ConfigError, match='paper_momentum'):
+        build_config(defaults(paper_momentum=13))
 
 
 def test_check_value_catches_bad_choices_and_vectors():
