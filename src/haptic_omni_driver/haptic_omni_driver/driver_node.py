@@ -32,6 +32,7 @@ from .backends.base import Backend, Sample
 from .errors import ConfigError, DriverError
 from .params import DRIVER_PARAMS, check_choice, declare_all
 from .safety import ForceSafety, SafetyConfig
+from .signals import stop_on_signals
 
 EXIT_OK, EXIT_INPUT, EXIT_PARAMS = 0, 1, 2
 SAFETY_PARAMS = ('force_limit', 'ramp_time', 'watchdog_timeout', 'max_command_lag',
@@ -367,6 +368,7 @@ def main(args=None) -> int:
             return EXIT_INPUT
         from rclpy.experimental import EventsExecutor
 
+        stop = stop_on_signals()
         executor = EventsExecutor()
         executor.add_node(node)
         try:
@@ -374,7 +376,7 @@ def main(args=None) -> int:
         except DriverError as exc:
             node.get_logger().fatal(f'error: {exc}')
             return EXIT_INPUT
-        while rclpy.ok() and not node.finished.is_set():
+        while rclpy.ok() and not stop.is_set() and not node.finished.is_set():
             executor.spin_once(timeout_sec=0.1)
         code = node.exit_code
         if node.finished.is_set() and code == EXIT_OK:

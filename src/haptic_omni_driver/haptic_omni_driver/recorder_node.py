@@ -23,6 +23,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from . import bagio
 from .errors import ConfigError, DriverError
 from .params import RECORDER_PARAMS, declare_all
+from .signals import stop_on_signals
 
 #: message types of the topics this recorder knows (by last name component)
 KNOWN_TYPES = {
@@ -148,9 +149,10 @@ def main(args=None) -> int:
             return 2 if isinstance(exc, ConfigError) else 1
         from rclpy.experimental import EventsExecutor
 
+        stop = stop_on_signals()
         executor = EventsExecutor()
         executor.add_node(node)
-        while rclpy.ok() and not node.finished.is_set():
+        while rclpy.ok() and not stop.is_set() and not node.finished.is_set():
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

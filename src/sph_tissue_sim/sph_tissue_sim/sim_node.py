@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import collections
 import os
+import signal
 import sys
 import threading
 import time
@@ -44,6 +45,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import uninstall_signal_handlers
 from sensor_msgs.msg import PointCloud2
 from tissue_msgs.msg import SimMetrics
 from tissue_msgs.srv import ResetTissue
@@ -492,6 +494,22 @@ class SimNode(Node):
         return SetParametersResult(successful=True)
 
 
+def _stop_on_signals() -> threading.Event:
+    """Replace rclpy's SIGINT/SIGTERM handlers by ones that only set the returned event.
+
+    rclpy's handlers shut the context down from another thread, so a pose callback running at that
+    moment fails (its publish raises), and the EventsExecutor's C++ turns that, or a
+    ``KeyboardInterrupt`` raised inside a callback, into a ``RuntimeError`` from ``spin_once``:
+    the node exited 1 on Ctrl-C. With a flag the spin loop ends between callbacks. Installed once
+    the node is built, so Ctrl-C still interrupts the numba warm-up.
+    """
+    stop = threading.Event()
+    uninstall_signal_handlers()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
 def main(args=None) -> int:
     """Entry point of ``sim_node``; returns the exit code."""
     rclpy.init(args=args)
@@ -517,12 +535,13 @@ def main(args=None) -> int:
             raise
         from rclpy.experimental import EventsExecutor
 
+        stop = _stop_on_signals()
         # The default SingleThreadedExecutor cannot keep up with 1 kHz poses here (DESIGN.md sec. 2).
         executor = EventsExecutor()
         executor.add_node(node)
         node.start()
         # spin_once in a loop (not spin()): EventsExecutor.spin() does not return on Ctrl-C here
-        while rclpy.ok():
+        while rclpy.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
