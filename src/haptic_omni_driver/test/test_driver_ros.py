@@ -101,6 +101,20 @@ def test_lockstep_sends_each_pose_only_after_its_force_reply(rclpy_node, tmp_pat
 
 
 # -- safety over ROS ----------------------------------------------------------------------------
+def _rendered(force_log, force) -> bool:
+    """Whether the fake libHD's log (flushed every 10 frames) has a frame rendering ``force``."""
+    try:
+        lines = force_log.read_text().splitlines()
+    except FileNotFoundError:
+        return False
+    for line in lines:
+        cols = line.split()
+        if len(cols) == 5 and cols[1] == '1' and np.allclose(
+                [float(c) for c in cols[2:]], force, atol=1e-9):
+            return True
+    return False
+
+
 def _send_forces(node, pub, force, duration, frame='omni_base', period=0.001) -> float:
     """Publish ``force`` every ``period`` for ``duration`` s while spinning; returns last send time."""
     from geometry_msgs.msg import WrenchStamped
@@ -212,7 +226,11 @@ def test_fake_libhd_round_trip_pose_out_force_in(rclpy_node, tmp_path):
         st = watch.msgs[-1][1]
         assert st.backend == 'openhaptics' and st.source == 'FAKE-00042' and st.calibrated
         harness.wait_for_matching(rclpy_node, pub)
-        _send_forces(rclpy_node, pub, (0.2, -0.1, 0.05), 0.3)
+        # command until the device has rendered the full force: on a loaded machine a send gap
+        # beyond the 20 ms watchdog zeroes the force and restarts the ramp
+        deadline = time.monotonic() + 20.0
+        while not _rendered(force_log, (0.2, -0.1, 0.05)) and time.monotonic() < deadline:
+            _send_forces(rclpy_node, pub, (0.2, -0.1, 0.05), 0.1)
         rclpy_node.spin_until(lambda: False, 0.1)  # the watchdog trips after the last command
         assert proc.stop() == 0
     rows = np.loadtxt(force_log)
