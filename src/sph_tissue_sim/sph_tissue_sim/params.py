@@ -77,6 +77,11 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                      'solver'),
     'paper_momentum': (14, 'paper scheme: momentum equation 14 (the paper\'s eq. 14) or 12 (eq. 12, '
                            'steadier at free surfaces)', (12, 14), False, 'solver'),
+    'far_field': (0.0, 'local mode: still particles next to the solved ones follow this times the '
+                       'elastic half-space (Boussinesq) response to the contact force; 0 = held '
+                       'still as in the paper (stiffer than the whole organ; 1 is closer to global '
+                       'but rougher while dragging)', (0.0, 2.0), False,
+                  'solver'),
     'parallel_min_particles': (0, 'tlsph: use numba threads (NUMBA_NUM_THREADS) when at least this '
                                   'many particles are stressed; 0 = never. Only on cores the sim '
                                   'has to itself: a busy core stalls every parallel sub-step',
@@ -285,7 +290,8 @@ def build_config(p: dict) -> SolverConfig:
                        max_substeps=int(p['max_substeps']),
                        parallel_min_particles=int(p['parallel_min_particles']),
                        contact_disc=float(p['contact_disc']),
-                       paper_momentum=int(p['paper_momentum']))
+                       paper_momentum=int(p['paper_momentum']),
+                       far_field=float(p['far_field']))
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')

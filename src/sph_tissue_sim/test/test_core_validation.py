@@ -14,6 +14,7 @@ import math
 import numpy as np
 import pytest
 
+from sph_tissue_sim.core.local_area import FAR_FIELD_MAX_STRAIN, boussinesq
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_beam, make_block, make_model
 from sph_tissue_sim.core.solver import Solver, SolverConfig
@@ -374,18 +375,19 @@ def _press_and_hold(mode: str, depth: float, **config) -> np.ndarray:
     return res.force
 
 
-@pytest.mark.parametrize('k1_min', [1.0, 3.0])
-def test_local_area_contact_force_matches_global_at_same_indentation(k1_min):
+@pytest.mark.parametrize('k1_min,far_field', [(1.0, 0.0), (3.0, 0.0), (1.0, 1.0)])
+def test_local_area_contact_force_matches_global_at_same_indentation(k1_min, far_field):
     """Quasi-static press: the local-area model gives the global model's force within 10 %.
 
     The block is pressed 4 mm by the tool over 0.4 s and held 0.3 s (the retardation time is
     1.7 ms, so the hold is quasi-static). ``k1_min`` bounds the interaction radius Dr = k1 h from
-    below; the paper's k1 = f/2 (f in N) gives k1 < 1 at these forces.
+    below; the paper's k1 = f/2 (f in N) gives k1 < 1 at these forces. ``far_field`` 0 is the
+    paper's still region beyond the layers (default), 1 the half-space response.
     """
     f_global = _press_and_hold('global', 0.004, k1_min=k1_min)
-    f_local = _press_and_hold('local', 0.004, k1_min=k1_min)
+    f_local = _press_and_hold('local', 0.004, k1_min=k1_min, far_field=far_field)
     err = f_local[2] / f_global[2] - 1.0
-    print(f'k1_min {k1_min}: global {f_global[2]:.4f} N, local {f_local[2]:.4f} N, error {err:+.4f}')
+    print(f'k1_min {k1_min}, far_field {far_field}: global {f_global[2]:.4f} N, local {f_local[2]:.4f} N, error {err:+.4f}')
     assert f_global[2] > 0.1
     assert abs(err) < 0.10
 
@@ -403,28 +405,64 @@ def _press_liver(model, mode: str, depth: float, xy: tuple, **config) -> float:
     return float(np.linalg.norm(res.force))
 
 
-@pytest.mark.slow
-def test_local_area_force_on_the_liver_is_within_10_percent_of_global_with_k1_min_3():
-    """The 3671-particle liver pressed 2, 4 and 10 mm at four places: with k1_min = 3 (Dr >= 3h
-    beyond the touched patch, N = 2) the local force is within 10 % of the global one everywhere
-    (measured: at most +8.6 %).
+def test_boussinesq_far_field_matches_the_half_space_solution():
+    """Point load P on a half-space (Timoshenko & Goodier sec. 138): on the surface
+    u_z = P (1 - nu) / (2 pi G r) and u_r = -P (1 - 2 nu) / (4 pi G r); on the load axis at depth z
+    u_z = P (3 - 2 nu) / (4 pi G z). The load here points along -x, so 'down' is -x."""
+    G, nu, P = 1800.0, 0.45, 0.01
+    load = np.array([-P, 0.0, 0.0])
+    r = np.array([0.02, 0.05])
+    d = np.array([[0.0, r[0], 0.0], [0.0, 0.0, r[1]], [-0.03, 0.0, 0.0]])
+    u = np.zeros((3, 3))
+    boussinesq(d, load, G, nu, u)
+    uz_surface = P * (1 - nu) / (2 * math.pi * G * r)
+    ur_surface = -P * (1 - 2 * nu) / (4 * math.pi * G * r)
+    np.testing.assert_allclose(-u[:2, 0], uz_surface, rtol=1e-12)        # pushed in, along -x
+    np.testing.assert_allclose([u[0, 1], u[1, 2]], ur_surface, rtol=1e-12)  # drawn towards the load
+    np.testing.assert_allclose(-u[2, 0], P * (3 - 2 * nu) / (4 * math.pi * G * 0.03), rtol=1e-12)
+    assert u[0, 2] == 0.0 and u[2, 1] == 0.0 and u[2, 2] == 0.0
+    # near the load point the singular solution is capped; no load, no displacement
+    near = np.array([[0.0, 1e-4, 0.0], [1e-4, 0.0, 0.0]])
+    un = np.zeros((2, 3))
+    boussinesq(near, np.array([-3.3, 0.0, 0.0]), G, nu, un)
+    assert np.all(np.linalg.norm(un, axis=1) <= FAR_FIELD_MAX_STRAIN * 1e-4 * (1 + 1e-12))
+    boussinesq(d, np.zeros(3), G, nu, u)
+    assert not u.any()
 
-    The local area is stiffer than the whole organ because everything beyond its layers is held
-    still, and the smaller the area the larger the error: the default k1_min = 1 (faster, 0.2-0.4
-    ms per frame instead of 0.7-1.9 ms) gives +24 / +14 / +11 % at the centre at 2 / 4 / 10 mm
-    (printed below for reference, not asserted). Global runs use numba threads when there are
-    two (bit-identical to serial, only faster).
+
+_LIVER_PRESSES = [((0.0, 0.0), 0.002), ((0.0, 0.0), 0.004), ((0.0, 0.0), 0.010),
+                  ((0.03, 0.0), 0.002), ((0.03, 0.0), 0.004), ((0.03, 0.0), 0.010),
+                  ((-0.04, 0.01), 0.002), ((-0.04, 0.01), 0.004), ((-0.04, 0.01), 0.010),
+                  ((0.0, -0.03), 0.002), ((0.0, -0.03), 0.004), ((0.0, -0.03), 0.010)]
+
+
+@pytest.mark.slow
+def test_local_area_force_on_the_liver_matches_global():
+    """The 3671-particle liver pressed 2, 4 and 10 mm at four places, local against global.
+
+    With the paper's still region (far_field 0) the area is stiffer than the whole organ, the more
+    so the smaller it is; k1_min = 3 (Dr >= 3h beyond the touched patch, 0.7-1.9 ms per frame)
+    keeps it within 10 % everywhere (measured: at most +8.6 %). With far_field 1 at k1_min 1 (the
+    still neighbours follow the half-space response to the contact force, 0.2-0.6 ms per frame) it
+    is within 10 % at 4 and 10 mm everywhere (measured -7.6 ... +3.3 %); at 2 mm, a third of a
+    particle spacing, -14 ... +6 % (printed, not asserted). The default (k1_min 1, far_field 0)
+    gives up to +24 % (printed). Global runs use numba threads when there are two (bit-identical to
+    serial, only faster).
     """
     model = make_model('liver', n_particles=3670)
-    worst = 0.0
-    for xy in ((0.0, 0.0), (0.03, 0.0), (-0.04, 0.01), (0.0, -0.03)):
-        for depth in (0.002, 0.004, 0.010):
-            f_global = _press_liver(model, 'global', depth, xy, parallel_min_particles=1)
-            f_local = _press_liver(model, 'local', depth, xy, k1_min=3.0)
-            err = f_local / f_global - 1.0
-            default = (_press_liver(model, 'local', depth, xy) / f_global - 1.0) if xy == (0.0, 0.0) else None
-            print(f'liver at {xy} m, {depth * 1e3:.0f} mm: global {f_global:.4f} N, local (k1_min 3) '
-                  f'{f_local:.4f} N ({err:+.3f})' + (f', default k1_min 1: {default:+.3f}' if default is not None else ''))
-            assert f_global > 0.02
-            worst = max(worst, abs(err))
-    assert worst < 0.10
+    worst_k3, worst_ff = 0.0, 0.0
+    for xy, depth in _LIVER_PRESSES:
+        f_global = _press_liver(model, 'global', depth, xy, parallel_min_particles=1)
+        err_k3 = _press_liver(model, 'local', depth, xy, k1_min=3.0) / f_global - 1.0
+        err_ff = _press_liver(model, 'local', depth, xy, far_field=1.0) / f_global - 1.0
+        msg = (f'liver at {xy} m, {depth * 1e3:.0f} mm: global {f_global:.4f} N, local k1_min 3 '
+               f'{err_k3:+.3f}, far_field 1 {err_ff:+.3f}')
+        if xy == (0.0, 0.0):
+            msg += f', default {_press_liver(model, "local", depth, xy) / f_global - 1.0:+.3f}'
+        print(msg)
+        assert f_global > 0.02
+        worst_k3 = max(worst_k3, abs(err_k3))
+        if depth >= 0.004:
+            worst_ff = max(worst_ff, abs(err_ff))
+    assert worst_k3 < 0.10
+    assert worst_ff < 0.10

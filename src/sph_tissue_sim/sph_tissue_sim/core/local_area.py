@@ -12,6 +12,10 @@ Around the contact particle ``c`` (reference distance ``d``):
 area (or all of them once contact ends) stay *active* and are solved with full SPH until their
 displacement and speed are below tolerances, so the tissue recovers instead of freezing dented.
 Everything here costs O(area + active): the area comes from the reference cell grid.
+
+Optionally (``SolverConfig.far_field``) the still particles that solved ones read are not held at
+rest: :func:`far_field_shell` places them at the elastic half-space response to the contact force
+(the paper's still region clamps the area and makes it too stiff).
 """
 
 from __future__ import annotations
@@ -150,6 +154,97 @@ def local_release(X, x, v, in_active, active_list, n_active, region, in_area, di
             in_active[j] = 0
             region[j] = 0
             v[j, 0] = 0.0; v[j, 1] = 0.0; v[j, 2] = 0.0
+    return m
+
+
+#: cap of the imposed far-field displacement, as a fraction of the distance to the load point: the
+#: point-load solution is singular there, and the shell must never be turned inside out
+FAR_FIELD_MAX_STRAIN = 0.25
+
+
+@njit(cache=True)
+def boussinesq(d, load, G, nu, out):
+    """Displacement [m] of an elastic half-space under a point load, at offsets ``d`` (n, 3).
+
+    Boussinesq's solution for the load ``P`` [N] acting along n = P/|P| (into the body) at the
+    origin, with z = d.n the depth, r the distance from the load axis, R = |d|:
+
+        u_z = |P| / (4 pi G) (2 (1 - nu) / R + z^2 / R^3)
+        u_r = |P| / (4 pi G) (r z / R^3 - (1 - 2 nu) r / (R (R + z)))
+
+    ``out`` (n, 3) receives u = u_z n + u_r e_r, capped at ``FAR_FIELD_MAX_STRAIN * R`` (the
+    solution is singular at the load point and behind it, where R + z -> 0).
+    """
+    pm = math.sqrt(load[0] * load[0] + load[1] * load[1] + load[2] * load[2])
+    for i in range(d.shape[0]):
+        out[i, 0] = 0.0; out[i, 1] = 0.0; out[i, 2] = 0.0
+    if pm == 0.0:
+        return
+    n0 = load[0] / pm; n1 = load[1] / pm; n2 = load[2] / pm
+    coef = pm / (4.0 * math.pi * G)
+    for i in range(d.shape[0]):
+        R = math.sqrt(d[i, 0] * d[i, 0] + d[i, 1] * d[i, 1] + d[i, 2] * d[i, 2])
+        if R == 0.0:
+            continue
+        z = d[i, 0] * n0 + d[i, 1] * n1 + d[i, 2] * n2
+        r0 = d[i, 0] - z * n0; r1 = d[i, 1] - z * n1; r2 = d[i, 2] - z * n2
+        r = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+        uz = coef * (2.0 * (1.0 - nu) / R + z * z / (R * R * R))
+        ur = 0.0
+        if r > 0.0:
+            ur = coef * (r * z / (R * R * R) - (1.0 - 2.0 * nu) * r / (R * max(R + z, 1e-3 * R))) / r
+        u0 = uz * n0 + ur * r0; u1 = uz * n1 + ur * r1; u2 = uz * n2 + ur * r2
+        um = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+        cap = FAR_FIELD_MAX_STRAIN * R
+        if um > cap:
+            s = cap / um
+            u0 *= s; u1 *= s; u2 *= s
+        out[i, 0] = u0; out[i, 1] = u1; out[i, 2] = u2
+
+
+@njit(cache=True)
+def far_field_shell(X, x, fixed, stress_list, n_stress, sph_list, n_sph, layer_list, n_lp,
+                    mark, ff_list, n_ff, centre, load, G, nu, buf_d, buf_u):
+    """Move the still particles that solved ones read (the stress shell) with the tissue around.
+
+    The paper holds everything beyond the transmission layers still, which clamps the area at a
+    few h from the tool and makes it stiffer than the whole organ (+24 % on the liver at 2 mm).
+    Here each shell particle j is placed at ``X_j + u(X_j - centre)``, ``u`` the elastic
+    half-space response to the contact ``load`` (:func:`boussinesq`). Particles placed so in the
+    previous frame (``ff_list[:n_ff]``) that are neither solved nor in the shell now go back to
+    rest. ``mark`` (n,) int8 must be zero on entry and is zero on return. Returns the new shell
+    count (``ff_list[:count]``).
+    """
+    for t in range(n_sph):
+        mark[sph_list[t]] = 1
+    for t in range(n_lp):
+        mark[layer_list[t]] = 1
+    for t in range(n_ff):
+        j = ff_list[t]
+        if mark[j] == 0:
+            x[j, 0] = X[j, 0]; x[j, 1] = X[j, 1]; x[j, 2] = X[j, 2]
+    m = 0
+    for t in range(n_stress):
+        j = stress_list[t]
+        if mark[j] != 0 or fixed[j]:
+            continue
+        mark[j] = 2
+        ff_list[m] = j
+        buf_d[m, 0] = X[j, 0] - centre[0]
+        buf_d[m, 1] = X[j, 1] - centre[1]
+        buf_d[m, 2] = X[j, 2] - centre[2]
+        m += 1
+    boussinesq(buf_d[:m], load, G, nu, buf_u)
+    for t in range(m):
+        j = ff_list[t]
+        x[j, 0] = X[j, 0] + buf_u[t, 0]
+        x[j, 1] = X[j, 1] + buf_u[t, 1]
+        x[j, 2] = X[j, 2] + buf_u[t, 2]
+        mark[j] = 0
+    for t in range(n_sph):
+        mark[sph_list[t]] = 0
+    for t in range(n_lp):
+        mark[layer_list[t]] = 0
     return m
 
 
