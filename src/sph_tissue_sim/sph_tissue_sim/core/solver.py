@@ -291,10 +291,11 @@ class Solver:
         self.n_stress_last = 0
         self.ext_idx = np.zeros(0, dtype=np.int32)
         self.ext_force = np.zeros((0, 3))
-        self.ff_list = np.zeros(n, dtype=np.int32)   # shell particles placed by the far field
+        # far-field shell (local mode, far_field > 0): allocated on first use
+        self.ff_list = np.zeros(0, dtype=np.int32)
         self.n_ff = 0
-        self.ff_mark = np.zeros(n, dtype=np.int8)
-        self.ff_buf = np.zeros((n, 3))
+        self.ff_mark = np.zeros(0, dtype=np.int8)
+        self.ff_buf = np.zeros((0, 3))
         self.ff_load = np.zeros(3)
 
     def set_external_forces(self, indices, forces) -> None:
@@ -586,6 +587,10 @@ class Solver:
         if cfg.far_field > 0.0 or self.n_ff:
             # the load on the tissue is the reaction on the tool reversed (previous frame's, as k1)
             np.multiply(self.react, -cfg.far_field, out=self.ff_load)
+            if len(self.ff_list) != self.n:
+                self.ff_list = np.zeros(self.n, dtype=np.int32)
+                self.ff_mark = np.zeros(self.n, dtype=np.int8)
+                self.ff_buf = np.zeros((self.n, 3))
             self.n_ff = far_field_shell(
                 self.X, self.x, self.fixed, self.stress_list, n_stress, self.sph_list, n_sph,
                 self.layer_list, n_lp, self.ff_mark, self.ff_list, self.n_ff, self.area_centre,
