@@ -86,6 +86,9 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                   'many particles are stressed; 0 = never. Only on cores the sim '
                                   'has to itself: a busy core stalls every parallel sub-step',
                                (0, 10_000_000), False, 'solver'),
+    'max_tool_speed': (1.0, '[m/s] the simulated tool follows the device at most this fast (a pose '
+                            'jump of centimetres in one frame would tear the tissue apart); a hand on '
+                            'the stylus stays well below 1 m/s', (0.01, 10.0), False, None),
     # -- force ------------------------------------------------------------------------------------
     'force_limit': (HARD_FORCE_LIMIT, f'[N] norm clamp of the force sent to the device (Omni peak '
                                       f'{HARD_FORCE_LIMIT} N, continuous 0.88 N)',
@@ -291,7 +294,8 @@ def build_config(p: dict) -> SolverConfig:
                        parallel_min_particles=int(p['parallel_min_particles']),
                        contact_disc=float(p['contact_disc']),
                        paper_momentum=int(p['paper_momentum']),
-                       far_field=float(p['far_field']))
+                       far_field=float(p['far_field']),
+                       max_tool_speed=float(p['max_tool_speed']))
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')

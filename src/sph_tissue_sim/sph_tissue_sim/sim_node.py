@@ -62,6 +62,7 @@ EXIT_OK, EXIT_INPUT, EXIT_PARAMS = 0, 1, 2
 REEXEC_ENV = 'SPH_SIM_NODE_REEXEC'
 LOCKSTEP_MIN_DEPTH = 1000
 STEP_TIME_HISTORY = 100_000
+TOOL_LAG_LOG = 1e-3  # [m] a lag behind the device worth telling the operator about
 
 
 def make_solver(model, material, config: SolverConfig, nominal_dt: float) -> Solver:
@@ -352,6 +353,10 @@ class SimNode(Node):
                                           self.p['force_limit'])
                 self._wall[self.counts['steps'] % STEP_TIME_HISTORY] = res.wall_time
                 self.counts['steps'] += 1
+                if res.tool_lag > TOOL_LAG_LOG:
+                    self._throttled('tool_lag', 'warn', f'the device moved faster than max_tool_speed '
+                                    f'({solver.config.max_tool_speed:g} m/s): the simulated tool '
+                                    f'follows {res.tool_lag * 1e3:.1f} mm behind')
                 if res.substeps_capped:
                     self._throttled('capped', 'warn', f'frame needed more than max_substeps '
                                     f'({solver.config.max_substeps}): simulated time lags')
@@ -480,6 +485,7 @@ class SimNode(Node):
             elif material is not None:
                 self.solver.set_material(material)
             self.solver.config.force_limit = float(new['force_limit'])
+            self.solver.config.max_tool_speed = float(new['max_tool_speed'])
             if mapping is not None:
                 self.mapping = mapping
             self.clock.nominal_dt = float(new['nominal_dt'])

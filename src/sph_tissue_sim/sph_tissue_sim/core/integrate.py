@@ -50,14 +50,15 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
               stress_list, n_stress, sph_list, n_sph, layer_list, layer_w, n_lp,
               cand, n_cand, contact_idx,
               tool0, tool1, tool_on, reach, k_c, c_c,
-              n_sub, dt, frame_dt, v_limit, react, fbuf, ext_idx, ext_force, n_ext, surf,
+              n_sub, dt, frame_dt, react, fbuf, ext_idx, ext_force, n_ext, surf,
               touch_idx, touch_w, n_touch, par_min):
-    """Advance ``n_sub`` sub-steps; returns ``(last overlap [m], ok)``.
+    """Advance ``n_sub`` sub-steps; returns the last overlap [m].
 
     ``react`` (3,) receives the mean reaction force on the tool over the sub-steps [N].
     ``H`` (N, 3, 3) is scratch for the TLSPH hourglass map of the stressed particles.
     ``gv`` (nnz, 3) holds the TLSPH reference pair gradients ``V_j DWIJ0`` (:func:`~.tlsph.pair_gradients`).
-    ``ok`` is False if a velocity became non-finite or exceeded ``v_limit`` (caller restores state).
+    The caller checks the result with :func:`frame_state_ok` (not here: ``fastmath`` assumes finite
+    values and may drop a NaN test).
     ``ext_force[t]`` [N] is a constant external load on free particle ``ext_idx[t]`` (``t < n_ext``).
     ``surf`` is the contact surface geometry (see :func:`~.contact.contact_forces`).
     Layers follow the ``touch_w``-weighted mean velocity of the touched particles ``touch_idx[:n_touch]``
@@ -138,24 +139,29 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
                     x[i, a] += dt * v[i, a]
     for a in range(3):
         react[a] /= max(n_sub, 1)
-    ok = True
+    return overlap
+
+
+@njit(cache=True)
+def frame_state_ok(x, v, sph_list, n_sph, layer_list, n_lp, v_limit, react):
+    """False if a moved particle's position or velocity is non-finite or a speed exceeds
+    ``v_limit`` [m/s], or the reaction on the tool is non-finite.
+
+    Compiled without ``fastmath``: under fast-math LLVM assumes no NaN or inf and may fold these
+    tests to "finite" (seen with numba: ``isfinite`` answered True for a NaN).
+    """
     vl2 = v_limit * v_limit
-    for t in range(n_sph):
-        i = sph_list[t]
-        s2 = v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]
-        if not (s2 <= vl2) or not (math.isfinite(x[i, 0]) and math.isfinite(x[i, 1]) and math.isfinite(x[i, 2])):
-            ok = False
-            break
-    if ok:
-        for t in range(n_lp):
-            i = layer_list[t]
+    for part in range(2):
+        idx = sph_list if part == 0 else layer_list
+        n = n_sph if part == 0 else n_lp
+        for t in range(n):
+            i = idx[t]
             s2 = v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]
-            if not (s2 <= vl2):
-                ok = False
-                break
-    if not (math.isfinite(react[0]) and math.isfinite(react[1]) and math.isfinite(react[2])):
-        ok = False
-    return overlap, ok
+            if not (s2 <= vl2):  # also False for NaN
+                return False
+            if not (math.isfinite(x[i, 0]) and math.isfinite(x[i, 1]) and math.isfinite(x[i, 2])):
+                return False
+    return math.isfinite(react[0]) and math.isfinite(react[1]) and math.isfinite(react[2])
 
 
 def substep_bounds(h: float, wave_speed: float, rho: float, eta_long: float, mass: float,

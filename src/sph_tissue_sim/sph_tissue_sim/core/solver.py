@@ -22,7 +22,8 @@ import numpy as np
 
 from .contact import clamp_force, contact_vector_py, deepest_contact, surface_discs
 from .errors import ConfigError, ModelError, SimError
-from .integrate import SCHEME_MASS_SPRING, SCHEME_TLSPH, run_frame, substep_bounds, substeps_for
+from .integrate import (SCHEME_MASS_SPRING, SCHEME_TLSPH, frame_state_ok, run_frame, substep_bounds,
+                        substeps_for)
 from .kernel import SUPPORT
 from .local_area import (active_stats, detect_local, far_field_shell, local_prepare, local_release,
                          restore_state, save_state)
@@ -83,6 +84,11 @@ class SolverConfig:
             for a descheduled thread: local p99 went from 0.5 to 4.4 ms with one busy process
             and the median to 32 ms with two. Enable it only where the simulator has cores of its
             own.
+        max_tool_speed: the simulated tool follows the requested tool position at most this fast
+            [m/s]: a frame moves it by at most ``max_tool_speed * dt`` towards the request (a
+            tracking glitch or a pose jump of centimetres in one frame would otherwise drive the
+            tool through the tissue in one frame and tear the particle lattice apart). A hand on a
+            haptic stylus moves well below 1 m/s (the bundled sessions: up to 0.18 m/s).
         far_field: local mode: the still particles next to the solved ones move by this times the
             elastic half-space (Boussinesq) response to the contact force instead of staying at
             rest (0, the default: the paper's still region). Holding them still makes the area
@@ -117,6 +123,7 @@ class SolverConfig:
     paper_momentum: int = 14
     parallel_min_particles: int = 0
     far_field: float = 0.0
+    max_tool_speed: float = 1.0
 
     def validate(self) -> 'SolverConfig':
         """Check ranges; raises :class:`ConfigError` naming the bad field. Returns self."""
@@ -132,7 +139,7 @@ class SolverConfig:
                 raise ConfigError(f'{f.name} must be a finite number, got {val!r}')
         positive = ('h_ratio', 'k1_min', 'k1_max', 'tool_radius', 'contact_stiffness', 'force_limit',
                     'cfl', 'relax_disp_tol', 'relax_vel_tol', 'velocity_limit', 'max_tool_distance',
-                    'spring_radius', 'contact_particle_radius')
+                    'spring_radius', 'contact_particle_radius', 'max_tool_speed')
         for name in positive:
             if getattr(self, name) <= 0.0:
                 raise ConfigError(f'{name} must be > 0, got {getattr(self, name)}')
@@ -190,6 +197,7 @@ class StepResult:
     kinetic_energy: float             # [J]
     wall_time: float                  # [s]
     substeps_capped: bool = False     # the frame needed more than max_substeps (time lagged)
+    tool_lag: float = 0.0             # [m] requested minus simulated tool position (max_tool_speed)
     k1: float = 0.0                   # interaction radius factor used (local mode)
     n_active: int = 0                 # particles integrated this frame
 
@@ -461,6 +469,9 @@ class Solver:
         tool_on = tool is not None
         n_sub, sub_dt, capped = substeps_for(dt, self.dt_max if tool_on else self.dt_max_free,
                                              cfg.max_substeps)
+        tool_lag = 0.0
+        if tool_on and self.tool_prev is not None:
+            tool, tool_lag = self._limit_travel(self.tool_prev, tool, cfg.max_tool_speed * dt)
         tool1 = tool if tool_on else self.centre.copy()
         tool0 = self.tool_prev if (tool_on and self.tool_prev is not None) else tool1
         reach = self.contact_reach
@@ -478,9 +489,21 @@ class Solver:
         self.sim_time += n_sub * sub_dt
         result = StepResult(force=force, force_raw=force_raw, clamped=clamped, substeps=n_sub,
                             substep_dt=sub_dt, wall_time=time.perf_counter() - t0,
-                            substeps_capped=capped, **res)
+                            substeps_capped=capped, tool_lag=tool_lag, **res)
         self.last_result = result
         return result
+
+    @staticmethod
+    def _limit_travel(prev: np.ndarray, target: np.ndarray, max_travel: float) -> tuple[np.ndarray, float]:
+        """``target`` moved back towards ``prev`` so that the travel is at most ``max_travel`` [m];
+        returns (position, distance left to the target [m])."""
+        p0, p1, p2 = prev.tolist()
+        d0, d1, d2 = (target - prev).tolist()
+        dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if dist <= max_travel:
+            return target, 0.0
+        f = max_travel / dist
+        return np.array([p0 + f * d0, p1 + f * d1, p2 + f * d2]), dist - max_travel
 
     def _sticky_contact(self, tool: np.ndarray, reach: float) -> int:
         """Keep the previous contact particle while the tool still touches it.
@@ -502,20 +525,29 @@ class Solver:
         return SCHEME_TLSPH, self.offsets, self.indices, self.dw, self.w0
 
     def _run(self, lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt):
-        if self.config.scheme == 'paper':
-            return self._paper.run(lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt)
-        m = self.material
-        sid, off, idx, dw, w0 = self._scheme_arrays()
+        """One frame on the index sets ``lists``; returns ``(overlap, ok)``.
+
+        ``ok`` is False when the frame left a non-finite or too fast particle or a non-finite
+        reaction (checked outside the fast-math kernels, see :func:`~.integrate.frame_state_ok`).
+        """
         (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
-        overlap, ok = run_frame(
-            sid, self.X, self.x, self.v, self.acc, self.fixed, self.inv_mass, self.volume,
-            off, idx, dw, w0, self.Linv, self.F, self.Fd, self.A, self.H, self.gv,
-            m.G, m.K, m.eta_shear, m.eta_bulk, self.hg_k, self.hg_c, m.retardation_time,
-            stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand, contact,
-            tool0, tool1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,
-            n_sub, sub_dt, dt, self.config.velocity_limit, self.react, self.fbuf,
-            self.ext_idx, self.ext_force, len(self.ext_idx), self.contact_surf,
-            self.touch_idx, self.touch_w, self.n_touch, self.par_min)
+        if self.config.scheme == 'paper':
+            overlap, ok = self._paper.run(lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt)
+        else:
+            m = self.material
+            sid, off, idx, dw, w0 = self._scheme_arrays()
+            overlap = run_frame(
+                sid, self.X, self.x, self.v, self.acc, self.fixed, self.inv_mass, self.volume,
+                off, idx, dw, w0, self.Linv, self.F, self.Fd, self.A, self.H, self.gv,
+                m.G, m.K, m.eta_shear, m.eta_bulk, self.hg_k, self.hg_c, m.retardation_time,
+                stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand, contact,
+                tool0, tool1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,
+                n_sub, sub_dt, dt, self.react, self.fbuf,
+                self.ext_idx, self.ext_force, len(self.ext_idx), self.contact_surf,
+                self.touch_idx, self.touch_w, self.n_touch, self.par_min)
+            ok = True
+        ok = ok and frame_state_ok(self.x, self.v, sph, n_sph, layer, n_lp, self.config.velocity_limit,
+                                   self.react)
         return overlap, ok
 
     def _global_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
