@@ -117,9 +117,9 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'timing_mode': ('live', 'live (newest pose only, never a backlog) | lockstep (every pose in '
                             'order, reliable deep queue; bit-identical replays)', TIMING_MODES, True,
                     None),
-    'step_thread': (False, 'step in a worker thread fed by an inbox (live: only the newest pose is '
-                           'kept; lockstep: a FIFO) instead of in the subscription callback (default: '
-                           'measured slower here, the GIL hand-over costs more than it saves)',
+    'step_thread': (True, 'step in a worker thread fed by an inbox (live: only the newest pose is '
+                          'kept; lockstep: a FIFO), so reset and parameter services never wait for '
+                          'a step; false: the subscription callback steps',
                     None, True, None),
     'nominal_dt': (0.001, '[s] step of the first pose and of a pose whose stamp went backwards',
                    (1e-5, 0.1), False, None),

@@ -11,11 +11,11 @@ are the pose's, so the round trip can be measured). Publishes ``tissue/particles
 Timing modes (parameter ``timing_mode``):
 
 - ``live``: only the newest pose is stepped; poses that arrive during a step are dropped, so there
-  is never a backlog. By default the subscription callback steps and the pose reader's history
-  (best effort, depth ``qos_depth`` = 1) keeps only the newest pose; with ``step_thread: true`` the
-  callback only stores the newest pose in an inbox and a worker thread steps (drops are counted).
-  The default was chosen by measurement (benchmarks/sim_latency.py): on 2 cores the GIL hand-over
-  between the executor and a worker thread costs more than it saves.
+  is never a backlog. By default (``step_thread: true``) the callback only stores the newest pose
+  in an inbox and a stepping thread steps (drops are counted), so the executor thread is always
+  free for services: a reset or parameter change interrupts a long step (the frame kernels release
+  the GIL) instead of waiting behind it. With ``step_thread: false`` the callback steps and the
+  pose reader's history (best effort, depth ``qos_depth`` = 1) keeps only the newest pose.
 - ``lockstep``: every pose is processed in order with ``dt`` from its stamp (reliable QoS, depth
   >= 1000; with ``step_thread`` a FIFO inbox), so replaying the same poses gives bit-identical forces.
 
@@ -31,6 +31,7 @@ Exit codes: 0 normal (Ctrl-C), 1 the model cannot be built (missing mesh, ...), 
 from __future__ import annotations
 
 import collections
+import contextlib
 import os
 import signal
 import sys
@@ -52,7 +53,7 @@ from tissue_msgs.srv import ResetTissue
 
 from .cloud import POINT_DTYPE, make_cloud, pack_points
 from .core.errors import ConfigError, ModelError, SimError
-from .core.solver import InvalidInput, Solver, SolverConfig, warmup
+from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, warmup
 from .mapping import DeviceMapping, anchor_point, check_position, clamp_norm
 from .params import (SIM_PARAMS, build_config, build_material, build_model, check_value,
                      declare_all)
@@ -62,6 +63,7 @@ EXIT_OK, EXIT_INPUT, EXIT_PARAMS = 0, 1, 2
 REEXEC_ENV = 'SPH_SIM_NODE_REEXEC'
 LOCKSTEP_MIN_DEPTH = 1000
 STEP_TIME_HISTORY = 100_000
+SWITCH_INTERVAL = 2e-4  # [s]
 TOOL_LAG_LOG = 1e-3  # [m] a lag behind the device worth telling the operator about
 
 
@@ -148,6 +150,7 @@ class SimNode(Node):
         self._wrench_msg = WrenchStamped()
         self._wall = np.zeros(STEP_TIME_HISTORY)   # ring of step wall times [s] for the totals
         self._metrics_msg = SimMetrics()
+        self._cloud_due = False                  # a cloud was due while a step held the solver
 
         if self.lockstep:
             io_qos = QoSProfile(depth=max(p['qos_depth'], LOCKSTEP_MIN_DEPTH),
@@ -232,7 +235,8 @@ class SimNode(Node):
         rclpy.logging.get_logger(self.get_name() + '.shutdown').info(
             f'totals: {c["poses"]} poses, {c["steps"]} steps, {c["dropped"]} dropped (newer pose '
             f'arrived first), {c["rejected"]} rejected, {c["sim_errors"]} unstable steps, '
-            f'{c["overflow"]} lockstep overflows')
+            f'{c["overflow"]} lockstep overflows, {c["interrupted"]} steps interrupted by a reset or '
+            f'parameter change')
         if c['steps']:
             w = self._wall[:min(c['steps'], STEP_TIME_HISTORY)] * 1e3
             rclpy.logging.get_logger(self.get_name() + '.shutdown').info(
@@ -340,6 +344,8 @@ class SimNode(Node):
                                 f'force')
             except ConfigError as exc:
                 self._throttled('config', 'error', f'step impossible ({exc}): answered zero force')
+            except StepInterrupted:
+                self.counts['interrupted'] += 1  # a reset or parameter change took the solver
             except SimError as exc:
                 self.counts['sim_errors'] += 1
                 solver.reset()
@@ -366,6 +372,8 @@ class SimNode(Node):
         self._publish_force(header, force_dev)
         if metrics is not None:
             self.metrics_pub.publish(metrics)
+        if self._cloud_due:
+            self._publish_cloud()
 
     def _publish_force(self, header, force: np.ndarray) -> None:
         msg = self._wrench_msg  # reused: building a message costs more than the step of a small area
@@ -408,13 +416,33 @@ class SimNode(Node):
                             + traceback.format_exc())
 
     def _publish_cloud_once(self) -> None:
-        with self._lock:
+        # never wait for a step here: the timer runs on the executor thread, which must stay free
+        # for poses and services; the stepping thread publishes the cloud after its step instead
+        if not self._lock.acquire(blocking=False):
+            self._cloud_due = True
+            return
+        try:
+            self._cloud_due = False
             s = self.solver
             pts = pack_points(s.positions, s.displacement(), s.von_mises(), s.region, self._cloud_buf)
             stamp = self._last_stamp
+        finally:
+            self._lock.release()
         msg = make_cloud(pts, self.p['tissue_frame'],
                          stamp if stamp is not None else self.get_clock().now().to_msg())
         self.cloud_pub.publish(msg)
+
+    @contextlib.contextmanager
+    def _solver_now(self):
+        """The solver, at once: a step in progress stops before its next sub-step (its pose is
+        answered with zero force), so a service never waits for a long step."""
+        solver = self.solver
+        solver.interrupt()
+        with self._lock:
+            try:
+                yield
+            finally:
+                solver.clear_interrupt()  # before the lock is free: the next step runs
 
     # -- reset -----------------------------------------------------------------------------------
     def _on_reset(self, request: ResetTissue.Request, response: ResetTissue.Response):
@@ -425,7 +453,7 @@ class SimNode(Node):
             response.message = f'reset refused: the configured material cannot be loaded: {exc}'
             self.get_logger().error(response.message)
             return response
-        with self._lock:
+        with self._solver_now():
             response.sim_time = float(self.solver.sim_time)
             if material is not None:
                 try:
@@ -477,7 +505,7 @@ class SimNode(Node):
             reason = f'refused: {exc}'
             self.get_logger().warn(f'parameter change {sorted(changed)} {reason}')
             return SetParametersResult(successful=False, reason=reason)
-        with self._lock:
+        with self._solver_now():
             if solver is not None:
                 self.solver = solver
                 self.clock.reset()
@@ -542,6 +570,9 @@ def main(args=None) -> int:
         from rclpy.experimental import EventsExecutor
 
         stop = _stop_on_signals()
+        # the stepping thread's Python work between kernels holds the GIL; hand it to the executor
+        # (poses, services) within a fraction of a 1 kHz frame instead of CPython's 5 ms
+        sys.setswitchinterval(SWITCH_INTERVAL)
         # The default SingleThreadedExecutor cannot keep up with 1 kHz poses here (DESIGN.md sec. 2).
         executor = EventsExecutor()
         executor.add_node(node)

@@ -1,6 +1,8 @@
 """Faults the solver must survive: non-finite states, tool jumps, huge frames."""
 
 import math
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -10,7 +12,7 @@ from sph_tissue_sim.core.integrate import frame_state_ok
 from sph_tissue_sim.core.liver import make_liver
 from sph_tissue_sim.core.material import liver_default
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.core.solver import Solver, SolverConfig, StepInterrupted
 
 LIMIT = 3.3
 
@@ -110,3 +112,31 @@ def test_tool_travel_per_frame_is_bounded_by_max_tool_speed():
     assert np.allclose(np.diff(lags[:99]), -0.5 * 2e-3, rtol=0, atol=1e-12)
     assert lags[-1] == 0.0
     assert np.allclose(solver.tool_prev, target, rtol=0, atol=1e-15)
+
+
+def test_interrupt_stops_a_long_step_in_another_thread_and_restores_the_state(liver):
+    solver = Solver(liver, liver_default(), SolverConfig(mode='global', max_substeps=100000))
+    tool = _top_centre(solver) + [0.0, 0.0, solver.contact_reach - 0.002]
+    solver.step(tool, 1e-3)
+    x0, v0 = solver.positions.copy(), solver.velocities.copy()
+    outcome = []
+
+    def long_step():  # one second of simulated time: thousands of sub-steps, seconds of work
+        try:
+            outcome.append(solver.step(tool, 1.0))
+        except SimError as exc:
+            outcome.append(exc)
+
+    worker = threading.Thread(target=long_step)
+    worker.start()
+    time.sleep(0.2)  # not needed for the outcome: an interrupt before the step starts stops it too
+    solver.interrupt()
+    worker.join(120.0)
+    assert not worker.is_alive()
+    assert isinstance(outcome[0], StepInterrupted)
+    assert np.array_equal(solver.positions, x0) and np.array_equal(solver.velocities, v0)
+    with pytest.raises(StepInterrupted):       # interrupted until cleared
+        solver.step(tool, 1e-3)
+    solver.clear_interrupt()
+    res = solver.step(tool, 1e-3)
+    assert res.contact_index >= 0 and np.isfinite(res.force).all()

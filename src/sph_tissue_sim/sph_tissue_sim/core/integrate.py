@@ -43,7 +43,7 @@ def spring_force_one(i, x, v, offsets, indices, k_spring, rest, tau, out):
     out[2] = f2
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, nogil=True)
 def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
               offsets, indices, dw, w0, Linv, F, Fd, A, H, gv,
               G, K, eta_s, eta_v, hg_k, hg_c, tau,
@@ -51,7 +51,7 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
               cand, n_cand, contact_idx,
               tool0, tool1, tool_on, reach, k_c, c_c,
               n_sub, dt, frame_dt, react, fbuf, ext_idx, ext_force, n_ext, surf,
-              touch_idx, touch_w, n_touch, par_min):
+              touch_idx, touch_w, n_touch, par_min, abort):
     """Advance ``n_sub`` sub-steps; returns the last overlap [m].
 
     ``react`` (3,) receives the mean reaction force on the tool over the sub-steps [N].
@@ -65,6 +65,8 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
     (the contact particle alone when ``n_touch`` is 0).
     The TLSPH pass runs on numba's thread pool when at least ``par_min`` particles are stressed
     (bit-identical to the serial pass; small local areas stay serial: no thread wake-up).
+    The frame stops before the next sub-step once another thread sets ``abort[0]`` (the GIL is
+    released while it runs); the caller then restores the state.
     """
     react[0] = 0.0; react[1] = 0.0; react[2] = 0.0
     tool = np.empty(3)
@@ -74,6 +76,8 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
         tool_vel[a] = (tool1[a] - tool0[a]) / frame_dt
     overlap = 0.0
     for s in range(n_sub):
+        if abort[0] != 0:
+            break
         frac = (s + 1.0) / n_sub
         for a in range(3):
             tool[a] = tool0[a] + frac * (tool1[a] - tool0[a])

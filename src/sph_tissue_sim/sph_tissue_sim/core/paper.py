@@ -283,13 +283,13 @@ def momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form, out):
 
 
 # ---------------------------------------------------------------------------- frame loop
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
                 rows, n_rows, search, n_search, n_sph,
                 layer_list, layer_w, n_lp, cand, n_cand, contact_idx,
                 tool0, tool1, tool_on, reach, k_c, c_c,
                 n_sub, dt, frame_dt, v_limit, react, ext_idx, ext_force, n_ext,
-                rho, eps, epsd, sig, pos, nb_off, nb_idx, nb_dw, nb_w, surf):
+                rho, eps, epsd, sig, pos, nb_off, nb_idx, nb_dw, nb_w, surf, abort):
     """Advance ``n_sub`` sub-steps of the paper scheme.
 
     ``rows[:n_sph]`` are the fully solved (free) particles, ``rows[:n_rows]`` get density, strain
@@ -300,7 +300,8 @@ def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
     ``ok`` is False as soon as a speed exceeds ``v_limit``, a position is non-finite or a solved
     particle has lost every neighbour (the body tore apart); the caller restores the state.
     ``form`` selects the momentum equation (14 or 12, see :func:`momentum_one`). ``react``
-    receives the mean reaction on the tool [N].
+    receives the mean reaction on the tool [N]. The frame stops before the next sub-step once
+    another thread sets ``abort[0]`` (the GIL is released while it runs).
     """
     react[0] = 0.0; react[1] = 0.0; react[2] = 0.0
     tool = np.empty(3)
@@ -313,6 +314,8 @@ def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
         tool_vel[a] = (tool1[a] - tool0[a]) / frame_dt
     overlap = 0.0
     for s in range(n_sub):
+        if abort[0] != 0:
+            break
         frac = (s + 1.0) / n_sub
         for a in range(3):
             tool[a] = tool0[a] + frac * (tool1[a] - tool0[a])
@@ -539,7 +542,7 @@ class PaperScheme:
             tool0, tool1, tool_on, reach, s.config.contact_stiffness, s.contact_damping,
             n_sub, sub_dt, dt, s.config.velocity_limit, s.react, s.ext_idx, s.ext_force, len(s.ext_idx),
             self.rho, self.eps, self.epsd, self.sig, self.pos, self.nb_off,
-            self.nb_idx, self.nb_dw, self.nb_w, s.contact_surf)
+            self.nb_idx, self.nb_dw, self.nb_w, s.contact_surf, s.abort)
         self._vm_rows = rows
         self.n_rows_last = n_rows if ok else 0
         return overlap, ok

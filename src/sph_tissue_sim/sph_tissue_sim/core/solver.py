@@ -41,6 +41,10 @@ class InvalidInput(SimError, ValueError):
     """A step input (tool position, dt) is non-finite or absurd; the state was not changed."""
 
 
+class StepInterrupted(SimError):
+    """:meth:`Solver.interrupt` stopped the step; the state is as before it."""
+
+
 @dataclass
 class SolverConfig:
     """Solver settings (SI units).
@@ -305,6 +309,18 @@ class Solver:
         self.ff_mark = np.zeros(0, dtype=np.int8)
         self.ff_buf = np.zeros((0, 3))
         self.ff_load = np.zeros(3)
+        self.abort = np.zeros(1, dtype=np.int8)   # set by interrupt() from another thread
+
+    def interrupt(self) -> None:
+        """Make the step running in another thread stop before its next sub-step (it then raises
+        :class:`StepInterrupted` with the state restored), and every later step until
+        :meth:`clear_interrupt`. Safe to call from any thread: the frame loops run without the GIL.
+        """
+        self.abort[0] = 1
+
+    def clear_interrupt(self) -> None:
+        """Let steps run again after :meth:`interrupt`."""
+        self.abort[0] = 0
 
     def set_external_forces(self, indices, forces) -> None:
         """Constant external loads [N] on particles (e.g. a traction on a face); replaces previous ones.
@@ -544,11 +560,18 @@ class Solver:
                 tool0, tool1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,
                 n_sub, sub_dt, dt, self.react, self.fbuf,
                 self.ext_idx, self.ext_force, len(self.ext_idx), self.contact_surf,
-                self.touch_idx, self.touch_w, self.n_touch, self.par_min)
+                self.touch_idx, self.touch_w, self.n_touch, self.par_min, self.abort)
             ok = True
         ok = ok and frame_state_ok(self.x, self.v, sph, n_sph, layer, n_lp, self.config.velocity_limit,
                                    self.react)
-        return overlap, ok
+        return overlap, ok and self.abort[0] == 0
+
+    def _frame_error(self, mode: str) -> SimError:
+        """The error of a frame that did not finish (its state was restored by the caller)."""
+        if self.abort[0] != 0:
+            return StepInterrupted(f'{self.config.scheme} {mode} step interrupted; state restored')
+        return SimError(f'{self.config.scheme} {mode} step went unstable (non-finite or speed > '
+                        f'{self.config.velocity_limit} m/s); state restored')
 
     def _global_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
         contact = self._sticky_contact(tool1, reach) if tool_on else -1
@@ -563,8 +586,7 @@ class Solver:
             self.x[:] = self.buf_x
             self.v[:] = self.buf_v
             self.react[:] = 0.0
-            raise SimError(f'{self.config.scheme} global step went unstable (non-finite or speed > '
-                           f'{self.config.velocity_limit} m/s); state restored')
+            raise self._frame_error('global')
         md, ke = active_stats(self.x, self.X, self.v, self.free_idx, len(self.free_idx), self.mass)
         self.n_stress_last = self.n
         return dict(contact_index=int(contact), penetration=float(max(overlap, 0.0)),
@@ -634,8 +656,7 @@ class Solver:
         if not ok:
             restore_state(self.x, self.v, self.sph_list, n_sph, self.layer_list, n_lp, self.buf_x, self.buf_v)
             self.react[:] = 0.0
-            raise SimError(f'{cfg.scheme} local step went unstable (non-finite or speed > '
-                           f'{cfg.velocity_limit} m/s); state restored')
+            raise self._frame_error('local')
         self.n_stress_last = n_stress
         n_active_frame = self.n_active
         md, ke = active_stats(self.x, self.X, self.v, self.active_list, self.n_active, self.mass)

@@ -1,0 +1,135 @@
+"""sim_node faults found by a bad-input battery, as real processes over DDS: a one-frame jump deep
+into the liver, and the services while poses stream into slow steps."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import re
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import harness
+from sim_probe import (START_TIMEOUT, T0_NS, SimProbe, call_reset, finite_and_bounded, force_of,
+                       press_path, sim)
+
+pytestmark = pytest.mark.ros
+
+_spec = importlib.util.spec_from_file_location('sph_sim_faults_shared_conftest',
+                                               harness.REPO_ROOT / 'test' / 'conftest.py')
+_shared = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_shared)
+ros_domain = _shared.ros_domain
+rclpy_node = _shared.rclpy_node
+
+FORCE_LIMIT = 3.3
+LIVER = {'model': 'liver', 'n_particles': 3670}
+SERVICE_DEADLINE = 5.0  # [s] generous for a loaded machine; a starved service never answered
+
+
+def _totals(output: str) -> dict:
+    m = re.search(r'totals: (\d+) poses, (\d+) steps, (\d+) dropped .*?, (\d+) rejected, '
+                  r'(\d+) unstable steps', output)
+    assert m, output
+    return dict(zip(('poses', 'steps', 'dropped', 'rejected', 'unstable'), map(int, m.groups())))
+
+
+def test_a_one_frame_jump_50_mm_deep_keeps_every_reply_finite_and_the_tissue_sane(rclpy_node):
+    """300 poses 2 mm above the contact point, one 50 mm below it 1 ms later, then 1 kHz poses back
+    up from 20 ms later (the kinetic energy used to turn NaN and stay NaN, unreported)."""
+    up, deep = (0.0, 0.002, 0.0), (0.0, -0.050, 0.0)
+    poses = [(up, T0_NS + k * 1_000_000) for k in range(300)]
+    poses.append((deep, T0_NS + 300 * 1_000_000))
+    poses += [(up, T0_NS + 320 * 1_000_000 + k * 1_000_000) for k in range(200)]
+    with sim({**LIVER, 'timing_mode': 'lockstep', 'particles_rate': 0.0}) as proc:
+        probe = SimProbe(rclpy_node, reliable=True)
+        probe.wait_matched(proc)
+        forces = [force_of(probe.exchange(pos, ns, timeout=60.0)) for pos, ns in poses]
+        assert rclpy_node.spin_until(lambda: len(probe.metrics) >= len(poses), 30.0)
+        assert proc.stop() == 0
+        output = proc.output()
+    assert finite_and_bounded(forces, FORCE_LIMIT)
+    energies = [m.kinetic_energy for m in probe.metrics]
+    assert all(math.isfinite(e) for e in energies), 'non-finite kinetic energy'
+    assert max(m.substeps for m in probe.metrics[-150:]) <= 4   # quiet again, no sub-step storm
+    assert 'simulated tool follows' in output           # the lag behind the jump is told
+    assert _totals(output)['steps'] == len(poses)
+
+
+class PoseStream:
+    """Publishes omni/pose at about 1 kHz from a thread (a device that never stops)."""
+
+    def __init__(self, probe: SimProbe, path: np.ndarray) -> None:
+        self.probe, self.path = probe, path
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        t0 = time.monotonic_ns()
+        while not self._stop.is_set():
+            k = self.sent
+            self.probe.publish(self.path[k % len(self.path)], T0_NS + (time.monotonic_ns() - t0))
+            self.sent += 1
+            time.sleep(0.001)
+
+    def __enter__(self) -> 'PoseStream':
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+
+
+def _timed(call):
+    t = time.monotonic()
+    out = call()
+    return out, time.monotonic() - t
+
+
+def _get_parameters(node, names, timeout: float):
+    from rcl_interfaces.srv import GetParameters
+
+    client = node.create_client(GetParameters, '/sim_node/get_parameters')
+    try:
+        assert node.spin_until(client.service_is_ready, timeout), 'get_parameters not available'
+        fut = client.call_async(GetParameters.Request(names=list(names)))
+        assert node.spin_until(fut.done, timeout), 'get_parameters did not answer'
+        return fut.result().values
+    finally:
+        node.destroy_client(client)
+
+
+def test_reset_and_parameters_answer_while_a_1khz_pose_stream_feeds_slow_global_steps(rclpy_node):
+    """Global mode on the liver steps for milliseconds to hundreds of milliseconds (a stamp gap of
+    max_dt means tens of sub-steps), far longer than the pose period on any machine. The services
+    used to wait behind every queued pose (no answer in 15 s); now they answer at once, and the
+    node keeps answering poses after the reset."""
+    path = press_path(400, depth=0.006, start_height=0.001)
+    with sim({**LIVER, 'mode': 'global', 'particles_rate': 10.0}) as proc:
+        probe = SimProbe(rclpy_node)
+        probe.wait_matched(proc)
+        with PoseStream(probe, path) as stream:
+            assert rclpy_node.spin_until(lambda: len(probe.force_order) >= 20, 60.0), proc.output()
+            timings = {}
+            for k in range(3):
+                values, timings[f'get_parameters {k}'] = _timed(
+                    lambda: _get_parameters(rclpy_node, ['mode', 'scheme'], SERVICE_DEADLINE))
+                assert [v.string_value for v in values] == ['global', 'tlsph']
+                reset, timings[f'reset {k}'] = _timed(
+                    lambda: call_reset(rclpy_node, timeout=SERVICE_DEADLINE))
+                assert reset.success, reset.message
+                before = len(probe.force_order)
+                assert rclpy_node.spin_until(lambda: len(probe.force_order) > before + 5, 60.0)
+            sent = stream.sent
+        print('answer times under the pose stream [ms]:',
+              {k: round(v * 1e3, 1) for k, v in timings.items()}, f'({sent} poses sent)')
+        assert all(t < SERVICE_DEADLINE for t in timings.values()), timings
+        assert finite_and_bounded([force_of(m) for m in probe.forces.values()], FORCE_LIMIT)
+        assert proc.stop() == 0
+        totals = _totals(proc.output())
+    assert totals['dropped'] > 0 or totals['steps'] == totals['poses']
