@@ -130,3 +130,51 @@ def test_statuses_without_data_are_ok_when_their_topics_are_not_required():
     assert tissue_status(snap, targets).level == STALE
     targets.rates['metrics'] = RateTarget(900.0, 1100.0, required=False)
     assert step_status(snap, targets).level == OK and tissue_status(snap, targets).level == OK
+
+
+def _all_values(statuses) -> list[str]:
+    return [v for s in statuses for _, v in s.values] + [s.message for s in statuses]
+
+
+def test_diagnostics_say_n_a_rather_than_nan_where_there_is_no_number():
+    statuses = evaluate(VizStats(window=1.0).snapshot(0.0), Targets())
+    values = _all_values(statuses)
+    assert not [v for v in values if 'nan' in v.lower().replace('nan/inf', '')], values
+    step = next(s for s in statuses if s.name.endswith('step time'))
+    assert dict(step.values)['p99 [ms]'] == 'n/a'
+
+
+def test_absurd_input_is_counted_per_kind_in_the_input_status_and_kept_out_of_the_others():
+    stats = VizStats(window=1.0)
+    for i in range(20):
+        stats.on_metrics(i * 1e-3, i * MS, 1e-4, (0, 0, 0.5), 0.001)
+    for i, bad in enumerate((math.nan, math.inf, 1e308, -1.0)):
+        stats.on_metrics(0.02 + i * 1e-3, (20 + i) * MS, bad, (0, 0, 0.5), 0.001)
+    stats.on_metrics(0.03, 30 * MS, 1e-4, (0, 0, 0.5), 0.001, n_interaction=4_294_967_295)
+    stats.on_pose(0.031, 31 * MS, (math.inf, 0.0, 0.0))
+    statuses = evaluate(stats.snapshot(0.04), Targets())
+    assert not [v for v in _all_values(statuses) if 'nan' in v.lower().replace('nan/inf', '')]
+    status = next(s for s in statuses if s.name.endswith('input'))
+    values = dict(status.values)
+    assert status.level == WARN
+    assert '6 messages with NaN/inf or out-of-range values ignored' in status.message
+    assert values['bad messages total'] == '6' and values['bad step times total'] == '4'
+    assert values['bad active particle counts total'] == '1'
+    assert values['bad tool positions total'] == '1'
+    step = next(s for s in statuses if s.name.endswith('step time'))
+    assert step.level == OK and dict(step.values)['max [ms]'] == '0.100'
+
+
+def test_a_snapshot_with_absurd_numbers_gives_short_readable_values():
+    snap = Snapshot(now=1.0, window=1.0, step_p50=1e308, step_p99=math.inf, step_max=1e308,
+                    deadline_misses=3, deadline_miss_pct=100.0, latency_p50=1e300,
+                    latency_p99=1e300, latency_max=math.nan, replies_missed_pct=math.nan,
+                    active=4e18, n_interaction=-1e300, force=1e308, force_max=1e308,
+                    displacement=-math.inf)
+    snap.rates = {t: 1e308 for t in ('metrics', 'particles', 'pose', 'force')}
+    snap.ages = {t: 0.0 for t in snap.rates}
+    snap.counts = {t: 10 for t in snap.rates}
+    statuses = evaluate(snap, Targets())
+    values = _all_values(statuses)
+    assert all(len(v) < 120 for v in values), max(values, key=len)
+    assert not [v for v in values if 'nan' in v.lower().replace('nan/inf', '')]

@@ -166,3 +166,219 @@ def test_csv_marks_missing_values_as_empty_cells(tmp_path):
     assert (tmp_path / 'x.csv').read_text() == 't,v\n0,\n0.5,2.5\n'
     back = read_csv(tmp_path / 'x.csv')
     assert np.isnan(back['v'][0]) and back['v'][1] == 2.5
+
+
+# -- bad values ---------------------------------------------------------------------------------
+ALL_FILES = set(PNGS) | {f'{n}.csv' for n in TABLES} | {'summary.md', 'index.html', 'summary.json'}
+HUGE_OR_NOT_FINITE = (math.nan, math.inf, -math.inf, 1e308, -1e308)
+ABSURD = HUGE_OR_NOT_FINITE + (-1e-3,)    # a negative time, length or energy
+
+
+def _assert_complete_with_drawn_plots(out) -> dict:
+    """Every file is there, every PNG decodes and is drawn on; returns summary.json."""
+    assert ALL_FILES <= {p.name for p in out.iterdir()}
+    for png in PNGS:
+        size, ink, _ = _ink(out / png)
+        assert size == (800, 450) and ink > 0.02, (png, ink)
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['failed_files'] == {} and summary['plot_failures'] == {}
+    return summary
+
+
+def _normal_then_absurd_run() -> tuple[VizStats, dict]:
+    """A normal press run with, in between, messages carrying each absurd value in each field.
+
+    Returns the statistics and the number of bad values sent per quantity.
+    """
+    stats = _press_run(seconds=1.0)
+    sent = dict.fromkeys(('step_wall_time', 'contact_force', 'max_displacement', 'penetration',
+                          'kinetic_energy', 'active_particles', 'substeps', 'contact_index',
+                          'pose_position', 'wrench_force'), 0)
+    t, stamp = 1.0, 10_000
+    huge = 4_294_967_295                                  # uint32 max
+    for bad in ABSURD:
+        good = dict(step_wall_time=1e-4, force=(0.0, 0.0, 1.0), max_displacement=0.002,
+                    penetration=0.001, kinetic_energy=1e-4)
+        for field, value in (('step_wall_time', bad), ('max_displacement', bad),
+                             ('penetration', bad), ('kinetic_energy', bad)):
+            t, stamp = t + 1e-3, stamp + 1
+            assert not stats.on_metrics(t, stamp * MS, **dict(good, **{field: value}))
+            sent[field] += 1
+        if bad not in HUGE_OR_NOT_FINITE:
+            continue                                      # negative forces and positions are fine
+        t, stamp = t + 1e-3, stamp + 1
+        assert not stats.on_metrics(t, stamp * MS, **dict(good, force=(0.0, bad, 1.0)))
+        assert not stats.on_pose(t, stamp * MS, (0.0, 0.0, bad))
+        assert stats.on_force(t, stamp * MS, (bad, 0.0, 0.0)) is None
+        for key in ('contact_force', 'pose_position', 'wrench_force'):
+            sent[key] += 1
+    for field in ('n_interaction', 'n_relaxing', 'substeps'):
+        t, stamp = t + 1e-3, stamp + 1
+        assert not stats.on_metrics(t, stamp * MS, 1e-4, (0, 0, 1.0), 0.002, **{field: huge})
+        sent['substeps' if field == 'substeps' else 'active_particles'] += 1
+    t, stamp = t + 1e-3, stamp + 1
+    assert not stats.on_metrics(t, stamp * MS, 1e-4, (0, 0, 1.0), 0.002, n_layer=[huge] * 3)
+    assert not stats.on_metrics(t, (stamp + 1) * MS, 1e-4, (0, 0, 1.0), 0.002,
+                                contact_index=-2_147_483_648)
+    sent['active_particles'] += 1
+    sent['contact_index'] += 1
+    stats.sample_rates(t)
+    return stats, sent
+
+
+def test_report_of_a_run_with_absurd_values_is_complete_and_counts_them_in_the_summary(tmp_path):
+    stats, sent = _normal_then_absurd_run()
+    out = write_report(tmp_path / 'run', ReportData.from_stats(stats, 1.2))
+    summary = _assert_complete_with_drawn_plots(out)
+    assert {k: v for k, v in summary['bad_values'].items() if v} == sent
+    assert summary['bad_messages'] == sum(sent.values())
+    assert summary['steps'] == 500                       # only the normal messages
+    assert summary['step_max_s'] == pytest.approx(2e-3)  # no absurd value in the statistics
+    md = (out / 'summary.md').read_text()
+    assert f'- step times: {len(ABSURD)} not finite or out of range' in md
+    assert f'- tool positions: {len(HUGE_OR_NOT_FINITE)} not finite or out of range' in md
+    assert '- active particle counts: 3 not finite or out of range' in md
+    assert (f'| messages with NaN/inf or out-of-range values (ignored) | {sum(sent.values())} |'
+            in md)
+    assert 'nan' not in md.lower().replace('nan/inf', '')
+    html = (out / 'index.html').read_text()
+    assert 'step times: 6 not finite or out of range' in html
+
+
+@pytest.mark.parametrize('bad', ABSURD + (0.0, 5e-324), ids=repr)
+def test_report_tables_holding_a_bad_value_in_every_column_still_give_every_file(tmp_path, bad):
+    """Tables as another tool or an edited CSV could hold them: each column of each table has
+    normal values and ``bad`` (zero and the smallest float are odd but valid everywhere)."""
+    n = 50
+    normal = {'t': np.arange(n) * 1e-3, 'step_wall_time': np.full(n, 1e-4),
+              'latency': np.full(n, 5e-4), 'px': np.zeros(n), 'py': np.zeros(n),
+              'pz': -np.arange(n) * 1e-4, 'fx': np.zeros(n), 'fy': np.zeros(n),
+              'fz': np.arange(n) * 0.04, 'penetration': np.arange(n) * 1e-4}
+    tables = {}
+    for name, columns in TABLES.items():
+        tables[name] = {c: normal.get(c, np.full(n, 1.0)).copy() for c in columns}
+        for c in columns:
+            tables[name][c][7 + columns.index(c)] = bad
+    valid = bad in (0.0, 5e-324)
+    out = write_report(tmp_path / 'run', ReportData(tables=tables, rate_targets={
+        'metrics': (900.0, 1100.0), 'particles': (25.0, 35.0)}))
+    summary = _assert_complete_with_drawn_plots(out)
+    md = (out / 'summary.md').read_text()
+    if valid:
+        assert summary['bad_values']['step_wall_time'] == 0 and '## Not shown' not in md
+    else:
+        bad_values = summary['bad_values']
+        assert bad_values['step_wall_time'] == 1 and bad_values['latency'] == 1
+        # one row per force column; a negative force component is fine
+        assert bad_values['contact_force'] == (3 if bad in HUGE_OR_NOT_FINITE else 0)
+        assert '- step times: 1 not finite or out of range' in md
+        assert '- latencies: 1 not finite or out of range' in md
+
+
+def test_one_huge_step_time_among_fast_ones_is_drawn_on_a_log_axis(tmp_path):
+    stats = VizStats(window=1.0)
+    for i in range(200):
+        stats.on_metrics(i * 1e-3, i * MS, 0.0 if i % 10 == 0 else 1e-4, (0, 0, 0.5), 0.001)
+    stats.on_metrics(0.2, 200 * MS, 3600.0, (0, 0, 0.5), 0.001)          # one hour: valid
+    stats.on_metrics(0.201, 201 * MS, 5e-324, (0, 0, 0.5), 0.001)        # the smallest float
+    out = write_report(tmp_path / 'run', ReportData.from_stats(stats, 0.3))
+    summary = _assert_complete_with_drawn_plots(out)
+    assert summary['steps'] == 202 and summary['step_max_s'] == 3600.0
+
+
+def test_a_plot_that_fails_is_replaced_by_a_placeholder_named_in_the_summary(tmp_path,
+                                                                             monkeypatch):
+    import tissue_viz.report as report
+
+    def broken(data, path):
+        raise RuntimeError('cannot draw $this$')
+
+    monkeypatch.setitem(report.PLOTTERS, 'rates.png', broken)
+    out = write_report(tmp_path / 'run', ReportData.from_stats(_press_run(0.5), 0.5))
+    size, ink, _ = _ink(out / 'rates.png')
+    assert size == (800, 450) and ink > 0.005                 # the placeholder says why
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['plot_failures'] == {'rates.png': 'RuntimeError: cannot draw $this$'}
+    assert summary['failed_files'] == {}
+    assert ('- rates.png could not be drawn (RuntimeError: cannot draw $this$); it shows a '
+            'placeholder') in (out / 'summary.md').read_text()
+    for png in set(PNGS) - {'rates.png'}:
+        assert _ink(out / png)[1] > 0.02, png
+
+
+def test_without_a_working_matplotlib_every_plot_is_still_a_valid_png(tmp_path, monkeypatch):
+    import tissue_viz.report as report
+
+    def no_matplotlib():
+        raise ImportError('matplotlib is broken')
+
+    monkeypatch.setattr(report, '_pyplot', no_matplotlib)
+    out = write_report(tmp_path / 'run', ReportData.from_stats(_press_run(0.5), 0.5))
+    summary = json.loads((out / 'summary.json').read_text())
+    assert set(summary['plot_failures']) == set(PNGS) and summary['failed_files'] == {}
+    for png in PNGS:
+        size, _, _ = _ink(out / png)                         # decodes as a PNG
+        assert size == (800, 450)
+
+
+def test_a_file_that_cannot_be_written_is_named_and_the_others_are_written(tmp_path,
+                                                                           monkeypatch):
+    import tissue_viz.report as report
+
+    real = report.write_csv
+
+    def full_disk(path, columns, table):
+        if path.name == 'force.csv':
+            raise OSError(28, 'No space left on device')
+        real(path, columns, table)
+
+    monkeypatch.setattr(report, 'write_csv', full_disk)
+    with pytest.raises(ReportError, match=r'1 of 12 report files not written .*force\.csv '
+                                          r'\(OSError: .*No space left on device\)'):
+        write_report(tmp_path / 'run', ReportData.from_stats(_press_run(0.5), 0.5))
+    written = {p.name for p in (tmp_path / 'run').iterdir()}
+    assert written == ALL_FILES - {'force.csv'}
+    summary = json.loads((tmp_path / 'run' / 'summary.json').read_text())
+    assert list(summary['failed_files']) == ['force.csv'] and 'force.csv' not in summary['files']
+
+
+def test_a_report_folder_whose_file_names_are_taken_by_folders_is_refused_before_writing(tmp_path):
+    from tissue_viz.report import prepare_report_dir
+
+    (tmp_path / 'run' / 'summary.md').mkdir(parents=True)
+    with pytest.raises(ReportError, match='summary.md: it exists and is not a file'):
+        prepare_report_dir(tmp_path / 'run')
+    with pytest.raises(ReportError, match='summary.md: it exists and is not a file'):
+        write_report(tmp_path / 'run', ReportData())
+    assert prepare_report_dir(tmp_path / 'new') == tmp_path / 'new'
+    assert list((tmp_path / 'new').iterdir()) == []          # the check leaves nothing behind
+
+
+def test_a_new_report_into_the_same_folder_removes_the_old_summary_json_first(tmp_path,
+                                                                              monkeypatch):
+    import tissue_viz.report as report
+
+    out = write_report(tmp_path / 'run', ReportData())
+    assert (out / 'summary.json').is_file()
+
+    def fails(*_):
+        raise OSError(5, 'Input/output error')
+
+    monkeypatch.setattr(report, '_write_summary_json', fails)
+    with pytest.raises(ReportError, match='summary.json'):
+        write_report(out, ReportData())
+    assert not (out / 'summary.json').exists()   # no stale file claims the report is finished
+
+
+def test_tissue_report_rebuilds_a_report_from_csv_files_holding_inf_and_huge_values(tmp_path):
+    (tmp_path / 'src').mkdir()
+    (tmp_path / 'src' / 'metrics.csv').write_text(
+        't,step_wall_time,fx,fy,fz,force,max_displacement\n'
+        '0,1e-4,0,0,0.5,0.5,0.001\n0.001,inf,0,0,0.5,0.5,0.001\n0.002,1e308,0,-inf,0.5,inf,1e308\n'
+        '0.003,-1,0,0,0.5,0.5,\n0.004,2e-4,0,0,0.6,0.6,0.002\n')
+    (tmp_path / 'src' / 'summary.json').write_text('{"haptic_period_s": "soon"}')
+    assert main([str(tmp_path / 'src'), '-o', str(tmp_path / 'out'), '--recompute-summary']) == 0
+    summary = json.loads((tmp_path / 'out' / 'summary.json').read_text())
+    assert summary['steps'] == 2 and summary['bad_values']['step_wall_time'] == 3
+    assert summary['max_displacement_m'] == pytest.approx(0.002)
+    assert ALL_FILES <= {p.name for p in (tmp_path / 'out').iterdir()}

@@ -9,8 +9,8 @@ import pytest
 
 from tissue_viz.errors import VizConfigError
 from tissue_viz.markers import ToolFrame, force_arrow
-from tissue_viz.stats import (DecimatingRecorder, LatencyMatcher, RateMeter, StampOrder, VizStats,
-                              percentile, press_displacement, summary_line)
+from tissue_viz.stats import (LIMITS, DecimatingRecorder, LatencyMatcher, Limit, RateMeter,
+                              StampOrder, VizStats, percentile, press_displacement, summary_line)
 
 MS = 1_000_000  # ns per ms
 
@@ -114,13 +114,72 @@ def test_nan_metrics_are_counted_and_left_out_of_the_statistics():
     assert not stats.on_metrics(0.002, 2 * MS, 1e-4, (0, math.inf, 0.5), 0.001)
     assert not stats.on_pose(0.003, 3 * MS, (math.nan, 0, 0))
     snap = stats.snapshot(0.01)
-    assert snap.nan_in_window == 3 and snap.nan_total == 3
+    assert snap.bad_in_window == 3 and snap.bad_total == 3
     assert snap.step_max == pytest.approx(1e-4)
     assert snap.counts['metrics'] == 3                   # received, even if rejected
     assert stats.steps_total == 1 and len(stats.metrics_table) == 1
     assert stats.last_pose is None
-    assert stats.snapshot(10.0).nan_in_window == 0       # out of the window again
-    assert stats.summary(10.0)['nan_messages'] == 3
+    assert stats.snapshot(10.0).bad_in_window == 0       # out of the window again
+    assert stats.summary(10.0)['bad_messages'] == 3
+
+
+ABSURD = (math.nan, math.inf, -math.inf, 1e308, -1e308, -1.0)
+
+
+@pytest.mark.parametrize('field, value, key', [
+    *[('step_wall_time', v, 'step_wall_time') for v in ABSURD],
+    *[('max_displacement', v, 'max_displacement') for v in ABSURD],
+    *[('penetration', v, 'penetration') for v in ABSURD],
+    *[('kinetic_energy', v, 'kinetic_energy') for v in ABSURD],
+    ('force', (1e308, 0.0, 0.0), 'contact_force'),
+    ('force', (0.0, -math.inf, 0.0), 'contact_force'),
+    ('n_interaction', 4_294_967_295, 'active_particles'),
+    ('n_layer', [4_294_967_295] * 2, 'active_particles'),
+    ('n_relaxing', 10 ** 400, 'active_particles'),          # beyond any float: still just bad
+    ('substeps', 4_294_967_295, 'substeps'), ('contact_index', -2_147_483_648, 'contact_index'),
+], ids=lambda x: repr(x)[:12])
+def test_an_absurd_value_in_any_metrics_field_is_counted_and_its_message_left_out(field, value,
+                                                                                  key):
+    stats = VizStats(window=5.0)
+    for i in range(10):
+        assert stats.on_metrics(i * 1e-3, i * MS, 1e-4 * (1 + i % 2), (0, 0, 0.5), 0.001,
+                                n_interaction=100, n_layer=[20, 10])
+    normal = dict(step_wall_time=1e-4, force=(0, 0, 0.5), max_displacement=0.001)
+    assert not stats.on_metrics(0.02, 20 * MS, **dict(normal, **{field: value}))
+    snap = stats.snapshot(0.03)
+    assert snap.bad_in_window == 1 and snap.bad_values[key] == 1
+    assert sum(snap.bad_values.values()) == 1
+    # The statistics are those of the ten normal messages.
+    assert snap.step_max == pytest.approx(2e-4) and snap.active == 130
+    assert snap.force == pytest.approx(0.5) and snap.displacement == pytest.approx(0.001)
+    summary = stats.summary(0.03)
+    assert summary['steps'] == 10 and summary['step_max_s'] == pytest.approx(2e-4)
+    assert summary['max_active_particles'] == 130 and summary['bad_values'][key] == 1
+    assert len(stats.metrics_table) == 10
+
+
+@pytest.mark.parametrize('value', ABSURD[:-1])
+def test_absurd_poses_and_forces_are_counted_and_do_not_move_the_tool(value):
+    stats = VizStats(window=5.0)
+    stats.on_pose(0.0, MS, (0.01, 0.02, 0.03))
+    stats.on_force(0.001, MS, (0.0, 0.0, 1.0))
+    assert not stats.on_pose(0.002, 2 * MS, (0.0, value, 0.0))
+    assert stats.on_force(0.003, 2 * MS, (value, 0.0, 0.0)) is None
+    assert stats.last_pose == (0.01, 0.02, 0.03) and stats.last_force_vec == (0.0, 0.0, 1.0)
+    snap = stats.snapshot(0.004)
+    assert snap.bad_values['pose_position'] == 1 and snap.bad_values['wrench_force'] == 1
+    assert snap.force_max == pytest.approx(1.0) and snap.latency_max == pytest.approx(0.001)
+
+
+def test_zero_and_the_limits_themselves_are_valid_values():
+    stats = VizStats(window=5.0)
+    assert stats.on_metrics(0.0, 0, 0.0, (0, 0, 0), 0.0)
+    assert stats.on_metrics(0.001, MS, LIMITS['step_wall_time'].hi, (0, 0, 0), 0.0)
+    assert stats.snapshot(0.002).step_max == LIMITS['step_wall_time'].hi
+    limit = Limit(0.0, 1.0, 'things')
+    assert limit.ok(0.0, 1.0) and not limit.ok(0.5, 1.5) and not limit.ok(math.nan)
+    assert limit.mask([-1.0, 0.5, math.inf, math.nan, 1.0]).tolist() == [False, True, False,
+                                                                         False, True]
 
 
 def test_backwards_stamps_are_counted_per_topic_but_equal_stamps_are_not():

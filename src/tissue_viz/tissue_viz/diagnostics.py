@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 from tissue_viz.errors import VizConfigError
-from tissue_viz.stats import TOPICS, Snapshot
+from tissue_viz.stats import LIMITS, TOPICS, Snapshot
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
@@ -97,12 +97,19 @@ class Status:
         return LEVEL_NAMES[self.level]
 
 
-def _ms(x: float) -> str:
-    return 'nan' if x is None or not math.isfinite(x) else f'{x * 1e3:.3f}'
+NO_VALUE = 'n/a'    # what a person reads where there is no number (never 'nan')
 
 
-def _num(x: float, digits: int = 3) -> str:
-    return 'nan' if x is None or not math.isfinite(x) else f'{x:.{digits}f}'
+def _num(x: float | None, digits: int = 3) -> str:
+    if x is None or not math.isfinite(x):
+        return NO_VALUE
+    if abs(x) >= 1e9:    # fixed point would print hundreds of digits for an absurd value
+        return f'{x:.3g}'
+    return f'{x:.{digits}f}'
+
+
+def _ms(x: float | None) -> str:
+    return NO_VALUE if x is None or not math.isfinite(x) else _num(x * 1e3, 3)
 
 
 def rate_status(topic: str, snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> Status:
@@ -123,12 +130,12 @@ def rate_status(topic: str, snap: Snapshot, targets: Targets, prefix: str = 'viz
         return Status(name, OK, 'no data (not required)', values)
     if age > targets.stale_timeout:
         level = ERROR if target.required else OK
-        return Status(name, level, f'no data for {age:.1f} s', values)
+        return Status(name, level, f'no data for {_num(age, 1)} s', values)
     if rate < lo:
-        return Status(name, WARN, f'rate too low ({rate:.1f} Hz < {lo:.1f} Hz)', values)
+        return Status(name, WARN, f'rate too low ({_num(rate, 1)} Hz < {_num(lo, 1)} Hz)', values)
     if rate > hi:
-        return Status(name, WARN, f'rate too high ({rate:.1f} Hz > {hi:.1f} Hz)', values)
-    return Status(name, OK, f'rate ok ({rate:.1f} Hz)', values)
+        return Status(name, WARN, f'rate too high ({_num(rate, 1)} Hz > {_num(hi, 1)} Hz)', values)
+    return Status(name, OK, f'rate ok ({_num(rate, 1)} Hz)', values)
 
 
 def step_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> Status:
@@ -144,7 +151,7 @@ def step_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> S
             return Status(name, STALE, 'no data', values)
         return Status(name, OK, 'no data (metrics not required)', values)
     miss = snap.deadline_miss_pct
-    text = f'p99 {snap.step_p99 * 1e3:.3f} ms, {miss:.1f} % deadline misses'
+    text = f'p99 {_ms(snap.step_p99)} ms, {_num(miss, 1)} % deadline misses'
     if snap.step_p99 > targets.step_p99_error or miss > targets.deadline_miss_error_pct:
         return Status(name, ERROR, 'too slow: ' + text, values)
     if snap.step_p99 > targets.step_p99_warn or miss > targets.deadline_miss_warn_pct:
@@ -166,8 +173,9 @@ def latency_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -
             return Status(name, STALE, 'no data', values)
         return Status(name, OK, 'no data (pose and force not both required)', values)
     loss = 0.0 if not math.isfinite(loss) else loss
-    text = (f'p50 {snap.latency_p50 * 1e3:.2f} ms p99 {snap.latency_p99 * 1e3:.2f} ms, '
-            f'{loss:.1f} % poses without reply')
+    text = (f'p50 {_num(snap.latency_p50 * 1e3, 2)} ms '
+            f'p99 {_num(snap.latency_p99 * 1e3, 2)} ms, '
+            f'{_num(loss, 1)} % poses without reply')
     if snap.latency_p99 > targets.latency_p99_error or loss > targets.reply_loss_error_pct:
         return Status(name, ERROR, 'too late: ' + text, values)
     if (snap.latency_p50 > targets.latency_p50_warn or snap.latency_p99 > targets.latency_p99_warn
@@ -189,21 +197,27 @@ def tissue_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') ->
             return Status(name, STALE, 'no data', values)
         return Status(name, OK, 'no data (metrics and force not required)', values)
     if math.isfinite(snap.force_max) and snap.force_max >= targets.force_limit * (1.0 - 1e-6):
-        return Status(name, WARN, f'force at the device limit ({snap.force_max:.2f} N)', values)
+        return Status(name, WARN, f'force at the device limit ({_num(snap.force_max, 2)} N)',
+                      values)
     text = (f'active {_num(snap.active, 0)}, F {_num(snap.force, 2)} N, '
             f'disp {_num(snap.displacement * 1e3 if math.isfinite(snap.displacement) else math.nan, 1)} mm')
     return Status(name, OK, text, values)
 
 
 def input_status(snap: Snapshot, prefix: str = 'viz_node') -> Status:
-    """Bad input seen in the window: messages with NaN/inf, header stamps going backwards."""
-    values = [('nan/inf in window', str(snap.nan_in_window)), ('nan/inf total', str(snap.nan_total)),
+    """Bad input seen in the window: messages with NaN/inf or out-of-range values (with the count
+    of each kind of bad value since start), header stamps going backwards."""
+    values = [('bad messages in window', str(snap.bad_in_window)),
+              ('bad messages total', str(snap.bad_total)),
               ('backwards stamps in window', str(snap.backwards_in_window)),
               ('backwards stamps total', str(snap.backwards_total))]
+    values += [(f'bad {LIMITS[key].what} total', str(count))
+               for key, count in snap.bad_values.items() if count and key in LIMITS]
     name = f'{prefix}: input'
     problems = []
-    if snap.nan_in_window:
-        problems.append(f'{snap.nan_in_window} messages with NaN/inf ignored')
+    if snap.bad_in_window:
+        problems.append(f'{snap.bad_in_window} messages with NaN/inf or out-of-range values '
+                        'ignored')
     if snap.backwards_in_window:
         problems.append(f'{snap.backwards_in_window} stamps went backwards')
     if problems:

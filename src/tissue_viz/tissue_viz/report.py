@@ -15,14 +15,19 @@ import html
 import io
 import json
 import math
+import struct
 import sys
+import textwrap
+import zlib
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from tissue_viz.errors import ReportError
-from tissue_viz.stats import VizStats, percentile, press_displacement
+from tissue_viz.stats import (LIMITS, MAX_SECONDS, Limit, VizStats, within, percentile,
+                              press_displacement)
 
 TABLES = {
     'metrics': VizStats.METRICS_COLUMNS,
@@ -96,10 +101,20 @@ def read_csv(path: Path) -> dict:
 
 
 # -- plots ----------------------------------------------------------------------------------------
-def _figure():
+# Columns the node derives from its own clock have no input limit; only absurd numbers are dropped.
+_TIMES = Limit(-math.inf, math.inf, 'times', 's')
+_RATES = Limit(0.0, 1e7, 'rates', 'Hz')
+
+
+def _pyplot():
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+    return plt
+
+
+def _figure():
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=100)
     ax.grid(True, alpha=0.3)
     return plt, fig, ax
@@ -116,16 +131,34 @@ def _no_data(ax, what: str) -> None:
             fontsize=14, color='0.4')
 
 
-def _force_source(data: ReportData) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    """(t, force vectors, tool positions, label): force commands if any, else metrics forces."""
+def _left_out(ax, count: int, what: str) -> None:
+    """Say on the plot how many values were not drawn because they were not finite or absurd."""
+    if count:
+        ax.text(0.01, 0.01, f'{what} not finite or out of range, not plotted: {count}',
+                transform=ax.transAxes, fontsize=8, color='tab:red', va='bottom')
+
+
+def _force_source(data: ReportData) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, Limit]:
+    """(t, force vectors, tool positions, label, limit of the force components): force commands
+    if any, else metrics forces."""
     force = data.table('force')
     if len(force['t']):
         vec = np.column_stack([force['fx'], force['fy'], force['fz']])
         pos = np.column_stack([force['px'], force['py'], force['pz']])
-        return force['t'], vec, pos, 'omni/force_feedback'
+        return force['t'], vec, pos, 'omni/force_feedback', LIMITS['wrench_force']
     m = data.table('metrics')
     vec = np.column_stack([m['fx'], m['fy'], m['fz']])
-    return m['t'], vec, np.full_like(vec, np.nan), 'tissue/metrics contact_force'
+    return (m['t'], vec, np.full_like(vec, np.nan), 'tissue/metrics contact_force',
+            LIMITS['contact_force'])
+
+
+def _plottable_forces(data: ReportData):
+    """:func:`_force_source` restricted to rows with a finite time and a force inside its limits
+    (positions outside theirs become NaN, i.e. unknown); also returns how many rows were dropped."""
+    t, vec, pos, label, limit = _force_source(data)
+    ok = _TIMES.mask(t) & limit.mask(vec).all(axis=1)
+    pos = np.where(LIMITS['pose_position'].mask(pos).all(axis=1)[:, None], pos, np.nan)
+    return t[ok], vec[ok], pos[ok], label, int(len(t) - np.count_nonzero(ok))
 
 
 MAX_PLOT_POINTS = 8000
@@ -166,7 +199,7 @@ def _break_gaps(t: np.ndarray, *series: np.ndarray) -> tuple[np.ndarray, ...]:
 
 def plot_force_vs_time(data: ReportData, path: Path) -> None:
     plt, fig, ax = _figure()
-    t, vec, _, label = _force_source(data)
+    t, vec, _, label, dropped = _plottable_forces(data)
     if len(t):
         sel = _thin(len(t), np.linalg.norm(vec, axis=1))
         t, vec = _break_gaps(t[sel], vec[sel])
@@ -179,6 +212,7 @@ def plot_force_vs_time(data: ReportData, path: Path) -> None:
     else:
         _no_data(ax, 'force')
         ax.set_title('Force on the tool')
+    _left_out(ax, dropped, 'forces')
     ax.set_xlabel('time [s]')
     ax.set_ylabel('force [N]')
     _save(plt, fig, path)
@@ -186,7 +220,7 @@ def plot_force_vs_time(data: ReportData, path: Path) -> None:
 
 def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
     plt, fig, ax = _figure()
-    t, vec, pos, _ = _force_source(data)
+    t, vec, pos, _, dropped = _plottable_forces(data)
     disp = press_displacement(vec, pos, data.contact_threshold) if len(t) else np.array([])
     ok = np.isfinite(disp)
     if ok.any():
@@ -199,23 +233,44 @@ def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
     else:
         # Without matched tool positions fall back to the penetration reported by the simulator.
         m = data.table('metrics')
-        pen_ok = np.isfinite(m['penetration']) & (m['penetration'] > 0)
+        vec = np.column_stack([m['fx'], m['fy'], m['fz']])
+        rows = (_TIMES.mask(m['t']) & LIMITS['contact_force'].mask(vec).all(axis=1)
+                & LIMITS['penetration'].mask(m['penetration']))
+        dropped = int(len(rows) - np.count_nonzero(rows))
+        pen_ok = rows & (np.where(rows, m['penetration'], 0.0) > 0)
         if pen_ok.any():
             sel = np.flatnonzero(pen_ok)
-            sel = sel[_thin(len(sel), m['force'][sel])]
-            sc = ax.scatter(m['penetration'][sel] * 1e3, m['force'][sel], c=m['t'][sel],
-                            s=4, cmap='viridis')
+            mag = np.linalg.norm(vec[sel], axis=1)
+            keep = _thin(len(sel), mag)
+            sel, mag = sel[keep], mag[keep]
+            sc = ax.scatter(m['penetration'][sel] * 1e3, mag, c=m['t'][sel], s=4, cmap='viridis')
             fig.colorbar(sc, ax=ax, label='time [s]')
             ax.set_title('Force against tool penetration (tissue/metrics)')
         else:
             _no_data(ax, 'contact')
             ax.set_title('Force against tool displacement')
+    _left_out(ax, dropped, 'samples')
     ax.set_xlabel('tool displacement [mm]')
     ax.set_ylabel('|F| [N]')
     _save(plt, fig, path)
 
 
+# Log-spaced bins span at most this many decades; anything faster lands in the first bin (a log
+# axis over hundreds of decades, from a step time of 1e-300 s, would show nothing).
+_LOG_DECADES = 9
+
+
+def _log_bins(positive: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """(values clipped to the lowest edge, log-spaced bin edges) covering ``positive``."""
+    top = float(positive.max())
+    low = max(float(positive.min()), top * 10.0 ** -_LOG_DECADES)
+    bins = np.logspace(np.log10(low), np.log10(top), n_bins)
+    bins[0], bins[-1] = low, top          # exact ends, so rounding drops no sample
+    return np.clip(positive, low, top), bins
+
+
 def _hist(ax, values_s: np.ndarray, colour: str, p_lines: bool = True) -> None:
+    """Histogram in milliseconds of finite, non-negative, bounded ``values_s`` [s]."""
     ms = values_s[np.isfinite(values_s)] * 1e3
     n_bins = min(80, max(10, int(np.sqrt(ms.size))))
     positive = ms[ms > 0]
@@ -223,11 +278,15 @@ def _hist(ax, values_s: np.ndarray, colour: str, p_lines: bool = True) -> None:
     if median > 0 and positive.max() > 20.0 * median:
         # A long tail (a stalled step among fast ones): log-spaced bins on a log axis keep both
         # the bulk and the tail readable.
-        bins = np.logspace(np.log10(positive.min()), np.log10(positive.max()), n_bins)
-        ax.hist(positive, bins=bins, color=colour, alpha=0.8)
+        clipped, bins = _log_bins(positive, n_bins)
+        ax.hist(clipped, bins=bins, color=colour, alpha=0.8)
         ax.set_xscale('log')
         from matplotlib.ticker import FuncFormatter
         ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f'{v:g}'))
+        zeros = ms.size - positive.size
+        if zeros:
+            ax.text(0.99, 0.97, f'{zeros} zero values not on the log axis', ha='right', va='top',
+                    transform=ax.transAxes, fontsize=8, color='0.3')
     else:
         ax.hist(ms, bins=n_bins, color=colour, alpha=0.8)
     # Log counts: the rare slow steps that miss the deadline are the point of the plot.
@@ -235,53 +294,73 @@ def _hist(ax, values_s: np.ndarray, colour: str, p_lines: bool = True) -> None:
     if p_lines:
         for q, style in ((50, '--'), (99, ':')):
             v = percentile(ms, q)
-            ax.axvline(v, color='k', ls=style, lw=1, label=f'p{q} {v:.3f} ms')
+            if v > 0 or ax.get_xscale() == 'linear':
+                ax.axvline(v, color='k', ls=style, lw=1, label=f'p{q} {v:.3f} ms')
 
 
 def plot_step_hist(data: ReportData, path: Path) -> None:
     plt, fig, ax = _figure()
-    steps = data.table('metrics')['step_wall_time']
-    steps = steps[np.isfinite(steps)]
+    raw = data.table('metrics')['step_wall_time']
+    ok = LIMITS['step_wall_time'].mask(raw)
+    steps = raw[ok]
+    period = data.haptic_period
     if steps.size:
         _hist(ax, steps, 'tab:blue')
-        ax.axvline(data.haptic_period * 1e3, color='tab:red', lw=1.2,
-                   label=f'haptic period {data.haptic_period * 1e3:.2f} ms')
-        miss = 100.0 * np.count_nonzero(steps > data.haptic_period) / steps.size
-        ax.set_title(f'Step wall time ({steps.size} steps, {miss:.2f} % over the period)')
+        if within(period, 0.0, MAX_SECONDS) and period > 0:
+            ax.axvline(period * 1e3, color='tab:red', lw=1.2,
+                       label=f'haptic period {period * 1e3:.2f} ms')
+            miss = 100.0 * np.count_nonzero(steps > period) / steps.size
+            ax.set_title(f'Step wall time ({steps.size} steps, {miss:.2f} % over the period)')
+        else:
+            ax.set_title(f'Step wall time ({steps.size} steps)')
         ax.legend(fontsize=8)
     else:
         _no_data(ax, 'step')
         ax.set_title('Step wall time')
+    _left_out(ax, int(raw.size - steps.size), 'step times')
     ax.set_xlabel('step wall time [ms]')
     ax.set_ylabel('steps')
     _save(plt, fig, path)
 
 
+def _rate_target(value) -> tuple[float, float] | None:
+    """A (min, max) rate band if ``value`` is one, else None (nothing is drawn)."""
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        return None
+    return (lo, hi) if _RATES.ok(lo, hi) and lo <= hi else None
+
+
 def plot_rates(data: ReportData, path: Path) -> None:
     """Haptic-loop topics (metrics, pose, force) above, the particle cloud below, linear scales."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    plt = _pyplot()
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 4.5), dpi=100, sharex=True,
                                       gridspec_kw={'height_ratios': [2, 1]})
     rates = data.table('rates')
+    t_ok = _TIMES.mask(rates['t'])
     colours = {'metrics': 'tab:blue', 'pose': 'tab:green', 'force': 'tab:red',
                'particles': 'tab:orange'}
+    dropped = 0
     for ax, topics in ((top, ('metrics', 'pose', 'force')), (bottom, ('particles',))):
         ax.grid(True, alpha=0.3)
         ax.set_ylabel('rate [Hz]')
-        if not len(rates['t']):
+        if not t_ok.any():
             _no_data(ax, 'rate')
             continue
-        target = data.rate_targets.get(topics[0])
+        target = _rate_target(data.rate_targets.get(topics[0]))
         if target:
             ax.axhspan(target[0], target[1], color=colours[topics[0]], alpha=0.12,
                        label=f'{topics[0]} target {target[0]:g}-{target[1]:g} Hz')
+        t = rates['t'][t_ok]
         for topic in topics:
-            ax.plot(rates['t'], rates[topic], lw=1.4, color=colours[topic],
-                    marker='.' if len(rates['t']) < 30 else None, label=topic)
+            ok = _RATES.mask(rates[topic][t_ok])
+            dropped += int(ok.size - np.count_nonzero(ok))
+            ax.plot(t, np.where(ok, rates[topic][t_ok], np.nan), lw=1.4, color=colours[topic],
+                    marker='.' if len(t) < 30 else None, label=topic)
         ax.set_ylim(bottom=0)
         ax.legend(fontsize=8, loc='lower right')
+    _left_out(bottom, dropped + int(t_ok.size - np.count_nonzero(t_ok)), 'rate samples')
     top.set_title('Topic rates over time (sliding window)')
     bottom.set_xlabel('time [s]')
     _save(plt, fig, path)
@@ -289,8 +368,8 @@ def plot_rates(data: ReportData, path: Path) -> None:
 
 def plot_latency_hist(data: ReportData, path: Path) -> None:
     plt, fig, ax = _figure()
-    lat = data.table('latency')['latency']
-    lat = lat[np.isfinite(lat)]
+    raw = data.table('latency')['latency']
+    lat = raw[LIMITS['latency'].mask(raw)]
     if lat.size:
         _hist(ax, lat, 'tab:purple')
         ax.legend(fontsize=8)
@@ -298,9 +377,51 @@ def plot_latency_hist(data: ReportData, path: Path) -> None:
     else:
         _no_data(ax, 'latency')
         ax.set_title('Pose to force latency')
+    _left_out(ax, int(raw.size - lat.size), 'latencies')
     ax.set_xlabel('latency [ms]')
     ax.set_ylabel('replies')
     _save(plt, fig, path)
+
+
+def _placeholder(path: Path, title: str, reason: str) -> None:
+    """A plot that says why it could not be drawn (a plain grey PNG if not even text can be).
+
+    Raises:
+        OSError: the file cannot be written.
+    """
+    try:
+        plt, fig, ax = _figure()
+        ax.axis('off')
+        ax.set_title(title)
+        ax.text(0.5, 0.5, 'plot could not be drawn:\n' + textwrap.fill(reason, 70), ha='center',
+                va='center', transform=ax.transAxes, fontsize=10, color='tab:red',
+                parse_math=False)
+        _save(plt, fig, path)
+    except OSError:
+        raise
+    except Exception:  # noqa: BLE001 -- matplotlib itself failed: still leave a valid image
+        _close_all()
+        _plain_png(path, 800, 450)
+
+
+def _plain_png(path: Path, width: int, height: int, grey: int = 230) -> None:
+    """A uniform grey PNG written without any imaging library."""
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return (struct.pack('>I', len(body)) + kind + body
+                + struct.pack('>I', zlib.crc32(kind + body) & 0xFFFFFFFF))
+
+    rows = b''.join(b'\x00' + bytes([grey]) * width for _ in range(height))
+    header = struct.pack('>IIBBBBB', width, height, 8, 0, 0, 0, 0)   # 8-bit greyscale
+    Path(path).write_bytes(b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', header)
+                           + chunk(b'IDAT', zlib.compress(rows)) + chunk(b'IEND', b''))
+
+
+def _close_all() -> None:
+    """Close figures a failed plot left open (reports are written one at a time)."""
+    try:
+        _pyplot().close('all')
+    except Exception:  # noqa: BLE001 -- only tidying up
+        pass
 
 
 PLOTTERS = {
@@ -313,26 +434,64 @@ PLOTTERS = {
 
 
 # -- summaries ------------------------------------------------------------------------------------
+# Which table columns carry each input quantity of LIMITS (all columns of a row must be in range).
+BAD_VALUE_COLUMNS = (
+    ('metrics', 'step_wall_time', ('step_wall_time',)),
+    ('metrics', 'contact_force', ('fx', 'fy', 'fz')),
+    ('metrics', 'max_displacement', ('max_displacement',)),
+    ('metrics', 'penetration', ('penetration',)),
+    ('metrics', 'kinetic_energy', ('kinetic_energy',)),
+    ('metrics', 'active_particles', ('n_active',)),
+    ('metrics', 'substeps', ('substeps',)),
+    ('metrics', 'contact_index', ('contact_index',)),
+    ('force', 'wrench_force', ('fx', 'fy', 'fz')),
+    ('force', 'pose_position', ('px', 'py', 'pz')),
+    ('latency', 'latency', ('latency',)),
+)
+
+
+def bad_values_in_tables(data: ReportData) -> dict[str, int]:
+    """Per LIMITS key, the table rows holding a value that is NaN/inf or out of range.
+
+    Only columns the tables actually hold are judged, and a tool position that is NaN in all three
+    columns means "no pose matched" rather than a bad value.
+    """
+    counts = {}
+    for table, key, columns in BAD_VALUE_COLUMNS:
+        got = data.tables.get(table) or {}
+        if not all(c in got for c in columns):
+            continue
+        values = np.column_stack([np.asarray(got[c], dtype=float) for c in columns])
+        bad = ~LIMITS[key].mask(values).all(axis=1)
+        if key == 'pose_position':
+            bad &= ~np.isnan(values).all(axis=1)
+        counts[key] = counts.get(key, 0) + int(np.count_nonzero(bad))
+    return counts
+
+
 def summary_from_tables(data: ReportData) -> dict:
     """A summary computed from the tables alone (when no summary.json came with them)."""
     m, f, lat, r = (data.table(n) for n in ('metrics', 'force', 'latency', 'rates'))
-    steps = m['step_wall_time'][np.isfinite(m['step_wall_time'])]
-    latency = lat['latency'][np.isfinite(lat['latency'])]
+    steps = m['step_wall_time'][LIMITS['step_wall_time'].mask(m['step_wall_time'])]
+    latency = lat['latency'][LIMITS['latency'].mask(lat['latency'])]
     forces = np.concatenate([f['force'], m['force']])
-    forces = forces[np.isfinite(forces)]
+    forces = forces[LIMITS['wrench_force'].mask(forces)]
     times = np.concatenate([m['t'], f['t'], r['t']])
     times = times[np.isfinite(times)]
+    disp = m['max_displacement'][LIMITS['max_displacement'].mask(m['max_displacement'])]
 
     def num(x):
         return None if x is None or not math.isfinite(x) else float(x)
 
     def mean_rate(t):
+        t = t[np.isfinite(t)]
         return num((t.size - 1) / (t[-1] - t[0]) if t.size > 1 and t[-1] > t[0] else math.nan)
 
-    misses = int(np.count_nonzero(steps > data.haptic_period))
+    period = data.haptic_period if within(data.haptic_period, 0.0, MAX_SECONDS) else math.nan
+    misses = int(np.count_nonzero(steps > period))
     return {
         'duration_s': num(times.max() - times.min() if times.size else math.nan),
-        'haptic_period_s': data.haptic_period,
+        'haptic_period_s': num(period),
         'rates_hz': {'metrics': mean_rate(m['t']), 'force': mean_rate(f['t'])},
         'steps': int(steps.size),
         'forces': int(len(f['t'])),
@@ -344,23 +503,31 @@ def summary_from_tables(data: ReportData) -> dict:
         'latency_p50_s': num(percentile(latency, 50)),
         'latency_p99_s': num(percentile(latency, 99)),
         'max_force_n': num(float(forces.max()) if forces.size else math.nan),
-        'max_displacement_m': num(float(np.nanmax(m['max_displacement']))
-                                  if np.isfinite(m['max_displacement']).any() else math.nan),
+        'max_displacement_m': num(float(disp.max()) if disp.size else math.nan),
+        'bad_values': bad_values_in_tables(data),
     }
 
 
 def _fmt(value, scale: float = 1.0, digits: int = 3, unit: str = '') -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return 'n/a'
-    if isinstance(value, (int, float)):
-        return f'{value * scale:.{digits}f}{(" " + unit) if unit else ""}'
+    if value is None or isinstance(value, bool):
+        return 'n/a' if value is None else str(value)
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        try:
+            x = float(value) * scale
+        except OverflowError:          # an integer beyond any float
+            return str(value)
+        if not math.isfinite(x):
+            return 'n/a'
+        text = f'{x:.3g}' if abs(x) >= 1e12 else f'{x:.{digits}f}'
+        return text + (f' {unit}' if unit else '')
     return str(value)
 
 
 def summary_rows(summary: dict) -> list[tuple[str, str]]:
     """(label, formatted value) rows shared by summary.md and index.html."""
     rows = [('duration', _fmt(summary.get('duration_s'), 1, 1, 's'))]
-    for topic, rate in (summary.get('rates_hz') or {}).items():
+    rates = summary.get('rates_hz')
+    for topic, rate in (rates.items() if isinstance(rates, dict) else ()):
         rows.append((f'{topic} rate', _fmt(rate, 1, 1, 'Hz')))
     rows += [
         ('steps', _fmt(summary.get('steps'), 1, 0)),
@@ -376,15 +543,36 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
         ('max force', _fmt(summary.get('max_force_n'), 1, 3, 'N')),
         ('max displacement', _fmt(summary.get('max_displacement_m'), 1e3, 2, 'mm')),
         ('max active particles', _fmt(summary.get('max_active_particles'), 1, 0)),
-        ('messages with NaN/inf', _fmt(summary.get('nan_messages'), 1, 0)),
+        ('messages with NaN/inf or out-of-range values (ignored)',
+         _fmt(summary.get('bad_messages'), 1, 0)),
     ]
     return rows
+
+
+def _counts(value) -> dict:
+    return value if isinstance(value, dict) else {}
+
+
+def problem_lines(summary: dict) -> list[str]:
+    """Sentences on what the report could not show: bad values, plots replaced by a placeholder."""
+    lines = []
+    for key, count in _counts(summary.get('bad_values')).items():
+        if isinstance(count, (int, np.integer)) and count > 0 and key in LIMITS:
+            limit = LIMITS[key]
+            lines.append(f'{limit.what}: {count} not finite or out of range (accepted '
+                         f'{limit.describe()}), not plotted and not in the statistics')
+    for png, reason in _counts(summary.get('plot_failures')).items():
+        lines.append(f'{png} could not be drawn ({reason}); it shows a placeholder')
+    return lines
 
 
 def write_markdown(path: Path, data: ReportData, created: str) -> None:
     lines = [f'# {data.title}', '', f'Report written {created}.', '', '| quantity | value |',
              '|---|---|']
     lines += [f'| {k} | {v} |' for k, v in summary_rows(data.summary)]
+    problems = problem_lines(data.summary)
+    if problems:
+        lines += ['', '## Not shown', ''] + [f'- {line}' for line in problems]
     lines += ['', 'Series: ' + ', '.join(f'[{n}.csv]({n}.csv)' for n in TABLES) +
               ', machine-readable summary: [summary.json](summary.json).', '']
     for png, caption in PLOTS:
@@ -395,6 +583,9 @@ def write_markdown(path: Path, data: ReportData, created: str) -> None:
 def write_html(path: Path, data: ReportData, created: str) -> None:
     rows = '\n'.join(f'<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>'
                      for k, v in summary_rows(data.summary))
+    problems = problem_lines(data.summary)
+    not_shown = ('<h2>Not shown</h2><ul>' + ''.join(f'<li>{html.escape(p)}</li>' for p in problems)
+                 + '</ul>') if problems else ''
     figures = '\n'.join(
         f'<figure><img src="{png}" alt="{html.escape(c)}"><figcaption>{html.escape(c)}'
         f'</figcaption></figure>' for png, c in PLOTS)
@@ -406,6 +597,7 @@ table{{border-collapse:collapse}}td{{border:1px solid #ccc;padding:2px 8px}}
 img{{max-width:100%}}figure{{margin:1.5em 0}}</style></head>
 <body><h1>{html.escape(data.title)}</h1><p>Report written {html.escape(created)}.</p>
 <table>{rows}</table>
+{not_shown}
 <p>Series: {links}; summary: <a href="summary.json">summary.json</a>.</p>
 {figures}
 </body></html>
@@ -415,53 +607,146 @@ img{{max-width:100%}}figure{{margin:1.5em 0}}</style></head>
 def _json_safe(obj):
     if isinstance(obj, dict):
         return {str(k): _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
+    if isinstance(obj, (list, tuple, np.ndarray)):
         return [_json_safe(v) for v in obj]
     if isinstance(obj, (np.floating, float)):
         return float(obj) if math.isfinite(obj) else None
     if isinstance(obj, np.integer):
         return int(obj)
-    return obj
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    return str(obj)
 
 
 def default_report_dir(base: str | Path = 'reports') -> Path:
     return Path(base) / _dt.datetime.now().strftime('%Y%m%d-%H%M%S')
 
 
-def write_report(directory: str | Path, data: ReportData) -> Path:
-    """Write the whole report folder and return its path (created if needed).
+def report_files() -> list[str]:
+    """Every file of a report folder, summary.json (written last) at the end."""
+    return ([f'{n}.csv' for n in TABLES] + [png for png, _ in PLOTS]
+            + ['summary.md', 'index.html', 'summary.json'])
+
+
+def prepare_report_dir(directory: str | Path) -> Path:
+    """Create the report folder and check that its files can be written there; return it.
+
+    Quick (no data involved), so a caller can refuse a report before starting to draw it.
 
     Raises:
-        ReportError: the folder cannot be created or written.
+        ReportError: naming the folder or file and the reason.
     """
     out = Path(directory)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ReportError(f'cannot create report folder {out}: {exc}') from exc
-    created = _dt.datetime.now(_dt.timezone.utc).strftime('%Y-%m-%d %H:%M:%S UTC')
-    if not data.summary:
-        data.summary = summary_from_tables(data)
     try:
-        for name, columns in TABLES.items():
-            write_csv(out / f'{name}.csv', columns, data.table(name))
-        for png, plotter in PLOTTERS.items():
-            plotter(data, out / png)
-        summary = dict(_json_safe(data.summary))
-        if data.rate_targets:
-            summary['rate_targets_hz'] = {k: list(v) for k, v in data.rate_targets.items()}
-        summary['created'] = created
-        summary['files'] = sorted([p for p, _ in PLOTS] + [f'{n}.csv' for n in TABLES] +
-                                  ['summary.md', 'index.html'])
-        write_markdown(out / 'summary.md', data, created)
-        write_html(out / 'index.html', data, created)
-        # summary.json last and atomically: its presence means the folder is complete.
-        tmp = out / '.summary.json.tmp'
-        tmp.write_text(json.dumps(summary, indent=2, sort_keys=True) + '\n')
-        tmp.replace(out / 'summary.json')
+        probe = out / '.write_test'
+        probe.write_bytes(b'')
+        probe.unlink()
     except OSError as exc:
-        raise ReportError(f'cannot write report into {out}: {exc}') from exc
+        raise ReportError(f'cannot write into report folder {out}: {exc}') from exc
+    for name in report_files():
+        target = out / name
+        if target.exists() and not target.is_file():
+            raise ReportError(f'cannot write {target}: it exists and is not a file')
     return out
+
+
+def _reason(exc: BaseException) -> str:
+    return f'{type(exc).__name__}: {exc}'
+
+
+def _complete_summary(data: ReportData) -> dict:
+    """The summary to write: the given one, else one from the tables; bad values counted from the
+    tables when the summary does not carry them. Never raises (a failure is noted instead)."""
+    try:
+        summary = dict(data.summary) if data.summary else summary_from_tables(data)
+        if 'bad_values' not in summary:
+            summary['bad_values'] = bad_values_in_tables(data)
+    except Exception as exc:  # noqa: BLE001 -- the plots and series are still worth writing
+        summary = {'summary_error': _reason(exc)}
+    return summary
+
+
+def _draw(plotter, data: ReportData, path: Path, caption: str) -> str | None:
+    """Draw one plot; if that fails for any reason draw a placeholder naming it instead.
+
+    Returns:
+        The reason the plot could not be drawn, None when it was.
+
+    Raises:
+        OSError: not even the placeholder could be written.
+    """
+    try:
+        with np.errstate(all='ignore'):
+            plotter(data, path)
+        return None
+    except Exception as exc:  # noqa: BLE001 -- one plot must never cost the whole report
+        reason = _reason(exc)
+    _close_all()
+    _placeholder(path, caption, reason)
+    return reason
+
+
+def write_report(directory: str | Path, data: ReportData) -> Path:
+    """Write the report folder and return its path (created if needed).
+
+    Whatever the tables hold, every file is written: values that are NaN/inf or out of range are
+    left out of the plots and counted in the summary, and a plot that fails anyway is replaced by a
+    placeholder naming the failure. Only a file that cannot be written at all (an unwritable
+    folder, a full disk) is an error; the other files are still written first.
+
+    Raises:
+        ReportError: the folder cannot be used, or some files could not be written (named with
+            their reasons; summary.json then lists them under ``failed_files``).
+    """
+    out = prepare_report_dir(directory)
+    # A summary.json left from an earlier report would claim this one is finished.
+    (out / 'summary.json').unlink(missing_ok=True)
+    created = _dt.datetime.now(_dt.timezone.utc).strftime('%Y-%m-%d %H:%M:%S UTC')
+    data = dataclasses.replace(data, summary=_complete_summary(data))
+    failed: dict[str, str] = {}
+
+    def attempt(name: str, write) -> None:
+        try:
+            write()
+        except Exception as exc:  # noqa: BLE001 -- named in the result, the rest still written
+            failed[name] = _reason(exc)
+
+    for name, columns in TABLES.items():
+        attempt(f'{name}.csv',
+                lambda n=name, c=columns: write_csv(out / f'{n}.csv', c, data.table(n)))
+    plot_failures: dict[str, str] = {}
+    for png, caption in PLOTS:
+        def draw(png=png, caption=caption) -> None:
+            reason = _draw(PLOTTERS[png], data, out / png, caption)
+            if reason is not None:
+                plot_failures[png] = reason
+        attempt(png, draw)
+    data.summary['plot_failures'] = plot_failures
+    attempt('summary.md', lambda: write_markdown(out / 'summary.md', data, created))
+    attempt('index.html', lambda: write_html(out / 'index.html', data, created))
+    attempt('summary.json', lambda: _write_summary_json(out, data, created, failed))
+    if failed:
+        total = len(report_files())
+        raise ReportError(f'{len(failed)} of {total} report files not written into {out}: '
+                          + '; '.join(f'{name} ({reason})' for name, reason in failed.items()))
+    return out
+
+
+def _write_summary_json(out: Path, data: ReportData, created: str, failed: dict) -> None:
+    """summary.json, last and atomically: its presence means the report is finished."""
+    summary = dict(_json_safe(data.summary))
+    if data.rate_targets:
+        summary['rate_targets_hz'] = _json_safe(data.rate_targets)
+    summary['created'] = created
+    summary['files'] = sorted(n for n in report_files() if n not in failed and n != 'summary.json')
+    summary['failed_files'] = dict(failed)
+    tmp = out / '.summary.json.tmp'
+    tmp.write_text(json.dumps(summary, indent=2, sort_keys=True) + '\n')
+    tmp.replace(out / 'summary.json')
 
 
 def load_report_data(directory: str | Path) -> ReportData:
@@ -483,11 +768,16 @@ def load_report_data(directory: str | Path) -> ReportData:
             summary = json.loads(js.read_text())
         except json.JSONDecodeError as exc:
             raise ReportError(f'{js} is not valid JSON: {exc}') from exc
-    period = summary.get('haptic_period_s') or 1e-3
-    targets = summary.get('rate_targets_hz') or {}
-    summary = {k: v for k, v in summary.items() if k not in ('created', 'files', 'rate_targets_hz')}
-    return ReportData(tables=tables, summary=summary, haptic_period=float(period),
-                      rate_targets={k: tuple(v) for k, v in targets.items()})
+        if not isinstance(summary, dict):
+            raise ReportError(f'{js} is not a JSON object')
+    period = summary.get('haptic_period_s')
+    period = float(period) if within(period, 1e-9, MAX_SECONDS) else 1e-3
+    targets = summary.get('rate_targets_hz')
+    targets = {k: tuple(v) for k, v in targets.items() if isinstance(v, (list, tuple))} \
+        if isinstance(targets, dict) else {}
+    summary = {k: v for k, v in summary.items()
+               if k not in ('created', 'files', 'failed_files', 'rate_targets_hz', 'plot_failures')}
+    return ReportData(tables=tables, summary=summary, haptic_period=period, rate_targets=targets)
 
 
 def main(argv: list[str] | None = None) -> int:

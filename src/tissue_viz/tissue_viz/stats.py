@@ -19,6 +19,62 @@ from tissue_viz.errors import VizConfigError
 TOPICS = ('metrics', 'particles', 'pose', 'force')
 
 
+@dataclass(frozen=True)
+class Limit:
+    """The plausible range of one input quantity; a value outside it, NaN or inf is bad."""
+
+    lo: float
+    hi: float
+    what: str            # plural noun for the report, e.g. 'step times'
+    unit: str = ''
+
+    def ok(self, *values: float) -> bool:
+        """True if every value is finite and inside [lo, hi]."""
+        return all(within(v, self.lo, self.hi) for v in values)
+
+    def mask(self, values) -> np.ndarray:
+        """Element-wise :meth:`ok` of an array (False for NaN and inf)."""
+        arr = np.asarray(values, dtype=float)
+        with np.errstate(invalid='ignore'):
+            return np.isfinite(arr) & (arr >= self.lo) & (arr <= self.hi)
+
+    def describe(self) -> str:
+        unit = f' {self.unit}' if self.unit else ''
+        return f'{self.lo:g} to {self.hi:g}{unit}'
+
+
+def within(value, lo: float, hi: float) -> bool:
+    """True if ``value`` is a finite number inside [lo, hi] (False for anything else)."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError, OverflowError):   # e.g. an integer too large for a float
+        return False
+    return math.isfinite(x) and lo <= x <= hi
+
+
+# Far beyond anything a working simulator or device sends (a 3 670-particle liver, forces of a few
+# newtons, a 0.1 m workspace), so they only catch garbage: one step time of 1e308 would otherwise
+# overflow the report's arithmetic and squash every plot.
+MAX_SECONDS = 1e5
+MAX_FORCE = 1e6          # [N] per component
+MAX_LENGTH = 1e3         # [m]
+MAX_ENERGY = 1e9         # [J]
+MAX_COUNT = 1_000_000_000
+LIMITS: dict[str, Limit] = {
+    'step_wall_time': Limit(0.0, MAX_SECONDS, 'step times', 's'),
+    'contact_force': Limit(-MAX_FORCE, MAX_FORCE, 'metrics contact forces', 'N per component'),
+    'max_displacement': Limit(0.0, MAX_LENGTH, 'max displacements', 'm'),
+    'penetration': Limit(0.0, MAX_LENGTH, 'penetrations', 'm'),
+    'kinetic_energy': Limit(0.0, MAX_ENERGY, 'kinetic energies', 'J'),
+    'active_particles': Limit(0, MAX_COUNT, 'active particle counts'),
+    'substeps': Limit(0, MAX_COUNT, 'sub-step counts'),
+    'contact_index': Limit(-1, MAX_COUNT, 'contact indices'),
+    'pose_position': Limit(-MAX_LENGTH, MAX_LENGTH, 'tool positions', 'm per component'),
+    'wrench_force': Limit(-MAX_FORCE, MAX_FORCE, 'device forces', 'N per component'),
+    'latency': Limit(0.0, MAX_SECONDS, 'latencies', 's'),
+}
+
+
 def percentile(values: Sequence[float] | np.ndarray, q: float) -> float:
     """The q-th percentile (0..100, linear interpolation) of ``values``; NaN when empty."""
     arr = np.asarray(values, dtype=float)
@@ -226,10 +282,6 @@ class StampOrder:
         return True
 
 
-def finite(*values: float) -> bool:
-    return all(math.isfinite(v) for v in values)
-
-
 @dataclass
 class Snapshot:
     """Rolling statistics at one instant; NaN where there is no data in the window."""
@@ -253,8 +305,9 @@ class Snapshot:
     force: float = math.nan                            # [N] latest force magnitude
     force_max: float = math.nan                        # [N] max in the window
     displacement: float = math.nan                     # [m] latest max displacement
-    nan_in_window: int = 0
-    nan_total: int = 0
+    bad_in_window: int = 0                             # messages with a bad value (ignored)
+    bad_total: int = 0
+    bad_values: dict = field(default_factory=dict)     # LIMITS key -> bad values since start
     backwards_in_window: int = 0
     backwards_total: int = 0
 
@@ -290,12 +343,13 @@ class VizStats:
         self.step = WindowedSeries(window)
         self.latency = WindowedSeries(window)
         self.force_window = WindowedSeries(window)
-        self.nan_window = WindowedSeries(window)
+        self.bad_window = WindowedSeries(window)
         self.backwards_window = WindowedSeries(window)
         self.matcher = LatencyMatcher(latency_timeout)
         self.missed_window = WindowedSeries(window)    # one entry per expiry, value = poses missed
         self._missed_seen = 0
-        self.nan_total = 0
+        self.bad_total = 0
+        self.bad_values = {key: 0 for key in LIMITS}
         self.steps_total = 0
         self.deadline_misses_total = 0
         self.force_max_total = 0.0
@@ -325,24 +379,35 @@ class VizStats:
         if not self.order[topic].check(stamp_ns):
             self.backwards_window.add(now, 1.0)
 
-    def _bad(self, now: float) -> None:
-        self.nan_total += 1
-        self.nan_window.add(now, 1.0)
+    def _accept(self, now: float, fields: dict[str, Sequence[float]]) -> bool:
+        """True if every field is inside its :data:`LIMITS`; else count each bad field and the
+        message (which is then ignored as a whole: one garbage value makes the rest suspect)."""
+        bad = [key for key, values in fields.items() if not LIMITS[key].ok(*values)]
+        for key in bad:
+            self.bad_values[key] += 1
+        if bad:
+            self.bad_total += 1
+            self.bad_window.add(now, 1.0)
+        return not bad
 
     def on_metrics(self, now: float, stamp_ns: int, step_wall_time: float, force: Sequence[float],
                    max_displacement: float, n_interaction: int = 0, n_layer: Sequence[int] = (),
                    n_relaxing: int = 0, substeps: int = 0, contact_index: int = -1,
                    penetration: float = 0.0, kinetic_energy: float = 0.0) -> bool:
-        """One SimMetrics message; returns False (and counts it) if it carries NaN/inf."""
+        """One SimMetrics message; returns False (and counts it) if a value is NaN/inf or out of
+        its :data:`LIMITS`."""
         t = self._rel(now)
         self.meters['metrics'].tick(now)
         self._check_order('metrics', now, stamp_ns)
         fx, fy, fz = (float(v) for v in force)
-        if not finite(step_wall_time, fx, fy, fz, max_displacement, penetration, kinetic_energy):
-            self._bad(now)
+        active = int(n_interaction) + sum(int(v) for v in n_layer) + int(n_relaxing)
+        if not self._accept(now, {
+                'step_wall_time': (step_wall_time,), 'contact_force': (fx, fy, fz),
+                'max_displacement': (max_displacement,), 'penetration': (penetration,),
+                'kinetic_energy': (kinetic_energy,), 'active_particles': (active,),
+                'substeps': (substeps,), 'contact_index': (contact_index,)}):
             return False
         fmag = math.sqrt(fx * fx + fy * fy + fz * fz)
-        active = int(n_interaction) + int(sum(n_layer)) + int(n_relaxing)
         self.step.add(now, step_wall_time)
         self.steps_total += 1
         if step_wall_time > self.period:
@@ -368,13 +433,12 @@ class VizStats:
         self.points_last = int(n_points)
 
     def on_pose(self, now: float, stamp_ns: int, position: Sequence[float]) -> bool:
-        """One tool pose; returns False (and counts it) if the position is not finite."""
+        """One tool pose; returns False (and counts it) if the position is not finite or absurd."""
         self._rel(now)
         self.meters['pose'].tick(now)
         self._check_order('pose', now, stamp_ns)
         px, py, pz = (float(v) for v in position)
-        if not finite(px, py, pz):
-            self._bad(now)
+        if not self._accept(now, {'pose_position': (px, py, pz)}):
             return False
         self.last_pose = (px, py, pz)
         self.matcher.on_pose(stamp_ns, now, self.last_pose)
@@ -386,8 +450,7 @@ class VizStats:
         self.meters['force'].tick(now)
         self._check_order('force', now, stamp_ns)
         fx, fy, fz = (float(v) for v in force)
-        if not finite(fx, fy, fz):
-            self._bad(now)
+        if not self._accept(now, {'wrench_force': (fx, fy, fz)}):
             return None
         fmag = math.sqrt(fx * fx + fy * fy + fz * fz)
         self.last_force = fmag
@@ -444,8 +507,9 @@ class VizStats:
         if forces.size:
             snap.force_max = float(forces.max())
         snap.displacement = self.last_displacement
-        snap.nan_in_window = len(self.nan_window.values(now))
-        snap.nan_total = self.nan_total
+        snap.bad_in_window = len(self.bad_window.values(now))
+        snap.bad_total = self.bad_total
+        snap.bad_values = dict(self.bad_values)
         snap.backwards_in_window = len(self.backwards_window.values(now))
         snap.backwards_total = sum(o.backwards for o in self.order.values())
         return snap
@@ -492,7 +556,8 @@ class VizStats:
             'max_displacement_m': num(self.displacement_max_total),
             'max_active_particles': self.active_max_total,
             'points_last': self.points_last,
-            'nan_messages': self.nan_total,
+            'bad_messages': self.bad_total,
+            'bad_values': dict(self.bad_values),
             'backwards_stamps': {t: self.order[t].backwards for t in TOPICS},
         }
 
@@ -517,8 +582,8 @@ def summary_line(snap: Snapshot) -> str:
         f'disp {_fmt(snap.displacement, 1e3, 1, "mm")}',
         f'cloud {snap.rates.get("particles", 0.0):.0f} Hz',
     ]
-    if snap.nan_total or snap.backwards_total:
-        parts.append(f'bad {snap.nan_total} nan {snap.backwards_total} backwards')
+    if snap.bad_total or snap.backwards_total:
+        parts.append(f'bad input {snap.bad_total} msgs {snap.backwards_total} stamps backwards')
     return ' | '.join(parts)
 
 
