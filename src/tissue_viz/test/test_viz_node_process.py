@@ -285,7 +285,7 @@ def test_inconsistent_rate_targets_are_rejected_at_start_with_a_clear_message():
     params = dict(FAST, metrics_min_rate=500.0, metrics_max_rate=100.0)
     with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
         rc = viz.wait(timeout=30)
-        assert rc != 0
+        assert rc == 2                                   # the documented code
         assert 'min_rate <= max_rate' in viz.output()
 
 
@@ -375,3 +375,152 @@ def test_inconsistent_targets_set_at_run_time_are_refused_and_consistent_ones_ap
                 'min rate [Hz]'] == '20.0'
         assert probe.run(0, new_target, 10), probe.status('tissue/metrics rate')
         assert viz.alive()
+
+
+# -- absurd input and unwritable reports ------------------------------------------------------------
+U32, I32_MIN = 4_294_967_295, -2_147_483_648
+REPORT_FILES = {'force_vs_time.png', 'force_vs_displacement.png', 'step_time_hist.png', 'rates.png',
+                'latency_hist.png', 'metrics.csv', 'force.csv', 'latency.csv', 'rates.csv',
+                'summary.md', 'index.html', 'summary.json'}
+
+
+def _absurd_metrics() -> list[tuple[str, dict]]:
+    """(LIMITS key the viz counts it under or '' for a field it does not use, field values)."""
+    inf, nan = math.inf, math.nan
+    bad = [('step_wall_time', {'step_wall_time': v}) for v in (1e308, inf, -inf, nan, -1e-3)]
+    bad += [('contact_force', {'contact_force.x': 1e308}),
+            ('contact_force', {'contact_force.y': nan}),
+            ('contact_force', {'contact_force.z': -inf}),
+            ('max_displacement', {'max_displacement': 1e308}), ('penetration', {'penetration': nan}),
+            ('kinetic_energy', {'kinetic_energy': -inf}),
+            ('active_particles', {'n_interaction': U32}),
+            ('active_particles', {'n_layer': [U32] * 4}), ('active_particles', {'n_relaxing': U32}),
+            ('substeps', {'substeps': U32}), ('contact_index', {'contact_index': I32_MIN}),
+            ('', {'sim_time': inf, 'substep_dt': nan, 'n_particles': U32, 'scheme': 255,
+                  'mode': 255})]
+    return bad
+
+
+def _set(msg, fields: dict):
+    for name, value in fields.items():
+        target = msg
+        *path, last = name.split('.')
+        for part in path:
+            target = getattr(target, part)
+        setattr(target, last, value)
+    return msg
+
+
+def _publish_normal_and_absurd_input(rclpy_node, viz) -> dict:
+    """Twenty normal metrics, every absurd one, twenty normal again, plus absurd poses and wrenches;
+    waits until the node has counted every metrics message.
+
+    Returns the bad values sent per LIMITS key, and the number of usable steps sent.
+    """
+    from geometry_msgs.msg import PoseStamped, WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    absurd = _absurd_metrics()
+    plan = [('', {})] * 20 + absurd + [('', {})] * 20
+    qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    probe = Probe(rclpy_node)
+    pose_pub = rclpy_node.create_publisher(PoseStamped, 'omni/pose', qos)
+    force_pub = rclpy_node.create_publisher(WrenchStamped, 'omni/force_feedback', qos)
+    for endpoint in (probe.pub, pose_pub, force_pub, probe.diag_sub):
+        harness.wait_for_matching(rclpy_node, endpoint)
+
+    def make(p):
+        i = p.sent
+        if i < len(absurd):          # a pose and a wrench with NaN/inf beside the metrics
+            pose, wrench = PoseStamped(), WrenchStamped()
+            pose.header.stamp.sec = wrench.header.stamp.sec = 100 + i
+            pose.pose.position.x = (math.nan, math.inf, 1e308)[i % 3]
+            wrench.wrench.force.z = (-1e308, math.nan, -math.inf)[i % 3]
+            pose_pub.publish(pose)
+            force_pub.publish(wrench)
+        return _set(_metrics(p.stamp_ns), plan[i][1])
+    probe.run(100.0, lambda: probe.sent >= len(plan), 30, make=make)
+    assert probe.sent == len(plan)
+
+    def all_counted():
+        s = probe.status('tissue/metrics rate')
+        return s is not None and dict((kv.key, kv.value) for kv in s.values)['messages'] == \
+            str(len(plan))
+    assert probe.run(0, all_counted, 20), (probe.status('tissue/metrics rate'), viz.output())
+    expected = {}
+    for key, _ in absurd:
+        if key:
+            expected[key] = expected.get(key, 0) + 1
+    return expected, sum(1 for key, _ in plan if not key)
+
+
+def _assert_report_counts(report, expected: dict, steps: int) -> None:
+    assert REPORT_FILES <= {p.name for p in report.iterdir()}
+    summary = json.loads((report / 'summary.json').read_text())
+    assert summary['failed_files'] == {} and summary['plot_failures'] == {}
+    assert summary['steps'] == steps                    # the usable messages only
+    assert summary['step_max_s'] == pytest.approx(1e-4)
+    metrics_keys = set(expected)
+    assert {k: v for k, v in summary['bad_values'].items() if k in metrics_keys} == expected
+    md = (report / 'summary.md').read_text()
+    assert f"- step times: {expected['step_wall_time']} not finite or out of range" in md
+    assert f"- active particle counts: {expected['active_particles']} not finite" in md
+    for png in ('step_time_hist.png', 'force_vs_time.png', 'rates.png'):
+        with Image.open(report / png) as img:
+            rgb = np.asarray(img.convert('RGB'), dtype=int)
+        assert 0.02 < np.mean(rgb.sum(axis=2) < 750) < 0.8, png
+
+
+def test_absurd_metrics_neither_cost_the_report_on_request_nor_the_one_at_shutdown(rclpy_node,
+                                                                                  tmp_path):
+    from std_srvs.srv import Trigger
+
+    report = tmp_path / 'report'
+    params = dict(FAST, report_on_shutdown=True, report_dir=str(report))
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        expected, steps = _publish_normal_and_absurd_input(rclpy_node, viz)
+        client = rclpy_node.create_client(Trigger, 'viz/write_report')
+        assert client.wait_for_service(timeout_sec=10)
+        future = client.call_async(Trigger.Request())
+        assert rclpy_node.spin_until(future.done, 10)
+        assert future.result().success, future.result().message
+        assert rclpy_node.spin_until(lambda: (report / 'summary.json').is_file(), 60), viz.output()
+        _assert_report_counts(report, expected, steps)
+        assert viz.alive()
+
+        # The shutdown report goes into the same folder: remove the first one to see it appear.
+        for path in report.iterdir():
+            path.unlink()
+        rc = viz.stop(timeout=60)
+        output = viz.output()
+    assert rc == 0, output
+    assert 'report written' in output and 'Traceback' not in output, output
+    _assert_report_counts(report, expected, steps)
+
+
+def test_an_unwritable_report_folder_is_refused_by_the_service_and_exits_3_at_shutdown(
+        rclpy_node, tmp_path):
+    from std_srvs.srv import Trigger
+
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('a file where the report folder should go')
+    params = dict(FAST, report_on_shutdown=True, report_dir=str(blocker / 'report'))
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        probe = Probe(rclpy_node)
+        harness.wait_for_matching(rclpy_node, probe.pub)
+        probe.run(200.0, lambda: probe.sent >= 50, 20)
+        client = rclpy_node.create_client(Trigger, 'viz/write_report')
+        assert client.wait_for_service(timeout_sec=10)
+        future = client.call_async(Trigger.Request())
+        assert rclpy_node.spin_until(future.done, 10)
+        answer = future.result()
+        assert not answer.success
+        assert 'cannot create report folder' in answer.message and 'a_file' in answer.message
+        assert viz.alive()
+        rc = viz.stop(timeout=60)
+        output = viz.output()
+    assert rc == 3, output                               # the documented code
+    assert 'report failed: cannot create report folder' in output, output
+    assert 'Traceback' not in output, output

@@ -37,7 +37,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from tissue_viz.diagnostics import RateTarget, Status, Targets, worst_level, evaluate
 from tissue_viz.errors import ReportError, VizConfigError
 from tissue_viz.markers import ToolFrame, force_arrow
-from tissue_viz.report import ReportData, default_report_dir, write_report
+from tissue_viz.report import ReportData, default_report_dir, prepare_report_dir, write_report
 from tissue_viz.stats import TOPICS, VizStats, summary_line
 
 _F, _I, _B, _S, _FA = (Parameter.Type.DOUBLE, Parameter.Type.INTEGER, Parameter.Type.BOOL,
@@ -112,6 +112,11 @@ for _topic, (_lo, _hi) in _RATE_DEFAULTS.items():
                                         _f(0.0, 100000.0), False)
     PARAMETERS[f'{_topic}_required'] = (True, f'a missing {_topic} topic is ERROR (else OK)',
                                         {}, False)
+
+# Exit codes (documented in the package README).
+EXIT_OK = 0
+EXIT_BAD_PARAMETERS = 2       # inconsistent or out-of-range parameters at start
+EXIT_REPORT_FAILED = 3        # the shutdown report could not be written completely
 
 _LEVEL_BYTES = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR,
                 3: DiagnosticStatus.STALE}
@@ -331,46 +336,70 @@ class VizNode(Node):
                                      contact_threshold=self.p['contact_threshold'])
 
     def write_report_now(self) -> Path:
-        """Write the report synchronously (used at shutdown); returns the folder."""
+        """Write the report synchronously (used at shutdown); returns the folder.
+
+        Raises:
+            ReportError: the folder or some of its files could not be written (the rest were).
+        """
         with self._report_lock:
             return write_report(self._report_target(), self.report_data())
 
     def _on_write_report(self, request: Trigger.Request, response: Trigger.Response):
         # Plotting takes a second or two: do it off the executor so the statistics keep flowing.
+        # What can be checked quickly (a report in progress, an unwritable folder) is answered now.
         if self._report_thread is not None and self._report_thread.is_alive():
             response.success, response.message = False, 'a report is already being written'
             return response
-        target = self._report_target()
-        data = self.report_data()   # copied now, so the report is of this instant
+        try:
+            target = prepare_report_dir(self._report_target())
+            data = self.report_data()   # copied now, so the report is of this instant
+        except ReportError as exc:
+            response.success, response.message = False, f'report not written: {exc}'
+            return response
+        except Exception as exc:  # noqa: BLE001 -- a service must answer, with the reason
+            response.success = False
+            response.message = f'report not written: {type(exc).__name__}: {exc}'
+            return response
 
-        def work() -> None:
-            try:
-                with self._report_lock:
-                    write_report(target, data)
-                self.get_logger().info(f'report written: {target / "index.html"}')
-            except ReportError as exc:
-                self.get_logger().error(f'report failed: {exc}')
-
-        self._report_thread = threading.Thread(target=work, name='report', daemon=True)
+        self._report_thread = threading.Thread(target=self._write_in_background,
+                                               args=(target, data), name='report', daemon=True)
         self._report_thread.start()
         response.success = True
         response.message = f'writing report to {target} (summary.json appears last)'
         return response
 
-    def finish(self) -> None:
-        """Wait for a report in progress, then write the shutdown report if configured."""
+    def _write_in_background(self, target: Path, data: ReportData) -> None:
+        try:
+            with self._report_lock:
+                write_report(target, data)
+            self.get_logger().info(f'report written: {target / "index.html"}')
+        except Exception as exc:  # noqa: BLE001 -- logged with its type; the node keeps running
+            self.get_logger().error(f'report failed: {type(exc).__name__}: {exc}')
+
+    def finish(self) -> int:
+        """Wait for a report in progress, then write the shutdown report if configured.
+
+        Returns:
+            The exit code: 0, or EXIT_REPORT_FAILED when the shutdown report could not be written
+            completely (what could be written is there; the failures are printed).
+        """
         if self._report_thread is not None:
             self._report_thread.join(timeout=30.0)
         if not self.p['report_on_shutdown']:
-            return
+            return EXIT_OK
         try:
             out = self.write_report_now()
-            print(f'[viz_node] report written: {out / "index.html"}', flush=True)
-        except ReportError as exc:
-            print(f'[viz_node] report failed: {exc}', flush=True)
+        except Exception as exc:  # noqa: BLE001 -- said in one line; a traceback helps nobody here
+            reason = str(exc) if isinstance(exc, ReportError) else f'{type(exc).__name__}: {exc}'
+            print(f'[viz_node] report failed: {reason}', flush=True)
+            return EXIT_REPORT_FAILED
+        print(f'[viz_node] report written: {out / "index.html"}', flush=True)
+        return EXIT_OK
 
 
 def main(args=None) -> None:
+    """Run the node until Ctrl-C / SIGTERM; exit with EXIT_OK, EXIT_REPORT_FAILED or
+    EXIT_BAD_PARAMETERS (an unexpected error exits 1 with its traceback, as any Python program)."""
     # Ctrl-C / SIGTERM only set a flag: a KeyboardInterrupt raised inside a callback called from the
     # EventsExecutor's C++ surfaces as a RuntimeError from spin_once, not as KeyboardInterrupt.
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -378,6 +407,7 @@ def main(args=None) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     node = None
+    code = EXIT_OK
     try:
         node = VizNode()
         executor = EventsExecutor()
@@ -391,12 +421,14 @@ def main(args=None) -> None:
         pass
     except (VizConfigError, InvalidParameterValueException) as exc:
         print(f'[viz_node] invalid parameters: {exc}', flush=True)
-        raise SystemExit(2)
+        code = EXIT_BAD_PARAMETERS
     finally:
         if node is not None:
-            node.finish()
+            code = node.finish() or code
             node.destroy_node()
         rclpy.try_shutdown()
+    if code != EXIT_OK:
+        raise SystemExit(code)
 
 
 if __name__ == '__main__':
