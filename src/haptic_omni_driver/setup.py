@@ -25,6 +25,7 @@ setup(
         'console_scripts': [
             'omni_driver = haptic_omni_driver.driver_node:main',
             'omni_record = haptic_omni_driver.recorder_node:main',
+            'omni_bag_recover = haptic_omni_driver.recover:main',
         ],
     },
 )

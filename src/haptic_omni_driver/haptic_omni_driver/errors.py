@@ -13,6 +13,11 @@ class BagError(DriverError):
     """A bag is missing, corrupt, empty, lacks a topic or carries the wrong message type."""
 
 
+class OutputError(BagError):
+    """A bag cannot be created or written: it exists, or the file system refuses (read-only, not a
+    directory, no permission, disk full)."""
+
+
 class DeviceError(DriverError):
     """The haptic device library is absent or the device failed (init, calibration, scheduler)."""
 

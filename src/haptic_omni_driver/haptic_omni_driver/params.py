@@ -107,6 +107,9 @@ RECORDER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
                         (0.0, 3600.0), True),
     'metadata_version': (9, 'rosbag2 metadata version (8 = Humble/Iron readers, 9 = Jazzy)', (8, 9),
                          True),
+    'flush_period': (0.5, '[s] write the open chunk to the .mcap and fsync it this often: a crash '
+                          '(kill, power loss) loses at most about this much (omni_bag_recover '
+                          'restores the rest)', (0.05, 60.0), True),
 }
 
 

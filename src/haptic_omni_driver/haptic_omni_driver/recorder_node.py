@@ -2,10 +2,15 @@
 
 Messages are recorded as the CDR bytes received (raw subscriptions), with their receive time as log
 time, the offered QoS of the publishers and the RIHS01 type hashes, as ``ros2 bag record`` does;
-the replay backend plays them back byte-identically. The bag is finalised on Ctrl-C (SIGINT), at
-``duration`` or after ``max_messages``.
+the replay backend plays them back byte-identically. The bag is finalised on Ctrl-C (SIGINT) or
+SIGTERM, at ``duration`` or after ``max_messages``. It is written in chunks flushed and fsynced
+every ``flush_period``, so a crash (SIGKILL, power loss) loses at most about that much;
+``omni_bag_recover`` makes such an unfinished bag complete.
 
     ros2 run haptic_omni_driver omni_record --ros-args -p output:=session1
+
+Exit codes: 0 normal, 1 the bag cannot be created or written (exists, read-only, not a directory,
+disk full), 2 invalid parameters (out of range, unknown topic). A refused start creates nothing.
 """
 
 from __future__ import annotations
@@ -24,6 +29,8 @@ from . import bagio
 from .errors import ConfigError, DriverError
 from .params import RECORDER_PARAMS, declare_all
 from .signals import stop_on_signals
+
+EXIT_OK, EXIT_OUTPUT, EXIT_PARAMS = 0, 1, 2
 
 #: message types of the topics this recorder knows (by last name component)
 KNOWN_TYPES = {
@@ -56,28 +63,31 @@ class OmniRecorder(Node):
         super().__init__('omni_record', **kwargs)
         self.p = declare_all(self, RECORDER_PARAMS)
         p = self.p
+        topics = resolve_topics(p['topics'])  # ConfigError before anything exists on disk
         out = p['output'] or time.strftime('omni_%Y%m%d_%H%M%S')
         self.path = Path(out).expanduser().resolve()
         self.finished = threading.Event()
+        self.failure: DriverError | None = None
         self._lock = threading.Lock()
         self._t_first: float | None = None
         self._t_created = time.monotonic()
-        self.writer = bagio.BagWriter(self.path, p['metadata_version'])  # BagError if it exists
+        self.writer: bagio.BagWriter | None = None
         rel = ReliabilityPolicy.RELIABLE if p['reliable'] else ReliabilityPolicy.BEST_EFFORT
         self._subs = []
-        for topic in p['topics']:
-            key = topic.rstrip('/').rsplit('/', 1)[-1]
-            if key not in KNOWN_TYPES:
-                raise ConfigError(f'cannot record {topic!r}: known topics end in '
-                                  f'{", ".join(KNOWN_TYPES)}')
-            module, cls, msgtype = KNOWN_TYPES[key]
-            msg_cls = getattr(__import__(module, fromlist=[cls]), cls)
+        for topic, key, msg_cls, msgtype in topics:
             reliability = ReliabilityPolicy.RELIABLE if key == 'state' else rel
             qos = QoSProfile(depth=p['qos_depth'], history=HistoryPolicy.KEEP_LAST,
                              reliability=reliability, durability=DurabilityPolicy.VOLATILE)
-            sub = self.create_subscription(msg_cls, topic, self._callback(len(self._subs), msgtype),
-                                           qos, raw=True)
+            try:
+                sub = self.create_subscription(msg_cls, topic,
+                                               self._callback(len(self._subs), msgtype), qos,
+                                               raw=True)
+            except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad names
+                raise ConfigError(f'cannot record {topic!r}: {exc}') from exc
             self._subs.append(sub)
+        # last: only a start that is going to record creates the bag (OutputError if it cannot)
+        self.writer = bagio.BagWriter(self.path, p['metadata_version'],
+                                      flush_period=p['flush_period'])
         self.get_logger().info(f'recording {", ".join(s.topic_name for s in self._subs)} to '
                                f'{self.path}')
         if p['duration'] > 0:
@@ -93,9 +103,14 @@ class OmniRecorder(Node):
             with self._lock:
                 if self.finished.is_set():
                     return
-                if topic not in self.writer.counts:
-                    self.writer.add_topic(topic, msgtype, self._offered_qos(topic))
-                self.writer.write(topic, msgtype, stamp, data)
+                try:
+                    if topic not in self.writer.counts:
+                        self.writer.add_topic(topic, msgtype, self._offered_qos(topic))
+                    self.writer.write(topic, msgtype, stamp, data)
+                except DriverError as exc:  # disk full, medium gone: stop, keep what is flushed
+                    self.failure = exc
+                    self.finished.set()
+                    return
                 if self._t_first is None:
                     self._t_first = time.monotonic()
                 if 0 < self.p['max_messages'] <= self.writer.count:
@@ -127,26 +142,49 @@ class OmniRecorder(Node):
             counts = self._counts()
         self.get_logger().info(f'recorded {self._logged_count} messages ({counts})')
 
-    def close(self) -> None:
-        """Finalise the bag (metadata.yaml + MCAP summary)."""
+    def close(self) -> bool:
+        """Finalise the bag (MCAP summary + metadata.yaml); False if it could not be finalised."""
         with self._lock:
             self.finished.set()
-            self.writer.close()
+            try:
+                self.writer.close()
+            except DriverError as exc:
+                self.get_logger().error(
+                    f'error: {exc}; the bag is unfinished: recover the messages written so far '
+                    f'with: omni_bag_recover {self.path}')
+                return False
         self.get_logger().info(f'bag closed: {self.writer.count} messages ({self._counts()}) in '
                                f'{self.path}')
+        return True
+
+
+def resolve_topics(topics: list[str]) -> list[tuple[str, str, type, str]]:
+    """(topic, key, message class, bag type) per topic; ConfigError for a topic it cannot record."""
+    if not topics:
+        raise ConfigError('topics is empty: nothing to record')
+    resolved = []
+    for topic in topics:
+        key = topic.rstrip('/').rsplit('/', 1)[-1]
+        if key not in KNOWN_TYPES:
+            raise ConfigError(f'cannot record {topic!r}: known topics end in '
+                              f'{", ".join(KNOWN_TYPES)}')
+        module, cls, msgtype = KNOWN_TYPES[key]
+        resolved.append((topic, key, getattr(__import__(module, fromlist=[cls]), cls), msgtype))
+    return resolved
 
 
 def main(args=None) -> int:
-    """Entry point of ``omni_record``; returns the exit code (1 on bad output path/topics)."""
+    """Entry point of ``omni_record``; returns the exit code (see the module docstring)."""
     rclpy.init(args=args)
+    logger = rclpy.logging.get_logger('omni_record')
     node = None
-    code = 0
+    code = EXIT_OK
     try:
         try:
             node = OmniRecorder()
         except DriverError as exc:
-            rclpy.logging.get_logger('omni_record').fatal(f'error: {exc}')
-            return 2 if isinstance(exc, ConfigError) else 1
+            logger.fatal(f'error: {exc}')
+            return EXIT_PARAMS if isinstance(exc, ConfigError) else EXIT_OUTPUT
         from rclpy.experimental import EventsExecutor
 
         stop = stop_on_signals()
@@ -158,7 +196,11 @@ def main(args=None) -> int:
         pass
     finally:
         if node is not None:
-            node.close()
+            if node.failure is not None:
+                logger.fatal(f'error: {node.failure}')
+                code = EXIT_OUTPUT
+            if not node.close():
+                code = EXIT_OUTPUT
             node.destroy_node()
         rclpy.try_shutdown()
     return code
