@@ -44,6 +44,7 @@ import rclpy
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import uninstall_signal_handlers
@@ -92,6 +93,16 @@ def numba_cache_stats() -> tuple[int, int]:
                 compiled += sum(obj.stats.cache_misses.values())
                 loaded += sum(obj.stats.cache_hits.values())
     return compiled, loaded
+
+
+RCLError = _rclpy.RCLError
+
+
+def rcl_reason(exc: Exception) -> str:
+    """rcl's message without its source location (``..., at /path/arguments.c:352``)."""
+    text = str(exc).split(', at /')[0]
+    text = text.replace('failed to initialize rcl: ', '').replace(' Error: error not set', '')
+    return text + ' (a parameter is given as -p name:=value)' if 'parameter override' in text else text
 
 
 class Reexec(Exception):
@@ -546,7 +557,12 @@ def _stop_on_signals() -> threading.Event:
 
 def main(args=None) -> int:
     """Entry point of ``sim_node``; returns the exit code."""
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except RCLError as exc:  # e.g. '-p model:=' (no value): rcl cannot parse the command line
+        print(f'[FATAL] [sim_node]: invalid command-line arguments: {rcl_reason(exc)}',
+              file=sys.stderr)
+        return EXIT_PARAMS
     node = None
     code = EXIT_OK
     reexec = False

@@ -1,5 +1,7 @@
 """Tissue models: the liver-shaped body, surface-mesh loading, spacing search, solver on a liver."""
 
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -252,6 +254,35 @@ def test_corrupt_mesh_file_is_rejected(tmp_path, name, content):
     path = tmp_path / name
     path.write_bytes(content)
     with pytest.raises(ModelError):
+        load_mesh_model(path, spacing=0.005)
+
+
+_RANDOM = np.random.default_rng(7).integers(0, 256, 3000, dtype=np.uint8).tobytes()
+
+
+@pytest.mark.parametrize('name, content, says', [
+    ('random.stl', _RANDOM, 'not a valid binary STL file'),
+    ('random.obj', _RANDOM, 'not a text OBJ file'),
+    ('random.off', _RANDOM, 'not a text OFF file'),
+    ('random.ply', _RANDOM, 'not a PLY file'),
+    ('tiny.stl', b'\x00' * 40, 'shorter than a binary STL header'),
+    ('empty.stl', b'', 'the file is empty'),
+    ('mesh.xyz', b'1 2 3\n', "unsupported mesh format '.xyz'"),
+])
+def test_a_file_that_is_not_the_mesh_its_name_says_is_rejected_with_a_sentence(tmp_path, name,
+                                                                                 content, says):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(ModelError, match=re.escape(says)):
+        load_mesh_model(path, spacing=0.005)
+
+
+def test_a_truncated_binary_stl_is_rejected_with_its_sizes(tmp_path):
+    path = _export(trimesh.creation.box(extents=(0.04, 0.03, 0.02)), tmp_path / 'box.stl')
+    data = path.read_bytes()
+    path.write_bytes(data[:-30])
+    with pytest.raises(ModelError, match=f'12 triangles \\({len(data)} bytes\\) but the file has '
+                                         f'{len(data) - 30} bytes'):
         load_mesh_model(path, spacing=0.005)
 
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import harness
-from sim_probe import (START_TIMEOUT, T0_NS, SimProbe, call_reset, finite_and_bounded, force_of,
-                       press_path, sim)
+from sim_probe import (T0_NS, SimProbe, call_reset, finite_and_bounded, force_of, press_path,
+                       set_parameters, sim)
 
 pytestmark = pytest.mark.ros
 
@@ -125,6 +125,12 @@ def test_reset_and_parameters_answer_while_a_1khz_pose_stream_feeds_slow_global_
                 assert reset.success, reset.message
                 before = len(probe.force_order)
                 assert rclpy_node.spin_until(lambda: len(probe.force_order) > before + 5, 60.0)
+            # a change that rebuilds the solver answers after the rebuild, not after queued steps
+            results, timings['set mode local'] = _timed(
+                lambda: set_parameters(rclpy_node, {'mode': 'local'}, timeout=SERVICE_DEADLINE))
+            assert results[0].successful, results[0].reason
+            before = len(probe.force_order)
+            assert rclpy_node.spin_until(lambda: len(probe.force_order) > before + 5, 60.0)
             sent = stream.sent
         print('answer times under the pose stream [ms]:',
               {k: round(v * 1e3, 1) for k, v in timings.items()}, f'({sent} poses sent)')
@@ -133,3 +139,22 @@ def test_reset_and_parameters_answer_while_a_1khz_pose_stream_feeds_slow_global_
         assert proc.stop() == 0
         totals = _totals(proc.output())
     assert totals['dropped'] > 0 or totals['steps'] == totals['poses']
+
+
+@pytest.mark.parametrize('ros_args', [['-p', 'model:='], ['-p', 'mode:='], ['-p', ':=1']])
+def test_an_empty_parameter_on_the_command_line_exits_2_with_a_sentence(ros_domain, ros_args):
+    with sim({'warmup': False}, ros_args=ros_args) as proc:
+        assert proc.wait(60) == 2
+        out = proc.output()
+    assert 'invalid command-line arguments: ' in out, out
+    assert 'Traceback' not in out and 'RCLError' not in out
+
+
+def test_random_bytes_as_a_mesh_exit_1_with_a_sentence_about_the_file(ros_domain, tmp_path):
+    path = tmp_path / 'random.stl'
+    path.write_bytes(np.random.default_rng(3).integers(0, 256, 3000, dtype=np.uint8).tobytes())
+    with sim({'model': 'mesh', 'mesh_path': str(path), 'warmup': False}) as proc:
+        assert proc.wait(60) == 1
+        out = proc.output()
+    assert 'cannot build the tissue: ' in out and 'not a valid binary STL file' in out, out
+    assert 'Traceback' not in out and 'ModuleNotFoundError' not in out

@@ -125,6 +125,47 @@ def sample_inside(triangles: np.ndarray, spacing: float, lo: np.ndarray, hi: np.
     return origin + idx * s, odd
 
 
+MESH_FORMATS = ('.stl', '.obj', '.ply', '.off')
+
+
+def check_mesh_file(p: Path) -> None:
+    """Raise :class:`ModelError` with a sentence about the file when its bytes cannot be the mesh
+    format its name says (trimesh fails on such files with unrelated errors, e.g. a missing
+    text-encoding module for random bytes)."""
+    ext = p.suffix.lower()
+    if ext not in MESH_FORMATS:
+        raise ModelError(f'{p}: unsupported mesh format {ext or "(no extension)"!r}; use one of '
+                         f'{", ".join(MESH_FORMATS)}')
+    data = p.read_bytes()
+    if not data:
+        raise ModelError(f'{p}: the file is empty')
+    if ext == '.stl':
+        if data[:5].lower() == b'solid' and b'\0' not in data[:1024] and b'facet' in data[:4096]:
+            return                                   # ASCII STL
+        if len(data) < 84:
+            raise ModelError(f'{p}: not an STL file ({len(data)} bytes, shorter than a binary STL '
+                             f'header)')
+        n = int.from_bytes(data[80:84], 'little')
+        if len(data) != 84 + 50 * n:
+            raise ModelError(f'{p}: not a valid binary STL file: its header announces {n} triangles '
+                             f'({84 + 50 * n} bytes) but the file has {len(data)} bytes (truncated '
+                             f'or not an STL)')
+        return
+    if ext == '.ply':
+        if not data.startswith(b'ply'):
+            raise ModelError(f'{p}: not a PLY file (it does not start with "ply")')
+        return
+    try:
+        text = data.decode('utf-8')
+    except UnicodeDecodeError as exc:
+        raise ModelError(f'{p}: not a text {ext[1:].upper()} file (binary content at byte '
+                         f'{exc.start})') from exc
+    if '\0' in text:
+        raise ModelError(f'{p}: not a text {ext[1:].upper()} file (it contains NUL bytes)')
+    if ext == '.off' and not text.lstrip().startswith(('OFF', 'COFF', 'NOFF')):
+        raise ModelError(f'{p}: not an OFF file (it does not start with "OFF")')
+
+
 def _load(path, scale: float):
     """Read a mesh file with trimesh; returns the trimesh.Trimesh scaled by ``scale``."""
     import trimesh
@@ -132,10 +173,12 @@ def _load(path, scale: float):
     p = Path(path)
     if not p.is_file():
         raise ModelError(f'mesh file not found: {p}')
+    check_mesh_file(p)
     try:
         mesh = trimesh.load(str(p), force='mesh', process=True)
     except Exception as exc:                       # trimesh raises many types on bad files
-        raise ModelError(f'{p}: cannot read mesh: {type(exc).__name__}: {exc}') from exc
+        raise ModelError(f'{p}: not a readable {p.suffix[1:].upper()} mesh ({type(exc).__name__}: '
+                         f'{exc})') from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ModelError(f'{p}: no triangles in the file (empty or not a surface mesh)')
     if not np.all(np.isfinite(mesh.vertices)):
