@@ -704,7 +704,10 @@ def write_report(directory: str | Path, data: ReportData) -> Path:
     """
     out = prepare_report_dir(directory)
     # A summary.json left from an earlier report would claim this one is finished.
-    (out / 'summary.json').unlink(missing_ok=True)
+    try:
+        (out / 'summary.json').unlink(missing_ok=True)
+    except OSError as exc:
+        raise ReportError(f'cannot remove the old {out / "summary.json"}: {exc}') from exc
     created = _dt.datetime.now(_dt.timezone.utc).strftime('%Y-%m-%d %H:%M:%S UTC')
     data = dataclasses.replace(data, summary=_complete_summary(data))
     failed: dict[str, str] = {}
