@@ -309,30 +309,53 @@ def test_lockstep_answers_every_pose_in_order_and_replays_bit_identically(rclpy_
 
 
 def test_threaded_live_mode_steps_only_the_newest_pose(rclpy_node):
-    n = 2000
-    path = press_path(n, depth=0.004, start_height=0.0)   # in contact throughout: slower steps
-    with sim({'step_thread': True, 'particles_rate': 0.0}, ros_args=['-r', '__ns:=/thr']) as proc:
-        probe = SimProbe(rclpy_node, ns='/thr/')
+    """step_thread: poses that arrive while the worker steps wait in a one-pose inbox, each newer
+    pose replacing (dropping) the older one, so the next step is always the newest pose.
+
+    Slow by construction, not by the machine: 2000 particles in global mode and 20 ms (max_dt)
+    between stamps make every step after the first 60 sub-steps over the whole block (hundreds of ms
+    here), against a burst that Python publishes in about a millisecond. Reliable QoS with a history
+    as deep as the burst delivers every pose to the node, so the inbox is the only place a pose can
+    be dropped and the node's bookkeeping can be checked exactly.
+    """
+    n = 30
+    period = 20_000_000
+    path = press_path(n, depth=0.003, start_height=0.0)    # in contact throughout
+    params = {'step_thread': True, 'particles_rate': 0.0, 'mode': 'global', 'n_particles': 2000,
+              'reliable': True, 'qos_depth': n}
+    with sim(params, ros_args=['-r', '__ns:=/thr']) as proc:
+        probe = SimProbe(rclpy_node, reliable=True, ns='/thr/')
         probe.wait_matched(proc)
         t0 = _unique_t0(30)
-        for k in range(n):
-            probe.publish(path[k], t0 + k * 100_000)
-        last_ns = t0 + n * 100_000
-        probe.exchange(path[-1], last_ns, timeout=5.0)
-        replies = [ns for ns in probe.force_order if t0 <= ns <= last_ns]
-        assert replies == sorted(replies) and len(replies) < n
-        assert finite_and_bounded([force_of(probe.forces[ns]) for ns in replies], FORCE_LIMIT)
+        probe.publish(path[0], t0)                         # the node is idle: stepped at once
+        assert rclpy_node.spin_until(lambda: t0 in probe.forces, 60.0), proc.output()
+        for k in range(1, n):                              # the rest arrive during the next step
+            probe.publish(path[k], t0 + k * period)
+        last_ns = t0 + (n - 1) * period
+        assert rclpy_node.spin_until(lambda: last_ns in probe.forces, 120.0), proc.output()
+        replies = list(probe.force_order)
         assert proc.stop() == 0
         m = re.search(r'totals: (\d+) poses, (\d+) steps, (\d+) dropped', proc.output())
     assert m, proc.output()
     poses, steps, dropped = map(int, m.groups())
-    # every received pose was stepped or dropped (a resent stamp, if any, is answered unstepped)
-    assert dropped > 0 and steps + dropped <= poses and steps >= poses - dropped - 3
+    assert poses == n                                      # reliable and deep enough: none lost
+    assert steps + dropped == poses                        # each pose stepped or dropped
+    assert replies == sorted(set(replies)) and len(replies) == steps   # one reply per step, in order
+    assert replies[0] == t0 and replies[-1] == last_ns     # the newest pose is always stepped...
+    assert dropped > 0                                     # ...and the older ones were not
+    assert finite_and_bounded([force_of(probe.forces[ns]) for ns in replies], FORCE_LIMIT)
 
 
 def test_scripted_driver_press_is_felt_through_the_default_device_mapping(rclpy_node):
-    """omni_driver (scripted press of its target (0, 0, 0) by 8 mm along device -y) + sim_node with
-    the default mapping: the driver accepts every force reply and renders an upward push."""
+    """omni_driver (scripted press of its target (0, 0, 0) along device -y) + sim_node with the
+    default mapping: the tissue pushes the stylus back up (device +y) and the driver accepts every
+    force reply and renders that push.
+
+    Live timing decides which poses are stepped, so the script is one whose contact force points up
+    whichever poses are stepped: a 4 mm press (deeper, a pressed particle of this coarse block can
+    slide sideways under the 5 mm tool and the sideways force can exceed the press), no lateral drag
+    and no sweep stroke; the only sideways motion left is the script's tremor (0.15 mm).
+    """
     from geometry_msgs.msg import WrenchStamped
     from tissue_msgs.msg import DeviceState
 
@@ -342,26 +365,30 @@ def test_scripted_driver_press_is_felt_through_the_default_device_mapping(rclpy_
     rclpy_node.create_subscription(DeviceState, '/sys/omni/state', states.append, qos(True, 10000))
     ns = ['-r', '__ns:=/sys']
     script = {'backend': 'scripted', 'exit_on_end': True, 'wait_for_subscribers': 1,
+              'press_depth': 0.004, 'pull_distance': 0.0, 'sweep_length': 0.0, 'sweep_depth': 0.0,
               'approach_time': 0.3, 'press_time': 0.6, 'hold_time': 0.6, 'pull_time': 0.3,
-              'release_time': 0.3, 'sweep_time': 0.6, 'return_time': 0.3, 'ramp_time': 0.05,
-              'watchdog_timeout': 0.05, 'state_rate': 200.0}
+              'release_time': 0.3, 'sweep_time': 0.3, 'return_time': 0.3,
+              # no ramp: the device renders each accepted reply as it is
+              'ramp_time': 0.0, 'watchdog_timeout': 0.05, 'state_rate': 200.0}
     with sim({'particles_rate': 0.0}, ros_args=ns) as sim_proc:
         sim_proc.wait_for_output(r'ready:', START_TIMEOUT)
         with harness.NodeProcess('haptic_omni_driver', 'omni_driver', params=script,
                                  ros_args=ns) as drv:
             # keep taking messages while the script runs (a reader holds only so many)
-            assert rclpy_node.spin_until(lambda: not drv.alive(), 60), drv.output()
+            assert rclpy_node.spin_until(lambda: not drv.alive(), 120), drv.output()
             assert drv.wait(5) == 0, drv.output()
             driver_out = drv.output()
         seen = -1
         while seen != len(forces) + len(states):               # drain what is still queued
             seen = len(forces) + len(states)
             rclpy_node.spin_until(lambda: False, 0.3)
-    assert len(forces) > 200, sim_proc.output()     # best effort on a loaded machine: not all
-    assert finite_and_bounded(forces, FORCE_LIMIT)
-    f = np.array(forces)
-    assert f[:, 1].max() > 0.1, sim_proc.output()[-3000:]       # pressed: pushed up (device +y)
-    assert np.abs(f[:, 1]).max() >= np.abs(f[:, 0]).max()       # mostly along the press
+    # best effort at 1 kHz on a loaded machine: how many replies arrive is not the point
+    f = np.array(forces).reshape(-1, 3)
+    assert finite_and_bounded(f, FORCE_LIMIT)
+    assert len(f) and f[:, 1].max() > 0.1, sim_proc.output()[-3000:]   # pressed: pushed up (+y)
+    contact = f[np.linalg.norm(f, axis=1) > 0.05]
+    sideways = contact[contact[:, 1] <= np.hypot(contact[:, 0], contact[:, 2])]
+    assert len(sideways) == 0, sideways[:10]                   # in contact: up, the press dominant
     commanded = [s.commanded_force.y for s in states if s.force_enabled]
     assert commanded and max(commanded) > 0.1, driver_out
     assert all(s.rejected_commands == 0 for s in states), driver_out
