@@ -178,14 +178,16 @@ def test_bad_poses_get_zero_force_and_the_node_keeps_running(probe, live_sim):
 def test_flood_of_poses_in_live_mode_drops_to_the_newest_without_backlog(probe, live_sim):
     t0 = _unique_t0(6)
     n = 3000
+    period = 20_000_000                                 # max_dt: each step is a full 20 ms frame
     path = press_path(n, depth=0.004)
     for k in range(n):                                  # as fast as Python publishes
-        probe.publish(path[k], t0 + k * 100_000)
-    last_ns = t0 + n * 100_000
-    w = probe.exchange(path[-1], last_ns, timeout=5.0)  # answered promptly: no queue of old poses
+        probe.publish(path[k], t0 + k * period)
+    last_ns = t0 + n * period
+    w = probe.exchange(path[-1], last_ns, timeout=30.0)
     replies = [ns for ns in probe.force_order if t0 <= ns <= last_ns]
     assert replies == sorted(replies)                   # never an older pose after a newer one
-    # the poses came far faster than a step (>= 0.1 ms): most were dropped, none queued
+    # publishing a pose costs far less than stepping a 20 ms frame (tens of sub-steps), whatever
+    # the machine: poses were dropped, not worked off one by one
     assert len(replies) < n
     forces = [force_of(probe.forces[ns]) for ns in replies] + [force_of(w)]
     assert finite_and_bounded(forces, FORCE_LIMIT)
@@ -447,12 +449,12 @@ def test_driver_lockstep_bag_replay_gives_bit_identical_forces_run_after_run(rcl
             with harness.NodeProcess('haptic_omni_driver', 'omni_driver', ros_args=['-r', f'__ns:={ns}'],
                                      params={'backend': 'replay', 'bag': str(tmp_path / 'press'),
                                              'replay_mode': 'lockstep', 'exit_on_end': True,
-                                             'lockstep_timeout': 5.0}) as drv:
+                                             'lockstep_timeout': 30.0}) as drv:
                 assert rclpy_node.spin_until(lambda: not drv.alive(), 120), drv.output()
                 assert drv.wait(5) == 0, drv.output()
                 assert re.search(rf'replay finished: {n} poses .*{n} replies, 0 timeouts',
                                  drv.output()), drv.output()
-            rclpy_node.spin_until(lambda: len(got) >= n, 10.0)
+            rclpy_node.spin_until(lambda: len(got) >= n, 30.0)
         assert [stamp_ns(m.header) for m in got] == [T0_NS + k * 1_000_000 for k in range(n)]
         runs.append(np.array([force_of(m) for m in got]))
     assert finite_and_bounded(runs[0], FORCE_LIMIT) and runs[0][:, 1].max() > 0.05
