@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .core.contact import clamp_force
 from .core.errors import ConfigError
 
 DEFAULT_ROTATION = (math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5))
@@ -123,14 +124,12 @@ class DeviceMapping:
 
 
 def clamp_norm(f: np.ndarray, limit: float) -> tuple[np.ndarray, bool]:
-    """``f`` scaled down to norm ``limit`` if longer; non-finite input gives zero. Returns (f, clamped)."""
-    f = np.asarray(f, dtype=np.float64)
-    if not np.all(np.isfinite(f)):
-        return np.zeros(3), True
-    n = float(np.linalg.norm(f))
-    if n > limit:
-        return f * (limit / n), True
-    return f, False
+    """``f`` scaled down to norm ``limit`` if longer; non-finite input gives zero. Returns (f, clamped).
+
+    The norm of the result never exceeds ``limit``, not even by rounding (see
+    :func:`~.core.contact.clamp_force`, which does the work).
+    """
+    return clamp_force(np.asarray(f, dtype=np.float64).reshape(3), limit)
 
 
 def check_position(p, max_norm: float) -> str | None:
