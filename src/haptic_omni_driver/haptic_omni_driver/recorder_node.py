@@ -64,6 +64,7 @@ class OmniRecorder(Node):
         self.p = declare_all(self, RECORDER_PARAMS)
         p = self.p
         topics = resolve_topics(p['topics'])  # ConfigError before anything exists on disk
+        bagio.typestore()  # built now (~1 s): in the first callback it stalled the stream that long
         out = p['output'] or time.strftime('omni_%Y%m%d_%H%M%S')
         self.path = Path(out).expanduser().resolve()
         self.finished = threading.Event()
