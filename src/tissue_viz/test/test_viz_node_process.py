@@ -15,10 +15,11 @@ import harness
 
 pytestmark = pytest.mark.ros
 
-# Small, fast targets so a test process can hold the rates easily on a loaded 2-core machine.
+# Small, fast targets. The probe publishes at 200 Hz; an OK rate only needs 80 Hz of them in a
+# window (100 Hz * (1 - 0.2)), so a probe held back on a busy machine still reaches it.
 FAST = {
     'window': 1.0, 'diagnostics_rate': 5.0, 'stale_timeout': 1.0, 'summary_period': 1.0,
-    'metrics_min_rate': 150.0, 'metrics_max_rate': 250.0, 'rate_tolerance': 0.2,
+    'metrics_min_rate': 100.0, 'metrics_max_rate': 250.0, 'rate_tolerance': 0.2,
     'particles_required': False, 'pose_required': False, 'force_required': False,
     'report_on_shutdown': False,
 }
@@ -104,19 +105,19 @@ def test_diagnostics_follow_the_metrics_rate_ok_then_warn_then_no_data(rclpy_nod
         assert _level(first) == 2 and first.message == 'no data'
         assert _level(probe.status('omni/pose rate')) == 0   # not required here
 
-        # 200 Hz inside [150, 250]: OK.
+        # 200 Hz inside [100, 250]: OK.
         def metrics_ok():
             s = probe.status('tissue/metrics rate')
             return s is not None and _level(s) == 0
         assert probe.run(200.0, metrics_ok, 20), probe.status('tissue/metrics rate')
         rate = float(dict((kv.key, kv.value) for kv in probe.status('tissue/metrics rate').values)
                      ['rate [Hz]'])
-        assert 150 * 0.8 <= rate <= 250 * 1.2
+        assert 100 * 0.8 <= rate <= 250 * 1.2
         assert 'p99' in probe.status('step time').message and _level(probe.status('step time')) == 0
         # All OK now: the one-line summary turns from a warning into an info line.
         assert probe.run(200.0, lambda: SUMMARY_INFO.search(viz.output()), 15), viz.output()
 
-        # 40 Hz is below 150 Hz * (1 - 0.2): WARN "rate too low".
+        # 40 Hz is below 100 Hz * (1 - 0.2): WARN "rate too low".
         def metrics_warn():
             s = probe.status('tissue/metrics rate')
             return _level(s) == 1
@@ -158,7 +159,9 @@ def test_nan_and_backwards_metrics_are_counted_and_the_node_keeps_running(rclpy_
 def test_sigint_writes_a_report_whose_summary_matches_what_was_sent(rclpy_node, tmp_path):
     report = tmp_path / 'report'
     params = dict(FAST, report_on_shutdown=True, report_dir=str(report))
-    forces = [0.1 * (i % 20) for i in range(300)]   # max 1.9 N
+    # 5 s at 200 Hz: a short stall of the node at the start or end of the run barely changes the
+    # mean rate it measures against the rate sent
+    forces = [0.1 * (i % 20) for i in range(1000)]   # max 1.9 N
 
     def ramp(probe):
         i = probe.sent
@@ -169,7 +172,7 @@ def test_sigint_writes_a_report_whose_summary_matches_what_was_sent(rclpy_node, 
         viz.wait_for_output(r'ready:', timeout=30)
         probe = Probe(rclpy_node)
         harness.wait_for_matching(rclpy_node, probe.pub)
-        probe.run(200.0, lambda: probe.sent >= len(forces), 30, make=ramp)
+        probe.run(200.0, lambda: probe.sent >= len(forces), 120, make=ramp)
         assert probe.sent == len(forces)
 
         def all_counted():
@@ -177,7 +180,7 @@ def test_sigint_writes_a_report_whose_summary_matches_what_was_sent(rclpy_node, 
             return s is not None and dict((kv.key, kv.value) for kv in s.values)['messages'] == \
                 str(len(forces))
         # Reliable QoS: every message reaches the node; wait until it has counted them all.
-        assert probe.run(0, all_counted, 15), probe.status('tissue/metrics rate')
+        assert probe.run(0, all_counted, 30), probe.status('tissue/metrics rate')
         rc = viz.stop(timeout=30)
         assert rc == 0, viz.output()
         assert 'report written' in viz.output()
@@ -294,7 +297,7 @@ def test_pose_to_force_latency_is_matched_by_stamp_and_lost_replies_raise_an_err
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     # Generous latency limits: the point is the matching, not this loaded machine's DDS speed.
-    params = dict(FAST, pose_required=True, force_required=True, pose_min_rate=150.0,
+    params = dict(FAST, pose_required=True, force_required=True, pose_min_rate=100.0,
                   pose_max_rate=250.0, force_min_rate=50.0, force_max_rate=250.0,
                   latency_timeout=0.2, latency_p50_warn=0.1, latency_p99_warn=0.4,
                   latency_p99_error=0.5, reply_loss_warn_pct=5.0, reply_loss_error_pct=20.0)
