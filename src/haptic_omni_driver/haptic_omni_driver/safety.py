@@ -1,18 +1,30 @@
 """Force safety chain between the simulator's force commands and the device (no rclpy).
 
 Every force that reaches a device (or, for the replay and scripted backends, the virtual device whose
-output DeviceState reports) passes through :class:`ForceSafety`:
+output DeviceState reports) passes through :class:`ForceSafety`, in this order:
 
-* commands with NaN/inf components, or in a frame other than the device frame, are rejected;
-* the force norm is clamped to ``force_limit`` (itself never above :data:`HARD_FORCE_LIMIT`);
-* force output is enabled only by the first valid command, and the output then ramps up linearly over
-  ``ramp_time`` (again after each watchdog trip), so a device never jumps to a large force;
-* a watchdog zeroes the output when the newest valid command is older than ``watchdog_timeout`` (the
-  simulator stopped or went silent), and optionally when a command answers a pose older than
-  ``max_command_lag`` (a stale reply).
+1. input checks (:meth:`ForceSafety.command`): commands with NaN/inf components, in a frame other
+   than the device frame, or (with ``max_command_lag`` > 0) whose stamp does not answer a recent pose
+   are rejected and counted;
+2. norm clamp: the command's norm is clamped to ``force_limit`` (never above
+   :data:`HARD_FORCE_LIMIT`), exactly: the clamped norm never exceeds the limit by rounding;
+3. watchdog (:meth:`ForceSafety.output`): the output is zeroed at once when no valid command was
+   received for ``watchdog_timeout`` of the driver's running time (the simulator stopped or went
+   silent). A command counts from its reception; an output more than :data:`MAX_TICK_CREDIT` after
+   the previous one counts as that long, because the process was not running in between (it could
+   neither receive nor render), so its own stall never trips the watchdog on a clean stream;
+4. enable ramp: output starts only with the first valid command and ramps up linearly over
+   ``ramp_time`` (again after each watchdog trip);
+5. force-rate limit: the output moves towards the ramped command by at most ``max_force_rate`` x dt
+   per output (dt counted up to :data:`MAX_TICK_CREDIT`, so a late tick earns no big step), so a
+   step in the command never kicks the device; a zero output (disabled, tripped, or a zero command)
+   is always applied at once;
+6. final clamp of the output to the current ``force_limit`` (a lowered limit applies at once).
 
-The class is thread-safe: commands come from the ROS executor thread, the output is polled by the servo
-loop (1 kHz) thread.
+Times are seconds on one monotonic clock chosen by the caller. A command's time is when it was
+*received*, not when it was processed: the watchdog then measures the command's true age even when
+the process handles it late. The class is thread-safe: commands and outputs may come from different
+threads (the servo loop, the executor).
 """
 
 from __future__ import annotations
@@ -32,6 +44,64 @@ CONTINUOUS_FORCE_LIMIT = 0.88
 #: [s] allowed watchdog range: below 10 ms a 1 kHz loop with DDS jitter trips spuriously; above
 #: 50 ms a runaway force is felt.
 WATCHDOG_RANGE = (0.005, 0.05)
+#: [N/s] default force-rate limit: tissue contact changes well under 1 N per 10 ms pass unchanged,
+#: a 0 -> 3.3 N step takes 33 ms instead of one servo tick.
+DEFAULT_FORCE_RATE = 100.0
+#: [N/s] allowed max_force_rate range (0 = off).
+FORCE_RATE_RANGE = (0.0, 10000.0)
+#: [s] longest interval between two outputs that counts in full, for the watchdog and the rate
+#: limit: the slowest servo period. A later output means the process was not running (descheduled,
+#: or the GIL held elsewhere): that stall neither ages the command nor earns a large force step.
+MAX_TICK_CREDIT = 0.01
+#: [s] how far a reply's stamp may lie ahead of the newest pose stamp. The simulator answers a pose
+#: with that pose's own stamp, so a valid reply is never newer; this only absorbs float rounding.
+STAMP_TOLERANCE = 1e-6
+
+
+#: a vector whose math.hypot norm is below limit * this is within the limit for np.linalg.norm too
+#: (both are within a few ulps of the exact norm; 2**-40 leaves ample room)
+_SURELY_BELOW = 1.0 - 2.0 ** -40
+#: above this norm np.linalg.norm (a sum of squares) may overflow: no fast path there
+_NO_OVERFLOW = 1e150
+
+
+def _norm(vec: np.ndarray) -> float:
+    """The larger of the float64 norms a reader may compute (``np.linalg.norm``, ``math.hypot``)."""
+    with np.errstate(over='ignore'):
+        return max(float(np.linalg.norm(vec)), math.hypot(vec[0], vec[1], vec[2]))
+
+
+def clamp_norm(vec: np.ndarray, limit: float) -> tuple[np.ndarray, bool]:
+    """``vec`` (finite, shape (3,)) scaled down to norm ``limit`` (>= 0) if longer; (vec, clamped).
+
+    The limit holds exactly in float64: the result's norm, as ``np.linalg.norm`` or ``math.hypot``
+    computes it, never exceeds ``limit`` (``vec * (limit / norm)`` rounds above it for about a third
+    of all vectors). Scalar maths, and ``np.linalg.norm`` only near or above the limit: this runs
+    several times per 1 kHz servo tick.
+    """
+    f0, f1, f2 = float(vec[0]), float(vec[1]), float(vec[2])
+    h = math.hypot(f0, f1, f2)
+    if h < limit * _SURELY_BELOW and h < _NO_OVERFLOW:
+        return vec, False
+    if h * _SURELY_BELOW <= limit and _norm(vec) <= limit:   # at the limit: ask both norms
+        return vec, False
+    return _scaled_within(f0, f1, f2, limit), True
+
+
+def _scaled_within(f0: float, f1: float, f2: float, limit: float) -> np.ndarray:
+    """The vector (f0, f1, f2) (finite, non-zero) scaled to the largest norm not above ``limit``."""
+    big = max(abs(f0), abs(f1), abs(f2))
+    u0, u1, u2 = f0 / big, f1 / big, f2 / big           # components <= 1: no overflow below
+    scale = limit / math.hypot(u0, u1, u2)
+    shrink = 0
+    while True:
+        out = np.array((u0 * scale, u1 * scale, u2 * scale))
+        if _norm(out) <= limit:
+            return out
+        # rounded above the limit: next float towards zero, faster if that is not enough
+        # (always ends: a zero scale fits any limit >= 0)
+        scale = max(0.0, scale - math.ulp(scale) * 2.0 ** shrink)
+        shrink += 1
 
 
 @dataclass
@@ -44,6 +114,7 @@ class SafetyConfig:
     max_command_lag: float = 0.0                  # [s] reject replies older than newest pose; 0 = off
     frame_id: str = 'omni_base'                   # device frame commands must be expressed in
     accept_empty_frame: bool = True               # treat frame_id '' as the device frame
+    max_force_rate: float = DEFAULT_FORCE_RATE    # [N/s] output rate-of-change limit; 0 = off
 
     def validate(self) -> 'SafetyConfig':
         """Raise :class:`ConfigError` for an out-of-range value; return self."""
@@ -56,6 +127,10 @@ class SafetyConfig:
             raise ConfigError(f'watchdog_timeout must be in [{lo}, {hi}] s, got {self.watchdog_timeout}')
         if not (math.isfinite(self.max_command_lag) and 0.0 <= self.max_command_lag <= 10.0):
             raise ConfigError(f'max_command_lag must be in [0, 10] s, got {self.max_command_lag}')
+        lo, hi = FORCE_RATE_RANGE
+        if not (math.isfinite(self.max_force_rate) and lo <= self.max_force_rate <= hi):
+            raise ConfigError(f'max_force_rate must be in [{lo:g}, {hi:g}] N/s, got '
+                              f'{self.max_force_rate}')
         if not self.frame_id:
             raise ConfigError('frame_id must not be empty')
         return self
@@ -66,7 +141,10 @@ class CommandResult:
     """Outcome of one force command."""
 
     accepted: bool
-    reason: str = ''          # why it was rejected ('nan', 'frame', 'stale'), '' if accepted
+    #: why it was rejected, '' if accepted: 'nan', 'frame', 'stale' (stamp older than the newest
+    #: pose by more than max_command_lag, or none), 'future' (stamp ahead of the newest pose),
+    #: 'no_pose' (no pose published yet, so nothing a reply could answer)
+    reason: str = ''
     clamped: bool = False
 
 
@@ -81,6 +159,8 @@ class SafetyStatus:
     command_age: float = -1.0   # [s], -1 before the first valid command
     rejected_commands: int = 0
     ramp: float = 0.0           # current ramp factor 0..1
+    rate_limited: bool = False  # the last output was held back by max_force_rate
+    rejected_by_reason: dict = field(default_factory=dict)   # reason -> count
 
     def flags(self) -> tuple:
         """The boolean part, used to publish DeviceState on change."""
@@ -88,7 +168,7 @@ class SafetyStatus:
 
 
 class ForceSafety:
-    """Clamp, ramp, watchdog and input validation for device force commands.
+    """Validation, clamp, watchdog, ramp and rate limit for device force commands.
 
     Times are seconds on one monotonic clock chosen by the caller (``time.monotonic()`` in the node).
     """
@@ -102,11 +182,15 @@ class ForceSafety:
         self._enabled = False
         self._clamped = False
         self._tripped = False
-        self._rejected = 0
+        self._rejected: dict[str, int] = {}
         self._newest_pose_stamp: float | None = None
         self._output = np.zeros(3)
+        self._output_time: float | None = None
+        self._stalled = 0.0               # [s] of the newest command's age the process was stalled
         self._ramp = 0.0
+        self._rate_limited = False
         self.trip_count = 0
+        self.rate_limited_count = 0       # outputs held back by max_force_rate
 
     def set_config(self, config: SafetyConfig) -> None:
         """Replace the parameters (validated first; the state is kept)."""
@@ -115,34 +199,25 @@ class ForceSafety:
             self.config = config
 
     def note_pose(self, stamp: float) -> None:
-        """Record the stamp [s] of the newest published pose (for the stale-reply check)."""
+        """Record the stamp [s] of the newest pose, before it is published (stale-reply check)."""
         with self._lock:
             self._newest_pose_stamp = stamp
 
+    # -- commands ------------------------------------------------------------------------------
     def command(self, force, frame_id: str, now: float, stamp: float | None = None) -> CommandResult:
         """Offer a force command [N] in ``frame_id`` received at ``now``; ``stamp`` = its header stamp."""
         vec = np.asarray(force, dtype=float).reshape(-1)
         cfg = self.config
         with self._lock:
-            if vec.shape != (3,) or not np.all(np.isfinite(vec)):
-                self._rejected += 1
-                return CommandResult(False, 'nan')
-            if frame_id != cfg.frame_id and not (cfg.accept_empty_frame and frame_id == ''):
-                self._rejected += 1
-                return CommandResult(False, 'frame')
-            if (cfg.max_command_lag > 0.0 and stamp is not None and stamp > 0.0
-                    and self._newest_pose_stamp is not None
-                    and self._newest_pose_stamp - stamp > cfg.max_command_lag):
-                self._rejected += 1
-                return CommandResult(False, 'stale')
-            norm = float(np.linalg.norm(vec))
-            limit = min(cfg.force_limit, HARD_FORCE_LIMIT)
-            clamped = norm > limit
-            if clamped:
-                vec = vec * (limit / norm)
+            reason = self._rejection(vec, frame_id, stamp, cfg)
+            if reason:
+                self._rejected[reason] = self._rejected.get(reason, 0) + 1
+                return CommandResult(False, reason)
+            vec, clamped = clamp_norm(vec, min(cfg.force_limit, HARD_FORCE_LIMIT))
             self._force = vec
             self._clamped = clamped
             self._last_cmd_time = now
+            self._stalled = 0.0
             if not self._enabled or self._tripped:
                 # Enable (first valid command) or re-enable after a trip: ramp up from zero.
                 self._enabled = True
@@ -150,32 +225,83 @@ class ForceSafety:
                 self._enable_time = now
             return CommandResult(True, '', clamped)
 
+    def _rejection(self, vec: np.ndarray, frame_id: str, stamp: float | None,
+                   cfg: SafetyConfig) -> str:
+        """Why a command must be rejected ('' if it may pass)."""
+        if vec.shape != (3,) or not np.all(np.isfinite(vec)):
+            return 'nan'
+        if frame_id != cfg.frame_id and not (cfg.accept_empty_frame and frame_id == ''):
+            return 'frame'
+        if cfg.max_command_lag > 0.0:
+            return self._stamp_problem(stamp, cfg.max_command_lag)
+        return ''
+
+    def _stamp_problem(self, stamp: float | None, max_lag: float) -> str:
+        """'' if ``stamp`` answers a pose within ``max_lag`` of the newest one, else the reason."""
+        newest = self._newest_pose_stamp
+        if newest is None:
+            return 'no_pose'
+        if stamp is None or not math.isfinite(stamp) or stamp < newest - max_lag:
+            return 'stale'   # a zero or negative stamp is older than any window
+        if stamp > newest + STAMP_TOLERANCE:
+            return 'future'
+        return ''
+
+    # -- output --------------------------------------------------------------------------------
     def output(self, now: float) -> np.ndarray:
         """The force [N] the device must render at ``now`` (zero when disabled or tripped)."""
         cfg = self.config
         with self._lock:
-            if not self._enabled:
-                out = np.zeros(3)
-                self._ramp = 0.0
-            else:
-                if not self._tripped and now - self._last_cmd_time > cfg.watchdog_timeout:
-                    self._tripped = True
-                    self.trip_count += 1
-                if self._tripped:
-                    out = np.zeros(3)
-                    self._ramp = 0.0
-                else:
-                    if cfg.ramp_time > 0.0:
-                        self._ramp = min(1.0, max(0.0, (now - self._enable_time) / cfg.ramp_time))
-                    else:
-                        self._ramp = 1.0
-                    out = self._force * self._ramp
-            self._output = out
+            target = self._ramped_command(now, cfg)
+            out = self._rate_limit(target, now, cfg.max_force_rate)
+            out, _ = clamp_norm(out, min(cfg.force_limit, HARD_FORCE_LIMIT))
+            self._output, self._output_time = out, now
             return out.copy()
+
+    def _ramped_command(self, now: float, cfg: SafetyConfig) -> np.ndarray:
+        """Watchdog and enable ramp: the force wanted at ``now`` before the rate limit."""
+        if not self._enabled:
+            self._ramp = 0.0
+            return np.zeros(3)
+        if not self._tripped and self._silence(now) > cfg.watchdog_timeout:
+            self._tripped = True
+            self.trip_count += 1
+        if self._tripped:
+            self._ramp = 0.0
+            return np.zeros(3)
+        if cfg.ramp_time > 0.0:
+            self._ramp = min(1.0, max(0.0, (now - self._enable_time) / cfg.ramp_time))
+        else:
+            self._ramp = 1.0
+        return self._force * self._ramp
+
+    def _silence(self, now: float) -> float:
+        """[s] of the driver's running time since the newest valid command was received."""
+        if self._output_time is not None:
+            # the part of the gap since the previous output (after the command) beyond a tick's
+            # worth is a stall of this process: no command could be received or rendered in it
+            start = max(self._output_time, self._last_cmd_time)
+            self._stalled += max(0.0, now - start - MAX_TICK_CREDIT)
+        return now - self._last_cmd_time - self._stalled
+
+    def _rate_limit(self, target: np.ndarray, now: float, rate: float) -> np.ndarray:
+        """``target``, or the point at most ``rate`` x dt from the previous output towards it."""
+        self._rate_limited = False
+        if rate <= 0.0 or not np.any(target):
+            return target   # off, or a zeroing: always at once
+        dt = 0.0 if self._output_time is None else min(max(0.0, now - self._output_time),
+                                                       MAX_TICK_CREDIT)
+        step, limited = clamp_norm(target - self._output, rate * dt)
+        if not limited:
+            return target
+        self._rate_limited = True
+        self.rate_limited_count += 1
+        return self._output + step
 
     def status(self, now: float) -> SafetyStatus:
         """Snapshot for DeviceState (``commanded_force`` is the last :meth:`output`)."""
         with self._lock:
             age = -1.0 if self._last_cmd_time is None else max(0.0, now - self._last_cmd_time)
             return SafetyStatus(self._enabled and not self._tripped, self._clamped, self._tripped,
-                                self._output.copy(), age, self._rejected, self._ramp)
+                                self._output.copy(), age, sum(self._rejected.values()), self._ramp,
+                                self._rate_limited, dict(self._rejected))
