@@ -6,6 +6,11 @@ Publishes ``omni/pose`` (geometry_msgs/PoseStamped, stylus tip in ``omni_base``,
 safety chain (:mod:`haptic_omni_driver.safety`) before it reaches the device. Backends (parameter
 ``backend``): ``openhaptics`` (libHD), ``replay`` (rosbag2 MCAP bag), ``scripted`` (synthetic motion).
 
+Force commands are not dispatched by the executor: the servo tick takes them straight from the DDS
+reader before it evaluates the watchdog, and dates each one by its DDS reception time. A command that
+has arrived is therefore never missed, nor counted old, because the executor thread (or the GIL) was
+busy: the watchdog measures the command's true age.
+
 Exit codes: 0 normal (Ctrl-C, or end of replay/script with exit_on_end), 1 bad input or device
 failure (missing/corrupt bag, libHD absent, ...), 2 invalid parameters, 3 lockstep reply timeout
 with lockstep_timeout_action abort.
@@ -29,14 +34,24 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tissue_msgs.msg import DeviceState
 
 from .backends.base import Backend, Sample
+from .cli import EXIT_PARAMS, init_rclpy
 from .errors import ConfigError, DriverError
 from .params import DRIVER_PARAMS, check_choice, declare_all
 from .safety import ForceSafety, SafetyConfig
 from .signals import stop_on_signals
 
-EXIT_OK, EXIT_INPUT, EXIT_PARAMS = 0, 1, 2
+EXIT_OK, EXIT_INPUT = 0, 1
 SAFETY_PARAMS = ('force_limit', 'ramp_time', 'watchdog_timeout', 'max_command_lag',
-                 'accept_empty_frame')
+                 'accept_empty_frame', 'max_force_rate')
+#: [s] how often a lockstep replay looks for the reply it waits for
+LOCKSTEP_POLL = 0.0002
+#: log text of each rejection reason of the safety chain
+REJECTION_TEXT = {
+    'nan': 'non-finite component',
+    'stale': 'stale: its stamp answers no pose within max_command_lag of the newest',
+    'future': 'stamped in the future: newer than the newest pose',
+    'no_pose': 'no pose published yet, so it answers none (max_command_lag is on)',
+}
 
 
 def make_backend(p: dict) -> Backend:
@@ -98,8 +113,9 @@ class OmniDriver(Node):
                              else ReliabilityPolicy.BEST_EFFORT)
         self.pose_pub = self.create_publisher(PoseStamped, 'omni/pose', qos)
         self.state_pub = self.create_publisher(DeviceState, 'omni/state', 10)
+        # taken by the servo tick itself (take_commands); `subscriptions` hides it from the executor
         self.force_sub = self.create_subscription(WrenchStamped, 'omni/force_feedback',
-                                                  self._on_force, qos)
+                                                  lambda _msg: None, qos)
         self.diag_pub = None
         if p['diagnostics_rate'] > 0:
             self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -111,6 +127,12 @@ class OmniDriver(Node):
         self._last_flags = None
         self._reply_cond = threading.Condition()
         self._replies: set[int] = set()
+        self._take_lock = threading.Lock()
+        self._last_take: float | None = None
+        #: (monotonic [s], system clock [ns]) now; tests inject their own
+        self._now_clocks = lambda: (time.monotonic(), time.time_ns())
+        #: next (message, message info) from the command reader, None when empty; tests inject
+        self._take = self._take_from_reader
         self._pose_msg = PoseStamped()
         self._pose_msg.header.frame_id = p['frame_id']
         self.n_poses = 0
@@ -121,11 +143,20 @@ class OmniDriver(Node):
         self._stop = threading.Event()
         self._t_start = time.monotonic()
 
+    @property
+    def subscriptions(self):
+        """Subscriptions the executor dispatches: all but the force commands (see take_commands)."""
+        force_sub = getattr(self, 'force_sub', None)
+        return (sub for sub in super().subscriptions if sub is not force_sub)
+
     # -- parameters ----------------------------------------------------------------------------
     @staticmethod
     def _safety_config(p: dict) -> SafetyConfig:
-        return SafetyConfig(p['force_limit'], p['ramp_time'], p['watchdog_timeout'],
-                            p['max_command_lag'], p['frame_id'], p['accept_empty_frame'])
+        return SafetyConfig(force_limit=p['force_limit'], ramp_time=p['ramp_time'],
+                            watchdog_timeout=p['watchdog_timeout'],
+                            max_command_lag=p['max_command_lag'], frame_id=p['frame_id'],
+                            accept_empty_frame=p['accept_empty_frame'],
+                            max_force_rate=p['max_force_rate'])
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         new = dict(self.p)
@@ -140,10 +171,11 @@ class OmniDriver(Node):
                 self.safety.set_config(self._safety_config(new))
             except ConfigError as exc:
                 return SetParametersResult(successful=False, reason=str(exc))
-            self.get_logger().info('safety parameters updated: force_limit %.3f N, ramp_time %.3f '
-                                   's, watchdog_timeout %.3f s' % (new['force_limit'],
-                                                                   new['ramp_time'],
-                                                                   new['watchdog_timeout']))
+            self.get_logger().info(
+                'safety parameters updated: force_limit %.3f N, ramp_time %.3f s, watchdog_timeout '
+                '%.3f s, max_command_lag %.3f s, max_force_rate %g N/s'
+                % (new['force_limit'], new['ramp_time'], new['watchdog_timeout'],
+                   new['max_command_lag'], new['max_force_rate']))
         self.p = new
         return SetParametersResult(successful=True)
 
@@ -154,7 +186,7 @@ class OmniDriver(Node):
         self.get_logger().info(
             f'ready: backend {b.name}, source {b.source}, force_limit '
             f'{self.safety.config.force_limit:g} N, watchdog {self.safety.config.watchdog_timeout:g}'
-            f' s, pose QoS {"reliable" if self._lockstep or self.p["reliable"] else "best effort"}'
+            f' s, max_force_rate {self.safety.config.max_force_rate:g} N/s, pose QoS {"reliable" if self._lockstep or self.p["reliable"] else "best effort"}'
             + (', lockstep' if self._lockstep else ''))
         if not b.has_device:
             self._servo_thread = threading.Thread(target=self._virtual_servo, daemon=True,
@@ -191,6 +223,8 @@ class OmniDriver(Node):
     # -- BackendSink ---------------------------------------------------------------------------
     def on_sample(self, sample: Sample) -> None:
         """Publish one pose (called from the backend / servo thread)."""
+        # noted before it is published: its reply may come back before publish() returns
+        self.safety.note_pose(sample.stamp_ns * 1e-9)
         if sample.raw is not None:
             self.pose_pub.publish(sample.raw)
         else:
@@ -202,14 +236,16 @@ class OmniDriver(Node):
             q.x, q.y, q.z, q.w = (float(v) for v in sample.orientation)
             self.pose_pub.publish(msg)
         self.n_poses += 1
-        self.safety.note_pose(sample.stamp_ns * 1e-9)
         if sample.buttons is not None and sample.buttons != self._buttons:
             self._buttons = sample.buttons
             self._publish_state()
 
     def servo(self) -> np.ndarray:
-        """One safety tick: the force the device renders now; state published on flag changes."""
-        now = time.monotonic()
+        """One safety tick: the force the device renders now; state published on flag changes.
+
+        The commands received up to now are taken first, so the watchdog sees every one of them.
+        """
+        now = self.take_commands()
         force = self.safety.output(now)
         status = self.safety.status(now)
         flags = status.flags()
@@ -237,14 +273,18 @@ class OmniDriver(Node):
 
     def wait_for_reply(self, stamp_ns: int, timeout: float) -> bool:
         deadline = time.monotonic() + timeout
-        with self._reply_cond:
-            while stamp_ns not in self._replies:
+        while not self._stop.is_set():
+            # take the replies here too: waiting for the next servo tick would slow lockstep down
+            self.take_commands()
+            with self._reply_cond:
+                if stamp_ns in self._replies:
+                    self._replies.discard(stamp_ns)
+                    return True
                 remaining = deadline - time.monotonic()
-                if remaining <= 0 or self._stop.is_set():
+                if remaining <= 0:
                     return False
-                self._reply_cond.wait(remaining)
-            self._replies.discard(stamp_ns)
-            return True
+                self._reply_cond.wait(min(remaining, LOCKSTEP_POLL))
+        return False
 
     def wait_for_subscribers(self) -> bool:
         need = self.p['wait_for_subscribers']
@@ -283,30 +323,52 @@ class OmniDriver(Node):
         getattr(self.get_logger(), {'warn': 'warn', 'error': 'error', 'info': 'info'}.get(
             level, 'debug'))(text)
 
-    # -- ROS callbacks -------------------------------------------------------------------------
-    def _on_force(self, msg: WrenchStamped) -> None:
-        now = time.monotonic()
+    # -- force commands ------------------------------------------------------------------------
+    def take_commands(self) -> float:
+        """Pass every force command received so far through the safety chain; returns the time.
+
+        Called by the servo tick before it evaluates the watchdog (and by a lockstep replay waiting
+        for its reply). Each command counts from its DDS reception time, not from when it is taken.
+        """
+        with self._take_lock:
+            now, wall_ns = self._now_clocks()
+            since, self._last_take = self._last_take, now
+            while (taken := self._take()) is not None:
+                msg, info = taken
+                self._on_command(msg, received_at(info, now, wall_ns, since), now)
+        return now
+
+    def _take_from_reader(self):
+        with self.force_sub.handle:
+            return self.force_sub.handle.take_message(WrenchStamped, False)
+
+    def _on_command(self, msg: WrenchStamped, received: float, now: float) -> None:
         self.n_commands += 1
         f = msg.wrench.force
         stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        result = self.safety.command((f.x, f.y, f.z), msg.header.frame_id, now, stamp_ns * 1e-9)
+        result = self.safety.command((f.x, f.y, f.z), msg.header.frame_id, received,
+                                     stamp_ns * 1e-9)
         if not result.accepted:
-            self._rejected_logged += 1
-            reason = {'nan': 'non-finite component',
-                      'frame': f'frame {msg.header.frame_id!r} is not {self.p["frame_id"]!r}',
-                      'stale': 'stale (answers an old pose)'}[result.reason]
-            # At most one line per reason and second: a flood of bad commands must not flood the log.
-            last = self._reject_log_time.get(result.reason, -1e9)
-            if now - last >= 1.0:
-                self._reject_log_time[result.reason] = now
-                self.get_logger().warn(f'rejected force command ({reason}): ({f.x}, {f.y}, {f.z}); '
-                                       f'{self.safety.status(now).rejected_commands} rejected so far')
+            self._log_rejection(result.reason, msg, now)
         if self._lockstep:
             with self._reply_cond:
                 if len(self._replies) > 10000:
                     self._replies.clear()
                 self._replies.add(stamp_ns)
                 self._reply_cond.notify_all()
+
+    def _log_rejection(self, reason: str, msg: WrenchStamped, now: float) -> None:
+        # At most one line per reason and second: a flood of bad commands must not flood the log.
+        last = self._reject_log_time.get(reason, -1e9)
+        if now - last < 1.0:
+            return
+        self._reject_log_time[reason] = now
+        text = REJECTION_TEXT.get(reason) or (
+            f'frame {msg.header.frame_id!r} is not {self.p["frame_id"]!r}')
+        f, stamp = msg.wrench.force, msg.header.stamp
+        self.get_logger().warn(
+            f'rejected force command ({text}): ({f.x}, {f.y}, {f.z}), stamp {stamp.sec}.'
+            f'{stamp.nanosec:09d}; {self.safety.status(now).rejected_commands} rejected so far')
 
     def _publish_state(self) -> None:
         now = time.monotonic()
@@ -345,16 +407,34 @@ class OmniDriver(Node):
             ('backend', self.backend.name), ('poses published', self.n_poses),
             ('mean pose rate [Hz]', f'{self.n_poses / elapsed:.1f}'),
             ('force commands', self.n_commands), ('rejected commands', status.rejected_commands),
+            *((f'rejected ({reason})', n) for reason, n in sorted(
+                status.rejected_by_reason.items())),
             ('watchdog trips', self.safety.trip_count), ('force enabled', status.force_enabled),
+            ('rate-limited outputs', self.safety.rate_limited_count),
             ('commanded force [N]', np.round(status.commanded_force, 4).tolist()))]
         arr = DiagnosticArray(status=[d])
         arr.header.stamp = self.get_clock().now().to_msg()
         self.diag_pub.publish(arr)
 
 
+def received_at(info: dict | None, now: float, wall_ns: int, since: float | None) -> float:
+    """Monotonic time [s] a command arrived, from its DDS reception stamp (system clock [ns]).
+
+    ``now`` and ``wall_ns`` are the same instant on both clocks. The result lies between the previous
+    take ``since`` (it was not there yet) and ``now``, so a system clock step cannot move it further;
+    without a reception stamp it is ``now``.
+    """
+    recv_ns = (info or {}).get('received_timestamp') or 0
+    t = now - (wall_ns - recv_ns) * 1e-9 if recv_ns > 0 else now
+    if since is not None:
+        t = max(t, since)
+    return min(t, now)
+
+
 def main(args=None) -> int:
     """Entry point of ``omni_driver``; returns the exit code."""
-    rclpy.init(args=args)
+    if not init_rclpy(args, 'omni_driver'):
+        return EXIT_PARAMS
     node = None
     code = EXIT_OK
     try:

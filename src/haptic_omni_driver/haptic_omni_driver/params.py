@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from .safety import CONTINUOUS_FORCE_LIMIT, HARD_FORCE_LIMIT, WATCHDOG_RANGE
+from .safety import (CONTINUOUS_FORCE_LIMIT, DEFAULT_FORCE_RATE, FORCE_RATE_RANGE,
+                     HARD_FORCE_LIMIT, WATCHDOG_RANGE)
 
 # name: (default, description, range/choices, read_only)
 DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
@@ -34,8 +35,13 @@ DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
                   (0.0, 10.0), False),
     'watchdog_timeout': (0.02, '[s] force zeroed when no valid command arrived for this long',
                          WATCHDOG_RANGE, False),
-    'max_command_lag': (0.0, '[s] reject force replies whose stamp is older than the newest pose '
-                             'by more than this (stale); 0 = off', (0.0, 10.0), False),
+    'max_command_lag': (0.0, '[s] reject force replies whose stamp is not within this of the '
+                             'newest pose (older: stale; newer, or before the first pose: they answer '
+                             'no pose); 0 = off', (0.0, 10.0), False),
+    'max_force_rate': (DEFAULT_FORCE_RATE, '[N/s] force-rate (impulse) limit: the output force '
+                                           'changes by at most this times the time since the '
+                                           'previous output (zeroing is immediate); 0 = off',
+                       FORCE_RATE_RANGE, False),
     'accept_empty_frame': (True, "accept force commands with an empty frame_id as device frame",
                            None, False),
     'loop': (False, 'replay/scripted: start again at the end', None, True),

@@ -26,6 +26,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from . import bagio
+from .cli import init_rclpy
 from .errors import ConfigError, DriverError
 from .params import RECORDER_PARAMS, declare_all
 from .signals import stop_on_signals
@@ -176,7 +177,8 @@ def resolve_topics(topics: list[str]) -> list[tuple[str, str, type, str]]:
 
 def main(args=None) -> int:
     """Entry point of ``omni_record``; returns the exit code (see the module docstring)."""
-    rclpy.init(args=args)
+    if not init_rclpy(args, 'omni_record'):
+        return EXIT_PARAMS
     logger = rclpy.logging.get_logger('omni_record')
     node = None
     code = EXIT_OK

@@ -1,0 +1,191 @@
+"""How omni_driver takes force commands, in-process with injected times and a fake DDS reader.
+
+The servo tick takes the commands itself, before the watchdog decides, and dates each by its DDS
+reception time: a command that has arrived is neither missed nor counted old because the executor
+thread (or the GIL) was busy. That was the spurious 20 ms trip on a clean 1 kHz stream.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+import harness
+
+pytestmark = pytest.mark.ros
+
+WALL0 = 1_700_000_000_000_000_000   # [ns] system clock at monotonic 0 in these tests
+
+
+class FakeReader:
+    """Stands in for the DDS reader and both clocks: commands arrive at given (monotonic) times."""
+
+    def __init__(self, node):
+        self.now = 0.0
+        self.pending: list[tuple[float, object]] = []
+        node._now_clocks = lambda: (self.now, WALL0 + round(self.now * 1e9))
+        node._take = self.take
+
+    def arrive(self, t: float, force=(0.3, 0.0, 0.0), stamp_ns: int = 0, frame='omni_base'):
+        """A command DDS receives at monotonic ``t`` (taken at a later servo tick)."""
+        from geometry_msgs.msg import WrenchStamped
+
+        msg = WrenchStamped()
+        msg.header.frame_id = frame
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+        msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = (float(f) for f in force)
+        self.pending.append((t, msg))
+
+    def take(self):
+        ready = [p for p in self.pending if p[0] <= self.now]
+        if not ready:
+            return None
+        self.pending.remove(ready[0])
+        t, msg = ready[0]
+        return msg, {'received_timestamp': WALL0 + round(t * 1e9), 'source_timestamp': 0}
+
+    def tick(self, node, t: float) -> np.ndarray:
+        self.now = t
+        return node.servo()
+
+
+@pytest.fixture
+def make_driver(rclpy_node):
+    """OmniDriver nodes in the test's context (not started: no backend thread, no servo thread)."""
+    from rclpy.parameter import Parameter
+
+    from haptic_omni_driver.driver_node import OmniDriver
+
+    nodes = []
+
+    def make(**params):
+        params = {'backend': 'scripted', 'ramp_time': 0.0, 'max_force_rate': 0.0, **params}
+        node = OmniDriver(context=rclpy_node.context, parameter_overrides=[
+            Parameter(k, value=v) for k, v in params.items()])
+        nodes.append(node)
+        return node
+
+    yield make
+    for node in nodes:
+        node.destroy_node()
+
+
+def test_command_received_while_the_servo_tick_was_late_is_taken_before_the_watchdog_decides(
+        make_driver):
+    node = make_driver(watchdog_timeout=0.02)
+    dds = FakeReader(node)
+    for k in range(11):                         # a clean 1 kHz stream, 1 ms servo ticks
+        dds.arrive(k * 0.001)
+        dds.tick(node, k * 0.001)
+    for k in range(11, 36):                     # the stream goes on...
+        dds.arrive(k * 0.001)
+    force = dds.tick(node, 0.0352)              # ...while the servo thread was held up for 25 ms
+    st = node.safety.status(0.0352)
+    assert force[0] == pytest.approx(0.3) and not st.watchdog_tripped
+    assert st.command_age == pytest.approx(0.0002)   # its true age, from its reception
+    assert node.n_commands == 36 and node.safety.trip_count == 0
+
+
+def test_commands_count_from_their_reception_even_when_taken_late(make_driver):
+    node = make_driver(watchdog_timeout=0.02)
+    dds = FakeReader(node)
+    dds.tick(node, 0.0)
+    dds.arrive(0.001)
+    for k in range(2, 22):                      # taken at 2 ms; the stream then stops
+        dds.tick(node, k * 0.001)
+    assert not node.safety.status(0.021).watchdog_tripped
+    assert not np.any(dds.tick(node, 0.0215))   # 20.5 ms after its reception: zeroed
+    assert node.safety.status(0.0215).watchdog_tripped
+
+
+def test_stale_command_is_rejected_and_counted_in_the_state(make_driver):
+    from haptic_omni_driver.backends.base import Sample
+
+    node = make_driver(max_command_lag=0.05)
+    dds = FakeReader(node)
+    pose_ns = WALL0 + 10_000_000
+    node.on_sample(Sample(pose_ns, np.zeros(3)))
+    for stamp in (0, -5_000_000_000, pose_ns + 1_000_000, pose_ns - 60_000_000):
+        dds.arrive(0.0, force=(0.5, 0, 0), stamp_ns=stamp)
+    dds.arrive(0.0, force=(0.1, 0, 0), stamp_ns=pose_ns)
+    force = dds.tick(node, 0.001)
+    st = node.safety.status(0.001)
+    assert force[0] == pytest.approx(0.1)
+    assert st.rejected_commands == 4
+    assert st.rejected_by_reason == {'stale': 3, 'future': 1}
+
+
+def test_reply_arriving_while_its_pose_is_being_published_answers_a_known_pose(make_driver):
+    """The pose stamp is noted before publishing: an instant reply is not 'from the future'."""
+    from haptic_omni_driver.backends.base import Sample
+
+    node = make_driver(max_command_lag=0.05)
+    results = []
+
+    def publish_and_reply(msg):
+        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        results.append(node.safety.command((0.1, 0, 0), 'omni_base', time.monotonic(),
+                                           stamp_ns * 1e-9))
+
+    node.pose_pub.publish = publish_and_reply
+    node.on_sample(Sample(WALL0 + 10_000_000, np.zeros(3)))
+    assert results and results[0].accepted, results
+
+
+def test_lockstep_wait_takes_its_reply_without_a_servo_tick(make_driver, tmp_path):
+    from omni_test_utils import make_pose_bag
+
+    make_pose_bag(tmp_path / 'bag', n=5)
+    node = make_driver(backend='replay', bag=str(tmp_path / 'bag'), replay_mode='lockstep')
+    dds = FakeReader(node)
+    dds.arrive(0.0, stamp_ns=123)
+    assert node.wait_for_reply(123, timeout=5.0)
+    assert not node.wait_for_reply(456, timeout=0.01)
+
+
+def test_force_commands_are_taken_by_the_servo_not_dispatched_by_the_executor(rclpy_node,
+                                                                               make_driver):
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.experimental import EventsExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    node = make_driver(reliable=True, qos_depth=10)
+    assert node.force_sub not in list(node.subscriptions)
+    pub = rclpy_node.create_publisher(WrenchStamped, 'omni/force_feedback',
+                                      QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    harness.wait_for_matching(rclpy_node, pub)
+    executor = EventsExecutor(context=rclpy_node.context)
+    executor.add_node(node)
+    try:
+        msg = WrenchStamped()
+        msg.header.frame_id = 'omni_base'
+        msg.wrench.force.y = 0.25
+        pub.publish(msg)
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:          # the executor has every chance to take it
+            executor.spin_once(timeout_sec=0.01)
+        assert node.n_commands == 0
+        deadline = time.monotonic() + 10.0      # the servo tick takes it (once DDS has it)
+        while node.n_commands == 0 and time.monotonic() < deadline:
+            node.servo()
+            time.sleep(0.001)
+        assert node.n_commands == 1
+        assert node.safety.status(time.monotonic()).rejected_commands == 0
+    finally:
+        executor.shutdown()
+
+
+@pytest.mark.parametrize('recv_ns, since, expected', [
+    (WALL0 + 7_000_000, 0.005, 0.007),      # DDS stamp mapped onto the monotonic clock
+    (WALL0 + 2_000_000, 0.005, 0.005),      # not before the previous take (clock stepped back)
+    (WALL0 + 20_000_000, 0.005, 0.010),     # not after now (clock stepped forward)
+    (0, 0.005, 0.010),                      # no reception stamp: now
+    (WALL0 + 7_000_000, None, 0.007),       # first take
+])
+def test_reception_time_is_mapped_and_bounded_to_the_take_interval(recv_ns, since, expected):
+    from haptic_omni_driver.driver_node import received_at
+
+    info = {'received_timestamp': recv_ns}
+    assert received_at(info, 0.010, WALL0 + 10_000_000, since) == pytest.approx(expected, abs=1e-12)
