@@ -1,0 +1,13 @@
+"""Suite-wide pytest hooks (the fixtures live in test/conftest.py)."""
+
+import pytest
+
+# pytest.ini's timeout (300 s) catches a hung test; a test marked slow does minutes of numerical
+# work that a loaded 2-core machine can stretch several times over, so it gets a longer leash.
+SLOW_TIMEOUT = 1800
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if item.get_closest_marker('slow') and not item.get_closest_marker('timeout'):
+            item.add_marker(pytest.mark.timeout(SLOW_TIMEOUT))
