@@ -16,6 +16,9 @@ BLOCK = {'model': 'block', 'block_size': [0.08, 0.08, 0.04], 'n_particles': 256,
 N_BLOCK = 256
 START_TIMEOUT = 240.0  # numba recompiles every kernel after a core edit (tens of seconds on 2 cores)
 T0_NS = 1_700_000_000_000_000_000
+#: frame of the probe's handshake poses: sim_node rejects them (zero force in this frame, tissue not
+#: stepped, clock not advanced), see :meth:`SimProbe.wait_matched`
+HANDSHAKE_FRAME = 'sim_probe_handshake'
 
 
 def sim(params: dict | None = None, **kw) -> harness.NodeProcess:
@@ -56,6 +59,8 @@ class SimProbe:
         self.force_order: list[int] = []
         self.metrics: list = []
         self.clouds: list = []
+        self.handshakes_sent = 0      # handshake poses published (each counts as a rejected pose)
+        self._handshake_replies = 0
         self.force_sub = node.create_subscription(WrenchStamped, ns + 'omni/force_feedback',
                                                   self._on_force, qos(reliable, 10000))
         self.metrics_sub = node.create_subscription(SimMetrics, ns + 'tissue/metrics',
@@ -65,14 +70,35 @@ class SimProbe:
         self._msg = PoseStamped()
 
     def _on_force(self, msg) -> None:
+        if msg.header.frame_id == HANDSHAKE_FRAME:
+            self._handshake_replies += 1
+            return
         ns = stamp_ns(msg.header)
         self.forces[ns] = msg
         self.force_order.append(ns)
 
-    def wait_matched(self, proc) -> None:
+    def wait_matched(self, proc, timeout: float = 60.0) -> None:
+        """Wait until the node is ready and no reply to this probe can be lost to discovery.
+
+        The subscriptions seeing the node's writers does not tell whether the node's force writer
+        knows this probe's reader yet (a volatile writer drops what it sends before, more likely on a
+        busy machine). So a pose in a foreign frame is sent until its answer arrives; the node
+        rejects it without stepping or advancing its clock, and replies in that frame are not
+        recorded.
+        """
         proc.wait_for_output(r'ready:', START_TIMEOUT)
         for endpoint in (self.pose_pub, self.force_sub, self.metrics_sub, self.cloud_sub):
             harness.wait_for_matching(self.node, endpoint)
+        n0 = self._handshake_replies
+        deadline = time.monotonic() + timeout
+        while self._handshake_replies == n0:
+            assert time.monotonic() < deadline, f'no answer to a handshake pose within {timeout} s'
+            self.publish((0.0, 0.0, 0.0), 1, frame=HANDSHAKE_FRAME)
+            self.handshakes_sent += 1
+            self.node.spin_until(lambda: self._handshake_replies > n0, 0.5)
+        # a resent one still on its way would meet the test's first poses: let it be answered (a
+        # best-effort answer may be lost, hence the bound)
+        self.node.spin_until(lambda: self._handshake_replies >= self.handshakes_sent, 2.0)
 
     def publish(self, pos, ns: int, frame: str = 'omni_base') -> None:
         msg = self._msg

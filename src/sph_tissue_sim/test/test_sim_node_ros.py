@@ -337,11 +337,13 @@ def test_threaded_live_mode_steps_only_the_newest_pose(rclpy_node):
         assert rclpy_node.spin_until(lambda: last_ns in probe.forces, 120.0), proc.output()
         replies = list(probe.force_order)
         assert proc.stop() == 0
-        m = re.search(r'totals: (\d+) poses, (\d+) steps, (\d+) dropped', proc.output())
+        m = re.search(r'totals: (\d+) poses, (\d+) steps, (\d+) dropped .*?, (\d+) rejected',
+                      proc.output())
     assert m, proc.output()
-    poses, steps, dropped = map(int, m.groups())
-    assert poses == n                                      # reliable and deep enough: none lost
-    assert steps + dropped == poses                        # each pose stepped or dropped
+    poses, steps, dropped, rejected = map(int, m.groups())
+    # reliable and deep enough: none lost (the probe's handshake poses are rejected by the node)
+    assert poses == n + probe.handshakes_sent and rejected <= probe.handshakes_sent
+    assert steps + dropped + rejected == poses             # each pose stepped, dropped or rejected
     assert replies == sorted(set(replies)) and len(replies) == steps   # one reply per step, in order
     assert replies[0] == t0 and replies[-1] == last_ns     # the newest pose is always stepped...
     assert dropped > 0                                     # ...and the older ones were not
