@@ -124,10 +124,13 @@ class Monitor:
     """
 
     def __init__(self, domain_env: Mapping[str, str] | None = None, keep: bool = True,
-                 reliable: bool = False) -> None:
+                 reliable: bool = False, depth: int = 1000) -> None:
         self.env = domain_env
         self.keep = keep
         self.reliable = reliable   # reliable pose/force readers: no loss, match reliable writers only
+        # reader history: with reliable readers, deeper than what this monitor may fall behind by
+        # on a busy machine (a full history drops its oldest message)
+        self.depth = depth
         self.lock = __import__('threading').Lock()
         self.pose_rx: dict[int, float] = {}       # stamp -> receive time
         self.force_rx: dict[int, float] = {}      # stamp -> receive time
@@ -175,10 +178,10 @@ class Monitor:
                     os.environ.pop(k, None)
                 else:
                     os.environ[k] = v
-        fast = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+        fast = QoSProfile(depth=self.depth, history=HistoryPolicy.KEEP_LAST,
                           reliability=ReliabilityPolicy.RELIABLE if self.reliable
                           else ReliabilityPolicy.BEST_EFFORT)
-        reliable = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+        reliable = QoSProfile(depth=self.depth, history=HistoryPolicy.KEEP_LAST,
                               reliability=ReliabilityPolicy.RELIABLE)
         n = self.node
         self.pose_sub = n.create_subscription(PoseStamped, 'omni/pose', self._on_pose, fast)

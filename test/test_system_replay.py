@@ -50,7 +50,10 @@ def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clea
     env = harness.ros_env()
     report = tmp_path / 'report' if name == 'press' else None
     viz = graph.viz(report, env=env, params={'diagnostics_rate': 5.0, 'window': 1.0})
-    sim = graph.sim('lockstep', env=env)
+    # histories deeper than the session on the sim's force writer and the monitor's readers: the
+    # driver paces the loop, and a monitor that falls behind on a busy machine must not lose replies
+    depth = 2 * len(pose_stamps)
+    sim = graph.sim('lockstep', env=env, params={'qos_depth': depth})
     drv = graph.driver_replay(bag, 'lockstep', env=env, subscribers=3,
                               params={'diagnostics_rate': 5.0})
     procs = [drv, sim, viz]
@@ -59,15 +62,16 @@ def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clea
         sim.start()
         viz.wait_for_output(graph.VIZ_READY, timeout=60)
         sim.wait_for_output(graph.SIM_READY, timeout=180)
-        with graph.Monitor(env, reliable=True) as mon:
+        with graph.Monitor(env, reliable=True, depth=depth) as mon:
             mon.probe_sim()
             t0 = time.monotonic()
             drv.start()
             assert drv.wait(240) == 0, drv.output()
             replay_s = time.monotonic() - t0
-            mon.wait_for(lambda: mon.n_forces >= len(pose_stamps), 10, 'all replies seen')
+            mon.wait_for(lambda: mon.n_forces >= len(pose_stamps), 60,
+                         f'all {len(pose_stamps)} replies seen')
             # diagnostics come at 5 Hz from driver and viz; wait for both once the loop ran
-            mon.wait_for(lambda: {'driver', 'viz'} <= mon.diagnostic_sources(), 10,
+            mon.wait_for(lambda: {'driver', 'viz'} <= mon.diagnostic_sources(), 30,
                          'diagnostics from omni_driver and viz_node')
             with mon.lock:
                 got = {s: f for s, _, f in mon.wrenches}
