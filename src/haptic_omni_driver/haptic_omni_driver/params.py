@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .safety import (CONTINUOUS_FORCE_LIMIT, DEFAULT_FORCE_RATE, FORCE_RATE_RANGE,
+from .safety import (CONTINUOUS_FORCE_LIMIT, DEFAULT_COMMAND_LAG, DEFAULT_FORCE_RATE, FORCE_RATE_RANGE,
                      HARD_FORCE_LIMIT, WATCHDOG_RANGE)
 
 # name: (default, description, range/choices, read_only)
@@ -35,7 +35,7 @@ DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
                   (0.0, 10.0), False),
     'watchdog_timeout': (0.02, '[s] force zeroed when no valid command arrived for this long',
                          WATCHDOG_RANGE, False),
-    'max_command_lag': (0.0, '[s] reject force replies whose stamp is not within this of the '
+    'max_command_lag': (DEFAULT_COMMAND_LAG, '[s] reject force replies whose stamp is not within this of the '
                              'newest pose (older: stale; newer, or before the first pose: they answer '
                              'no pose); 0 = off', (0.0, 10.0), False),
     'max_force_rate': (DEFAULT_FORCE_RATE, '[N/s] force-rate (impulse) limit: the output force '

@@ -56,6 +56,10 @@ MAX_TICK_CREDIT = 0.01
 #: [s] how far a reply's stamp may lie ahead of the newest pose stamp. The simulator answers a pose
 #: with that pose's own stamp, so a valid reply is never newer; this only absorbs float rounding.
 STAMP_TOLERANCE = 1e-6
+#: [s] default stale-reply window: a reply must answer a pose at most this older than the newest one
+#: published (a zero, negative or future stamp answers none). The simulator answers within a few
+#: milliseconds; a force that answers a pose 0.1 s old no longer belongs to where the hand is.
+DEFAULT_COMMAND_LAG = 0.1
 
 
 #: a vector whose math.hypot norm is below limit * this is within the limit for np.linalg.norm too
@@ -111,7 +115,7 @@ class SafetyConfig:
     force_limit: float = CONTINUOUS_FORCE_LIMIT   # [N] norm clamp
     ramp_time: float = 0.5                        # [s] linear ramp after enabling; 0 = none
     watchdog_timeout: float = 0.02                # [s] zero the force when commands stop this long
-    max_command_lag: float = 0.0                  # [s] reject replies older than newest pose; 0 = off
+    max_command_lag: float = DEFAULT_COMMAND_LAG  # [s] reject replies older than newest pose; 0 = off
     frame_id: str = 'omni_base'                   # device frame commands must be expressed in
     accept_empty_frame: bool = True               # treat frame_id '' as the device frame
     max_force_rate: float = DEFAULT_FORCE_RATE    # [N/s] output rate-of-change limit; 0 = off

@@ -61,7 +61,9 @@ def make_driver(rclpy_node):
     nodes = []
 
     def make(**params):
-        params = {'backend': 'scripted', 'ramp_time': 0.0, 'max_force_rate': 0.0, **params}
+        # commands here answer no pose: the stale-reply window only where a test sets it
+        params = {'backend': 'scripted', 'ramp_time': 0.0, 'max_force_rate': 0.0,
+                  'max_command_lag': 0.0, **params}
         node = OmniDriver(context=rclpy_node.context, parameter_overrides=[
             Parameter(k, value=v) for k, v in params.items()])
         nodes.append(node)

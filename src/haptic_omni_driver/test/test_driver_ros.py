@@ -30,7 +30,9 @@ def stamp_ns(header) -> int:
 
 
 def driver(params: dict, **kw) -> harness.NodeProcess:
-    return harness.NodeProcess(PKG, 'omni_driver', params=params, **kw)
+    """An omni_driver process. The tests' own force commands answer no pose (stamped 0 or with the
+    clock), so the stale-reply window is off unless a test sets ``max_command_lag``."""
+    return harness.NodeProcess(PKG, 'omni_driver', params={'max_command_lag': 0.0, **params}, **kw)
 
 
 class StateWatch:

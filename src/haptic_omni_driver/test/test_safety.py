@@ -12,6 +12,7 @@ from haptic_omni_driver.safety import HARD_FORCE_LIMIT, ForceSafety, SafetyConfi
 def make(**kw) -> ForceSafety:
     """A safety chain; the force-rate limit is off unless asked for (tested in test_safety_battery)."""
     kw.setdefault('max_force_rate', 0.0)
+    kw.setdefault('max_command_lag', 0.0)   # commands here answer no pose (window: test_safety_battery)
     return ForceSafety(SafetyConfig(**kw))
 
 

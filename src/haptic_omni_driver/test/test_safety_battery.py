@@ -6,13 +6,16 @@ import numpy as np
 import pytest
 
 from haptic_omni_driver.errors import ConfigError
-from haptic_omni_driver.safety import (HARD_FORCE_LIMIT, MAX_TICK_CREDIT, STAMP_TOLERANCE,
+from haptic_omni_driver.safety import (DEFAULT_COMMAND_LAG, HARD_FORCE_LIMIT, MAX_TICK_CREDIT, STAMP_TOLERANCE,
                                        ForceSafety, SafetyConfig, clamp_norm)
 
 POSE = 1_700_000_000.123  # [s] a wall-clock pose stamp, as the live backends publish
 
 
 def make(**kw) -> ForceSafety:
+    """A safety chain; commands answer no pose unless a test notes one, so the stale-reply window
+    is off unless asked for (its default is tested on its own)."""
+    kw.setdefault('max_command_lag', 0.0)
     return ForceSafety(SafetyConfig(**kw))
 
 
@@ -67,6 +70,20 @@ def test_command_before_any_pose_is_rejected_when_the_lag_check_is_on():
     assert s.status(1.0).rejected_by_reason == {'no_pose': 1}
     s.note_pose(POSE)
     assert s.command([0.5, 0, 0], 'omni_base', now=1.001, stamp=POSE).accepted
+
+
+def test_by_default_replies_stamped_zero_negative_future_or_too_old_are_rejected():
+    s = ForceSafety(SafetyConfig(ramp_time=0.0))
+    assert s.config.max_command_lag == DEFAULT_COMMAND_LAG > 0.0
+    assert s.command([0.5, 0, 0], 'omni_base', now=0.5, stamp=POSE).reason == 'no_pose'
+    s.note_pose(POSE)
+    expected = {0.0: 'stale', -5.0: 'stale', None: 'stale', math.nan: 'stale',
+                POSE - 2 * DEFAULT_COMMAND_LAG: 'stale', POSE + 0.001: 'future', POSE + 100.0: 'future'}
+    for stamp, reason in expected.items():
+        result = s.command([0.5, 0, 0], 'omni_base', now=1.0, stamp=stamp)
+        assert (result.accepted, result.reason) == (False, reason), stamp
+    assert s.command([0.5, 0, 0], 'omni_base', now=1.0, stamp=POSE - 0.5 * DEFAULT_COMMAND_LAG).accepted
+    assert s.command([0.5, 0, 0], 'omni_base', now=1.0, stamp=POSE).accepted
 
 
 def test_stamps_are_not_checked_when_the_lag_check_is_off():
