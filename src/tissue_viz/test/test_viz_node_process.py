@@ -292,6 +292,15 @@ def test_inconsistent_rate_targets_are_rejected_at_start_with_a_clear_message():
         assert 'min_rate <= max_rate' in viz.output()
 
 
+@pytest.mark.parametrize('ros_args', [['-p', 'report_dir:='], ['-p', ':=1']])
+def test_an_unparsable_command_line_exits_2_with_a_sentence(ros_domain, ros_args):
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=FAST, ros_args=ros_args) as viz:
+        assert viz.wait(timeout=30) == 2
+        out = viz.output()
+    assert 'invalid command-line arguments: ' in out, out
+    assert 'Traceback' not in out and 'RCLError' not in out
+
+
 def test_pose_to_force_latency_is_matched_by_stamp_and_lost_replies_raise_an_error(rclpy_node):
     from geometry_msgs.msg import PoseStamped, WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy

@@ -25,6 +25,7 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -402,7 +403,12 @@ def main(args=None) -> None:
     EXIT_BAD_PARAMETERS (an unexpected error exits 1 with its traceback, as any Python program)."""
     # Ctrl-C / SIGTERM only set a flag: a KeyboardInterrupt raised inside a callback called from the
     # EventsExecutor's C++ surfaces as a RuntimeError from spin_once, not as KeyboardInterrupt.
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except _rclpy.RCLError as exc:  # e.g. '-p name:=' (no value): rcl cannot parse the command line
+        reason = str(exc).split(', at /')[0].replace('failed to initialize rcl: ', '')
+        print(f'[viz_node] invalid command-line arguments: {reason}', flush=True)
+        raise SystemExit(EXIT_BAD_PARAMETERS) from None
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
