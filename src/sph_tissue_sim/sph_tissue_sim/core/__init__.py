@@ -7,7 +7,37 @@ Main entry points: :class:`~.solver.Solver`, :class:`~.solver.SolverConfig`,
 from __future__ import annotations
 
 import hashlib
+import os
+import platform
 from pathlib import Path
+
+#: the x86-64 level the kernels are compiled for on hosts that have it (AVX2 + FMA)
+PORTABLE_CPU = 'x86-64-v3'
+
+
+def _use_portable_codegen() -> None:
+    """Compile the kernels for :data:`PORTABLE_CPU` instead of this host's exact CPU.
+
+    numba compiles for the host by default, and with fast-math LLVM vectorises and reassociates
+    sums differently on, say, an AVX-512 host than on an AVX2 one: the forces then differ in their
+    last bits (~5e-15 N) from host to host, and the lockstep goldens (bit-identical by design) hold
+    only on the CPU model that made them. One fixed target makes the code, and so the forces, the
+    same on every x86-64 host with AVX2 and FMA (measured on an AVX-512 host: no slower). Hosts
+    without them, other architectures, and an explicit ``NUMBA_CPU_NAME`` keep numba's choice.
+    Must run before the first kernel is compiled in the process.
+    """
+    if os.environ.get('NUMBA_CPU_NAME') or platform.machine().lower() not in ('x86_64', 'amd64'):
+        return
+    from llvmlite import binding as ll
+    from numba.core import config
+
+    try:
+        features = ll.get_host_cpu_features()
+    except RuntimeError:  # no feature list on this host: keep numba's default
+        return
+    if features.get('avx2') and features.get('fma'):
+        config.CPU_NAME = PORTABLE_CPU
+        config.CPU_FEATURES = ''   # the level's own feature set, not the host's
 
 
 def _invalidate_stale_numba_cache() -> None:
@@ -35,4 +65,5 @@ def _invalidate_stale_numba_cache() -> None:
         pass  # read-only install: numba then cannot write its cache either
 
 
+_use_portable_codegen()
 _invalidate_stale_numba_cache()
