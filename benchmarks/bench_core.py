@@ -37,7 +37,8 @@ import numpy as np
 
 from sph_tissue_sim.core.errors import ConfigError, ModelError, SimError
 from sph_tissue_sim.core.material import liver_default
-from sph_tissue_sim.core.models import TissueModel, make_block, make_model
+from sph_tissue_sim.core.factory import make_model
+from sph_tissue_sim.core.models import TissueModel, make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig, warmup
 
 HERE = Path(__file__).resolve().parent

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_core import PressScript  # noqa: E402  (benchmarks/ is not a package)
 
 from sph_tissue_sim.core.material import liver_default  # noqa: E402
-from sph_tissue_sim.core.models import make_model  # noqa: E402
+from sph_tissue_sim.core.factory import make_model  # noqa: E402
 from sph_tissue_sim.core.solver import Solver, SolverConfig, warmup  # noqa: E402
 
 

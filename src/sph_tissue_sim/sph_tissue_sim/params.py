@@ -21,11 +21,11 @@ import numpy as np
 
 from .core.errors import ConfigError, ModelError
 from .core.material import Material, load_material
-from .core.models import TissueModel, make_beam, make_block, make_model
+from .core.factory import MODELS, make_model
+from .core.models import TissueModel
 from .core.solver import MODES, SCHEMES, SolverConfig
 from .mapping import ANCHORS, DEFAULT_ROTATION
 
-MODELS = ('liver', 'block', 'beam', 'mesh')
 TIMING_MODES = ('live', 'lockstep')
 HARD_FORCE_LIMIT = 3.3  # [N] PHANTOM Omni peak force
 
@@ -196,52 +196,17 @@ def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
 
 
 # -- builders (no rclpy) ----------------------------------------------------------------------------
-def _spacing_for(volume: float, n: int) -> float:
-    return (volume / n) ** (1.0 / 3.0)
-
-
-def block_model(size, n_particles: int) -> TissueModel:
-    """A block of about ``n_particles`` particles filling ``size`` [m] (bottom layer fixed)."""
-    size = np.asarray(size, dtype=np.float64)
-    if size.shape != (3,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
-        raise ConfigError(f'block_size must be 3 positive lengths [m], got {size.tolist()}')
-    s = _spacing_for(float(np.prod(size)), n_particles)
-    dims = [max(2, int(round(L / s))) for L in size]
-    return make_block(*dims, spacing=s, fix='bottom')
-
-
-def beam_model(size, n_particles: int) -> TissueModel:
-    """A cantilever of about ``n_particles`` particles, ``size`` = (length, width, height) [m]."""
-    size = np.asarray(size, dtype=np.float64)
-    if size.shape != (3,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
-        raise ConfigError(f'beam_size must be 3 positive lengths [m], got {size.tolist()}')
-    s = _spacing_for(float(np.prod(size)), n_particles)
-    return make_beam(float(size[0]), float(size[1]), float(size[2]), spacing=s)
-
-
-def build_model(p: dict, log=None) -> TissueModel:
-    """The tissue model selected by the parameters.
-
-    ``model: liver`` falls back to a block of the same particle count (with an error log line) when
-    the core has no liver generator.
+def build_model(p: dict) -> TissueModel:
+    """The tissue model selected by the parameters (:func:`~.core.factory.make_model`).
 
     Raises:
         ConfigError: bad size parameters.
         ModelError: the model cannot be built (mesh missing or unreadable, bad particle count).
     """
     kind, n = p['model'], int(p['n_particles'])
-    if kind == 'block':
-        return block_model(p['block_size'], n)
-    if kind == 'beam':
-        return beam_model(p['beam_size'], n)
+    if kind in ('block', 'beam'):
+        return make_model(kind, size=p[f'{kind}_size'], n_particles=n)
     if kind == 'liver':
-        try:
-            from .core import liver  # noqa: F401  (probe: is the generator part of this build?)
-        except ImportError:
-            if log is not None:
-                log('model liver is not available in this build (sph_tissue_sim.core.liver '
-                    'missing): using a block of the same particle count instead')
-            return block_model(p['block_size'], n)
         return make_model('liver', n_particles=n)
     if kind == 'mesh':
         path = str(p['mesh_path'])

@@ -124,7 +124,7 @@ class SimNode(Node):
         self._log_times: dict[str, float] = {}
         self.counts = collections.Counter()
 
-        self.model = build_model(p, log=log.error)
+        self.model = build_model(p)
         self.material = build_material(p)
         config = build_config(p)
         t0 = time.perf_counter()

@@ -10,7 +10,8 @@ from sph_tissue_sim.core.errors import ModelError
 from sph_tissue_sim.core.liver import liver_field, make_liver
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.mesh import load_mesh_model
-from sph_tissue_sim.core.models import fit_spacing, make_model
+from sph_tissue_sim.core.factory import make_model
+from sph_tissue_sim.core.models import fit_spacing
 from sph_tissue_sim.core.solver import Solver, SolverConfig
 
 PAPER_COUNTS = [289, 572, 743, 1289, 3670, 20000]

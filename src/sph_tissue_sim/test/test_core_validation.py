@@ -16,7 +16,8 @@ import pytest
 
 from sph_tissue_sim.core.local_area import FAR_FIELD_MAX_STRAIN, boussinesq
 from sph_tissue_sim.core.material import Material
-from sph_tissue_sim.core.models import make_beam, make_block, make_model
+from sph_tissue_sim.core.factory import make_model
+from sph_tissue_sim.core.models import make_beam, make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
 
 E_TEST = 5000.0      # Young's modulus of the test material [Pa] (liver order of magnitude)

@@ -12,8 +12,9 @@ from sph_tissue_sim.cloud import FIELD_SPECS, POINT_DTYPE, pack_points, unpack_p
 from sph_tissue_sim.core.errors import ConfigError, ModelError
 from sph_tissue_sim.mapping import (DEFAULT_ROTATION, DeviceMapping, anchor_point, check_position,
                                     clamp_norm, quaternion_matrix)
-from sph_tissue_sim.params import (SIM_PARAMS, block_model, build_config, build_material,
-                                   build_model, check_value)
+from sph_tissue_sim.core.factory import block_of
+from sph_tissue_sim.params import (SIM_PARAMS, build_config, build_material, build_model,
+                                   check_value)
 from sph_tissue_sim.timing import BACKWARDS, FIRST, JUMP, OK, REPEAT, StampClock
 
 
@@ -64,7 +65,7 @@ def test_mapping_refuses_bad_translation_and_scales():
 
 
 def test_anchor_points_of_a_block():
-    model = block_model([0.08, 0.08, 0.04], 256)              # 1 cm lattice, particles 5 mm inside
+    model = block_of([0.08, 0.08, 0.04], 256)              # 1 cm lattice, particles 5 mm inside
     X, s = model.positions, model.spacing
     assert anchor_point(X, s, 0.015, 'top_contact') == pytest.approx([0.04, 0.04, 0.035 + 0.015])
     assert anchor_point(X, s, 0.015, 'top_surface') == pytest.approx([0.04, 0.04, 0.04])
@@ -149,22 +150,21 @@ def test_stamp_clock_rules():
 
 # -- parameter builders ----------------------------------------------------------------------------
 def test_block_model_has_the_requested_count_on_an_exact_lattice():
-    model = block_model([0.08, 0.08, 0.04], 256)
+    model = block_of([0.08, 0.08, 0.04], 256)
     assert model.n_particles == 256 and model.spacing == pytest.approx(0.01)
     assert model.fixed.sum() == 64                           # the bottom layer
 
 
-def test_liver_model_falls_back_to_a_block_with_a_log_line_when_the_core_has_none():
-    lines = []
-    try:
-        import sph_tissue_sim.core.liver  # noqa: F401
-    except ImportError:
-        model = build_model(defaults(model='liver', n_particles=500), log=lines.append)
-        assert model.name == 'block' and lines and 'not available' in lines[0]
-    else:
-        model = build_model(defaults(model='liver', n_particles=500), log=lines.append)
-        assert model.name.startswith('liver') and not lines
-        assert abs(model.n_particles - 500) <= 50
+def test_liver_model_has_about_the_requested_particle_count():
+    model = build_model(defaults(model='liver', n_particles=500))
+    assert model.name.startswith('liver')
+    assert abs(model.n_particles - 500) <= 50
+
+
+@pytest.mark.parametrize('model', ['block', 'beam'])
+def test_a_bad_block_or_beam_size_is_a_config_error_naming_it(model):
+    with pytest.raises(ConfigError, match=f'{model} size must be 3 positive lengths'):
+        build_model(defaults(model=model, **{f'{model}_size': [0.08, -0.01, 0.04]}))
 
 
 def test_mesh_model_needs_an_existing_file(tmp_path):

@@ -1,7 +1,7 @@
 """Numerical core of the simulator: numpy + numba only, never rclpy.
 
 Main entry points: :class:`~.solver.Solver`, :class:`~.solver.SolverConfig`,
-:class:`~.material.Material`, :func:`~.models.make_model`, :func:`~.solver.warmup`.
+:class:`~.material.Material`, :func:`~.factory.make_model`, :func:`~.solver.warmup`.
 """
 
 from __future__ import annotations

@@ -154,18 +154,3 @@ def fit_spacing(count_at: Callable[[float], int], n_target: int, volume: float,
         else:
             hi = mid
     return best[1], best[2]
-
-
-def make_model(kind: str, **kwargs) -> TissueModel:
-    """Build a model by name: ``block``, ``beam``, ``liver`` or ``mesh`` (``path=`` a surface mesh)."""
-    if kind == 'block':
-        return make_block(**kwargs)
-    if kind == 'beam':
-        return make_beam(**kwargs)
-    if kind == 'liver':
-        from .liver import make_liver
-        return make_liver(**kwargs)
-    if kind == 'mesh':
-        from .mesh import load_mesh_model
-        return load_mesh_model(**kwargs)
-    raise ModelError(f"unknown model {kind!r}; expected 'liver', 'block', 'beam' or 'mesh'")
