@@ -8,8 +8,9 @@ import time
 import numpy as np
 import pytest
 
-from haptic_omni_driver.backends.openhaptics import (OpenHapticsBackend, rotation_to_quaternion,
-                                                     transform_to_pose)
+from tissue_common.rotation import matrix_quaternion
+
+from haptic_omni_driver.backends.openhaptics import OpenHapticsBackend, transform_to_pose
 from haptic_omni_driver.errors import DeviceError
 from haptic_omni_driver.safety import ForceSafety, SafetyConfig
 from omni_test_utils import build_fake_libhd
@@ -34,7 +35,8 @@ class Sink:
     """Stands in for the node: safety chain + sample collection."""
 
     def __init__(self, **safety):
-        self.safety = ForceSafety(SafetyConfig(**safety))
+        # the test's commands answer no pose: no stale-reply window (tested in test_safety_battery)
+        self.safety = ForceSafety(SafetyConfig(**{'max_command_lag': 0.0, **safety}))
         self.samples = []
         self.logs = []
         self.finished = None
@@ -169,5 +171,5 @@ def test_transform_rotation_and_translation_conversion():
     assert pos == pytest.approx([0.010, 0.020, -0.005])
     assert q == pytest.approx([0, 0, math.sin(math.pi / 6), math.cos(math.pi / 6)])
     # a 180 deg rotation about x (trace -1: the non-trivial branch)
-    q = rotation_to_quaternion(np.diag([1.0, -1.0, -1.0]))
+    q = matrix_quaternion(np.diag([1.0, -1.0, -1.0]))
     assert abs(q[0]) == pytest.approx(1.0)
