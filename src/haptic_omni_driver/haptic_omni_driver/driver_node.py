@@ -31,14 +31,14 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.stamps import set_stamp, stamp_to_ns
 from tissue_msgs.msg import DeviceState
 
 from .backends.base import Backend, Sample
-from .cli import EXIT_PARAMS, init_rclpy
 from .errors import ConfigError, DriverError
 from .params import DRIVER_PARAMS, check_choice, declare_all
 from .safety import ForceSafety, SafetyConfig
-from .signals import stop_on_signals
 
 EXIT_OK, EXIT_INPUT = 0, 1
 SAFETY_PARAMS = ('force_limit', 'ramp_time', 'watchdog_timeout', 'max_command_lag',
@@ -229,8 +229,7 @@ class OmniDriver(Node):
             self.pose_pub.publish(sample.raw)
         else:
             msg = self._pose_msg
-            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(sample.stamp_ns),
-                                                                    1_000_000_000)
+            set_stamp(msg.header.stamp, sample.stamp_ns)
             pos, q = msg.pose.position, msg.pose.orientation
             pos.x, pos.y, pos.z = (float(v) for v in sample.position)
             q.x, q.y, q.z, q.w = (float(v) for v in sample.orientation)
@@ -345,7 +344,7 @@ class OmniDriver(Node):
     def _on_command(self, msg: WrenchStamped, received: float, now: float) -> None:
         self.n_commands += 1
         f = msg.wrench.force
-        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp_ns = stamp_to_ns(msg.header.stamp)
         result = self.safety.command((f.x, f.y, f.z), msg.header.frame_id, received,
                                      stamp_ns * 1e-9)
         if not result.accepted:

@@ -24,14 +24,13 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
 
 from . import bagio
-from .cli import init_rclpy
 from .errors import ConfigError, DriverError
 from .params import RECORDER_PARAMS, declare_all
-from .signals import stop_on_signals
 
-EXIT_OK, EXIT_OUTPUT, EXIT_PARAMS = 0, 1, 2
+EXIT_OK, EXIT_OUTPUT = 0, 1
 
 #: message types of the topics this recorder knows (by last name component)
 KNOWN_TYPES = {

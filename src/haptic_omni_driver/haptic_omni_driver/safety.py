@@ -4,7 +4,7 @@ Every force that reaches a device (or, for the replay and scripted backends, the
 output DeviceState reports) passes through :class:`ForceSafety`, in this order:
 
 1. input checks (:meth:`ForceSafety.command`): commands with NaN/inf components, in a frame other
-   than the device frame, or (with ``max_command_lag`` > 0) whose stamp does not answer a recent pose
+   than the device frame, or (with ``max_command_lag`` > 0, the default) whose stamp does not answer a recent pose
    are rejected and counted;
 2. norm clamp: the command's norm is clamped to ``force_limit`` (never above
    :data:`HARD_FORCE_LIMIT`), exactly: the clamped norm never exceeds the limit by rounding;
@@ -35,12 +35,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tissue_common.force import CONTINUOUS_FORCE_LIMIT, HARD_FORCE_LIMIT, clamp_norm
+
 from .errors import ConfigError
 
-#: [N] PHANTOM Omni nominal peak force; no parameter can raise the clamp above this.
-HARD_FORCE_LIMIT = 3.3
-#: [N] PHANTOM Omni nominal continuous force (the default clamp).
-CONTINUOUS_FORCE_LIMIT = 0.88
 #: [s] allowed watchdog range: below 10 ms a 1 kHz loop with DDS jitter trips spuriously; above
 #: 50 ms a runaway force is felt.
 WATCHDOG_RANGE = (0.005, 0.05)
@@ -60,52 +58,6 @@ STAMP_TOLERANCE = 1e-6
 #: published (a zero, negative or future stamp answers none). The simulator answers within a few
 #: milliseconds; a force that answers a pose 0.1 s old no longer belongs to where the hand is.
 DEFAULT_COMMAND_LAG = 0.1
-
-
-#: a vector whose math.hypot norm is below limit * this is within the limit for np.linalg.norm too
-#: (both are within a few ulps of the exact norm; 2**-40 leaves ample room)
-_SURELY_BELOW = 1.0 - 2.0 ** -40
-#: above this norm np.linalg.norm (a sum of squares) may overflow: no fast path there
-_NO_OVERFLOW = 1e150
-
-
-def _norm(vec: np.ndarray) -> float:
-    """The larger of the float64 norms a reader may compute (``np.linalg.norm``, ``math.hypot``)."""
-    with np.errstate(over='ignore'):
-        return max(float(np.linalg.norm(vec)), math.hypot(vec[0], vec[1], vec[2]))
-
-
-def clamp_norm(vec: np.ndarray, limit: float) -> tuple[np.ndarray, bool]:
-    """``vec`` (finite, shape (3,)) scaled down to norm ``limit`` (>= 0) if longer; (vec, clamped).
-
-    The limit holds exactly in float64: the result's norm, as ``np.linalg.norm`` or ``math.hypot``
-    computes it, never exceeds ``limit`` (``vec * (limit / norm)`` rounds above it for about a third
-    of all vectors). Scalar maths, and ``np.linalg.norm`` only near or above the limit: this runs
-    several times per 1 kHz servo tick.
-    """
-    f0, f1, f2 = float(vec[0]), float(vec[1]), float(vec[2])
-    h = math.hypot(f0, f1, f2)
-    if h < limit * _SURELY_BELOW and h < _NO_OVERFLOW:
-        return vec, False
-    if h * _SURELY_BELOW <= limit and _norm(vec) <= limit:   # at the limit: ask both norms
-        return vec, False
-    return _scaled_within(f0, f1, f2, limit), True
-
-
-def _scaled_within(f0: float, f1: float, f2: float, limit: float) -> np.ndarray:
-    """The vector (f0, f1, f2) (finite, non-zero) scaled to the largest norm not above ``limit``."""
-    big = max(abs(f0), abs(f1), abs(f2))
-    u0, u1, u2 = f0 / big, f1 / big, f2 / big           # components <= 1: no overflow below
-    scale = limit / math.hypot(u0, u1, u2)
-    shrink = 0
-    while True:
-        out = np.array((u0 * scale, u1 * scale, u2 * scale))
-        if _norm(out) <= limit:
-            return out
-        # rounded above the limit: next float towards zero, faster if that is not enough
-        # (always ends: a zero scale fits any limit >= 0)
-        scale = max(0.0, scale - math.ulp(scale) * 2.0 ** shrink)
-        shrink += 1
 
 
 @dataclass

@@ -22,32 +22,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core.contact import clamp_force
+from tissue_common.rotation import quaternion_matrix
+
 from .core.errors import ConfigError
 
 DEFAULT_ROTATION = (math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5))
 ANCHORS = ('top_contact', 'top_surface', 'centre', 'origin')
-
-
-def quaternion_matrix(q) -> np.ndarray:
-    """3x3 rotation matrix of a quaternion (x, y, z, w); normalised first.
-
-    Raises:
-        ConfigError: not 4 finite numbers or (near) zero norm.
-    """
-    try:
-        q = np.asarray(q, dtype=np.float64).reshape(4)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f'rotation must be a quaternion [x, y, z, w], got {q!r}') from exc
-    n = float(np.linalg.norm(q))
-    if not np.all(np.isfinite(q)) or n < 1e-6:
-        raise ConfigError(f'rotation quaternion must be finite with a non-zero norm, got {q.tolist()}')
-    x, y, z, w = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def anchor_point(positions: np.ndarray, spacing: float, contact_reach: float, kind: str) -> np.ndarray:
@@ -98,7 +78,10 @@ class DeviceMapping:
     def build(cls, quaternion, translation, scale: float, force_scale: float,
               anchor: np.ndarray) -> 'DeviceMapping':
         """Validate the parameters and build the map (raises ConfigError)."""
-        rot = quaternion_matrix(quaternion)
+        try:
+            rot = quaternion_matrix(quaternion)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from exc
         try:
             t = np.asarray(translation, dtype=np.float64).reshape(3)
         except (TypeError, ValueError) as exc:
@@ -121,15 +104,6 @@ class DeviceMapping:
     def force_to_device(self, f_tissue) -> np.ndarray:
         """Device-frame force [N] of the tissue-frame reaction force on the tool."""
         return self.force_scale * (self.rotation.T @ np.asarray(f_tissue, dtype=np.float64))
-
-
-def clamp_norm(f: np.ndarray, limit: float) -> tuple[np.ndarray, bool]:
-    """``f`` scaled down to norm ``limit`` if longer; non-finite input gives zero. Returns (f, clamped).
-
-    The norm of the result never exceeds ``limit``, not even by rounding (see
-    :func:`~.core.contact.clamp_force`, which does the work).
-    """
-    return clamp_force(np.asarray(f, dtype=np.float64).reshape(3), limit)
 
 
 def check_position(p, max_norm: float) -> str | None:

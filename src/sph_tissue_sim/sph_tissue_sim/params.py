@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tissue_common.force import HARD_FORCE_LIMIT
 
 from .core.errors import ConfigError, ModelError
 from .core.material import Material, load_material
@@ -27,7 +28,6 @@ from .core.solver import MODES, SCHEMES, SolverConfig
 from .mapping import ANCHORS, DEFAULT_ROTATION
 
 TIMING_MODES = ('live', 'lockstep')
-HARD_FORCE_LIMIT = 3.3  # [N] PHANTOM Omni peak force
 
 # name: (default, description, range/choices, read_only, rebuild)
 SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {

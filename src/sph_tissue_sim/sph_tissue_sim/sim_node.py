@@ -33,7 +33,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import os
-import signal
 import sys
 import threading
 import time
@@ -44,23 +43,24 @@ import rclpy
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import uninstall_signal_handlers
 from sensor_msgs.msg import PointCloud2
+from tissue_common.force import clamp_norm
+from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.stamps import stamp_to_ns
 from tissue_msgs.msg import SimMetrics
 from tissue_msgs.srv import ResetTissue
 
 from .cloud import POINT_DTYPE, make_cloud, pack_points
 from .core.errors import ConfigError, ModelError, SimError
 from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, warmup
-from .mapping import DeviceMapping, anchor_point, check_position, clamp_norm
+from .mapping import DeviceMapping, anchor_point, check_position
 from .params import (SIM_PARAMS, build_config, build_material, build_model, check_value,
                      declare_all)
 from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 
-EXIT_OK, EXIT_INPUT, EXIT_PARAMS = 0, 1, 2
+EXIT_OK, EXIT_INPUT = 0, 1
 REEXEC_ENV = 'SPH_SIM_NODE_REEXEC'
 LOCKSTEP_MIN_DEPTH = 1000
 STEP_TIME_HISTORY = 100_000
@@ -95,22 +95,8 @@ def numba_cache_stats() -> tuple[int, int]:
     return compiled, loaded
 
 
-RCLError = _rclpy.RCLError
-
-
-def rcl_reason(exc: Exception) -> str:
-    """rcl's message without its source location (``..., at /path/arguments.c:352``)."""
-    text = str(exc).split(', at /')[0]
-    text = text.replace('failed to initialize rcl: ', '').replace(' Error: error not set', '')
-    return text + ' (a parameter is given as -p name:=value)' if 'parameter override' in text else text
-
-
 class Reexec(Exception):
     """Start the process again (its kernels were compiled here, see SimNode.__init__)."""
-
-
-def stamp_to_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 class SimNode(Node):
@@ -539,29 +525,9 @@ class SimNode(Node):
         return SetParametersResult(successful=True)
 
 
-def _stop_on_signals() -> threading.Event:
-    """Replace rclpy's SIGINT/SIGTERM handlers by ones that only set the returned event.
-
-    rclpy's handlers shut the context down from another thread, so a pose callback running at that
-    moment fails (its publish raises), and the EventsExecutor's C++ turns that, or a
-    ``KeyboardInterrupt`` raised inside a callback, into a ``RuntimeError`` from ``spin_once``:
-    the node exited 1 on Ctrl-C. With a flag the spin loop ends between callbacks. Installed once
-    the node is built, so Ctrl-C still interrupts the numba warm-up.
-    """
-    stop = threading.Event()
-    uninstall_signal_handlers()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    return stop
-
-
 def main(args=None) -> int:
     """Entry point of ``sim_node``; returns the exit code."""
-    try:
-        rclpy.init(args=args)
-    except RCLError as exc:  # e.g. '-p model:=' (no value): rcl cannot parse the command line
-        print(f'[FATAL] [sim_node]: invalid command-line arguments: {rcl_reason(exc)}',
-              file=sys.stderr)
+    if not init_rclpy(args, 'sim_node'):
         return EXIT_PARAMS
     node = None
     code = EXIT_OK
@@ -585,7 +551,7 @@ def main(args=None) -> int:
             raise
         from rclpy.experimental import EventsExecutor
 
-        stop = _stop_on_signals()
+        stop = stop_on_signals()
         # the stepping thread's Python work between kernels holds the GIL; hand it to the executor
         # (poses, services) within a fraction of a 1 kHz frame instead of CPython's 5 ms
         sys.setswitchinterval(SWITCH_INTERVAL)

@@ -146,7 +146,7 @@ def test_an_empty_parameter_on_the_command_line_exits_2_with_a_sentence(ros_doma
     with sim({'warmup': False}, ros_args=ros_args) as proc:
         assert proc.wait(60) == 2
         out = proc.output()
-    assert 'invalid command-line arguments: ' in out, out
+    assert 'invalid command-line argument' in out and '[FATAL]' in out, out
     assert 'Traceback' not in out and 'RCLError' not in out
 
 

@@ -10,8 +10,8 @@ import pytest
 
 from sph_tissue_sim.cloud import FIELD_SPECS, POINT_DTYPE, pack_points, unpack_points
 from sph_tissue_sim.core.errors import ConfigError, ModelError
-from sph_tissue_sim.mapping import (DEFAULT_ROTATION, DeviceMapping, anchor_point, check_position,
-                                    clamp_norm, quaternion_matrix)
+from sph_tissue_sim.mapping import DEFAULT_ROTATION, DeviceMapping, anchor_point, check_position
+from tissue_common.rotation import quaternion_matrix
 from sph_tissue_sim.core.factory import block_of
 from sph_tissue_sim.params import (SIM_PARAMS, build_config, build_material, build_model,
                                    check_value)
@@ -38,8 +38,10 @@ def test_quaternion_is_normalised_and_a_zero_quaternion_is_refused():
     half_turn_z = quaternion_matrix([0, 0, 1, 0])
     assert half_turn_z @ [1, 0, 0] == pytest.approx([-1, 0, 0])
     for bad in ([0, 0, 0, 0], [math.nan, 0, 0, 1], [1, 2, 3]):
-        with pytest.raises(ConfigError):
+        with pytest.raises(ValueError):
             quaternion_matrix(bad)
+        with pytest.raises(ConfigError, match='quaternion'):
+            DeviceMapping.build(bad, [0, 0, 0], 1.0, 1.0, np.zeros(3))
 
 
 def test_device_origin_lands_on_the_anchor_and_a_press_goes_down_into_the_tissue():
@@ -73,15 +75,6 @@ def test_anchor_points_of_a_block():
     assert anchor_point(X, s, 0.015, 'origin') == pytest.approx([0, 0, 0])
     with pytest.raises(ConfigError, match='anchor'):
         anchor_point(X, s, 0.015, 'somewhere')
-
-
-def test_clamp_norm_keeps_direction_and_zeroes_non_finite():
-    f, clamped = clamp_norm(np.array([3.0, 4.0, 0.0]), 1.0)
-    assert clamped and f == pytest.approx([0.6, 0.8, 0.0])
-    f, clamped = clamp_norm(np.array([0.3, 0.4, 0.0]), 1.0)
-    assert not clamped and f == pytest.approx([0.3, 0.4, 0.0])
-    f, clamped = clamp_norm(np.array([math.nan, 0.0, 0.0]), 1.0)
-    assert clamped and np.all(f == 0.0)
 
 
 def test_check_position_names_the_problem():

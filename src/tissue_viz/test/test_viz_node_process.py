@@ -297,7 +297,7 @@ def test_an_unparsable_command_line_exits_2_with_a_sentence(ros_domain, ros_args
     with harness.NodeProcess('tissue_viz', 'viz_node', params=FAST, ros_args=ros_args) as viz:
         assert viz.wait(timeout=30) == 2
         out = viz.output()
-    assert 'invalid command-line arguments: ' in out, out
+    assert 'invalid command-line argument' in out and '[FATAL]' in out, out
     assert 'Traceback' not in out and 'RCLError' not in out
 
 

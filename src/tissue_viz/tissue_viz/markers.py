@@ -11,22 +11,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from tissue_common.rotation import quaternion_matrix
 
 from tissue_viz.errors import VizConfigError
-
-
-def quat_to_matrix(q: tuple[float, float, float, float]) -> np.ndarray:
-    """Rotation matrix of a quaternion (x, y, z, w); it is normalised first."""
-    x, y, z, w = (float(v) for v in q)
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if not (math.isfinite(n) and n > 1e-9):
-        raise VizConfigError(f'rotation quaternion must be finite and non-zero, got {q}')
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 @dataclass
@@ -46,7 +33,10 @@ class ToolFrame:
             raise VizConfigError(f'rotation must be a quaternion x, y, z, w, got {self.rotation}')
         if not (math.isfinite(self.scale) and self.scale > 0):
             raise VizConfigError(f'workspace scale must be > 0, got {self.scale}')
-        self._r = quat_to_matrix(self.rotation)
+        try:
+            self._r = quaternion_matrix(self.rotation)
+        except ValueError as exc:
+            raise VizConfigError(str(exc)) from exc
         self._t = np.asarray(self.translation, dtype=float)
 
     def point(self, p) -> np.ndarray:

@@ -12,7 +12,6 @@ in timers at a few hertz.
 from __future__ import annotations
 
 import math
-import signal
 import threading
 import time
 from pathlib import Path
@@ -25,13 +24,13 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
+from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.stamps import stamp_to_ns
 from tissue_msgs.msg import SimMetrics
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -116,15 +115,11 @@ for _topic, (_lo, _hi) in _RATE_DEFAULTS.items():
 
 # Exit codes (documented in the package README).
 EXIT_OK = 0
-EXIT_BAD_PARAMETERS = 2       # inconsistent or out-of-range parameters at start
+EXIT_BAD_PARAMETERS = EXIT_PARAMS   # inconsistent or out-of-range parameters at start
 EXIT_REPORT_FAILED = 3        # the shutdown report could not be written completely
 
 _LEVEL_BYTES = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR,
                 3: DiagnosticStatus.STALE}
-
-
-def _stamp_ns(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 def targets_from(values: dict) -> Targets:
@@ -241,24 +236,24 @@ class VizNode(Node):
     # -- callbacks: hand plain values to the statistics --------------------------------------------
     def _on_metrics(self, msg: SimMetrics) -> None:
         f = msg.contact_force
-        self.stats.on_metrics(time.monotonic(), _stamp_ns(msg.header.stamp), msg.step_wall_time,
+        self.stats.on_metrics(time.monotonic(), stamp_to_ns(msg.header.stamp), msg.step_wall_time,
                               (f.x, f.y, f.z), msg.max_displacement, msg.n_interaction,
                               msg.n_layer, msg.n_relaxing, msg.substeps, msg.contact_index,
                               msg.penetration, msg.kinetic_energy)
 
     def _on_particles(self, msg: PointCloud2) -> None:
-        self.stats.on_particles(time.monotonic(), _stamp_ns(msg.header.stamp),
+        self.stats.on_particles(time.monotonic(), stamp_to_ns(msg.header.stamp),
                                 msg.width * msg.height)
 
     def _on_pose(self, msg: PoseStamped) -> None:
         p = msg.pose.position
         if msg.header.frame_id:
             self.pose_frame = msg.header.frame_id
-        self.stats.on_pose(time.monotonic(), _stamp_ns(msg.header.stamp), (p.x, p.y, p.z))
+        self.stats.on_pose(time.monotonic(), stamp_to_ns(msg.header.stamp), (p.x, p.y, p.z))
 
     def _on_force(self, msg: WrenchStamped) -> None:
         f = msg.wrench.force
-        self.stats.on_force(time.monotonic(), _stamp_ns(msg.header.stamp), (f.x, f.y, f.z))
+        self.stats.on_force(time.monotonic(), stamp_to_ns(msg.header.stamp), (f.x, f.y, f.z))
 
     # -- timers -----------------------------------------------------------------------------------
     def _on_diagnostics_timer(self) -> None:
@@ -403,15 +398,9 @@ def main(args=None) -> None:
     EXIT_BAD_PARAMETERS (an unexpected error exits 1 with its traceback, as any Python program)."""
     # Ctrl-C / SIGTERM only set a flag: a KeyboardInterrupt raised inside a callback called from the
     # EventsExecutor's C++ surfaces as a RuntimeError from spin_once, not as KeyboardInterrupt.
-    try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    except _rclpy.RCLError as exc:  # e.g. '-p name:=' (no value): rcl cannot parse the command line
-        reason = str(exc).split(', at /')[0].replace('failed to initialize rcl: ', '')
-        print(f'[viz_node] invalid command-line arguments: {reason}', flush=True)
-        raise SystemExit(EXIT_BAD_PARAMETERS) from None
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    if not init_rclpy(args, 'viz_node'):
+        raise SystemExit(EXIT_BAD_PARAMETERS)
+    stop = stop_on_signals()
     node = None
     code = EXIT_OK
     try:

@@ -13,11 +13,11 @@ Constant values are those of OpenHaptics 3.x hdDefines.h / hdScheduler.h.
 from __future__ import annotations
 
 import ctypes
-import math
 import threading
 import time
 
 import numpy as np
+from tissue_common.rotation import matrix_quaternion
 
 from ..errors import DeviceError
 from .base import Backend, BackendSink, Sample
@@ -115,26 +115,7 @@ def transform_to_pose(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Position [m] and quaternion (x, y, z, w) from a column-major 4x4 HD transform in mm."""
     m = np.asarray(m, float).reshape(4, 4).T  # column-major (OpenGL) -> row-major
     rot = m[:3, :3]
-    return m[:3, 3] * MM, rotation_to_quaternion(rot)
-
-
-def rotation_to_quaternion(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method, numerically safe)."""
-    tr = r[0, 0] + r[1, 1] + r[2, 2]
-    if tr > 0.0:
-        s = math.sqrt(tr + 1.0) * 2.0
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s]
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2.0
-        q = [0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
-    elif r[1, 1] > r[2, 2]:
-        s = math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2.0
-        q = [(r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
-    else:
-        s = math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2.0
-        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s]
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
+    return m[:3, 3] * MM, matrix_quaternion(rot)
 
 
 class OpenHapticsBackend(Backend):

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tissue_common.stamps import stamp_to_ns
 
 from .. import bagio
 from ..errors import BagError, ConfigError
@@ -68,7 +69,7 @@ def load_replay(path: str | Path, pose_topic: str = '/omni/pose',
             raise BagError(f'bag {path}: undecodable {msgtype} message on {topic}: {exc}') from exc
         if topic == pose.name:
             p, q = msg.pose.position, msg.pose.orientation
-            stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+            stamp = stamp_to_ns(msg.header.stamp)
             events.append(ReplayEvent(log_ns, Sample(stamp, np.array([p.x, p.y, p.z]),
                                                      np.array([q.x, q.y, q.z, q.w]), raw=raw)))
         else:

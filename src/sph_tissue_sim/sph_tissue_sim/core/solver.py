@@ -19,8 +19,9 @@ from dataclasses import dataclass, field, fields
 
 import numba
 import numpy as np
+from tissue_common.force import clamp_norm
 
-from .contact import clamp_force, contact_vector_py, deepest_contact, surface_discs
+from .contact import contact_vector_py, deepest_contact, surface_discs
 from .errors import ConfigError, ModelError, SimError
 from .integrate import (SCHEME_MASS_SPRING, SCHEME_TLSPH, frame_state_ok, run_frame, substep_bounds,
                         substeps_for)
@@ -498,7 +499,7 @@ class Solver:
         else:
             res = self._local_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
         force_raw = self.react.copy()
-        force, clamped = clamp_force(force_raw, cfg.force_limit)
+        force, clamped = clamp_norm(force_raw, cfg.force_limit)
         f0, f1, f2 = force.tolist()
         self.f_prev = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
         self.tool_prev = tool1 if tool_on else None

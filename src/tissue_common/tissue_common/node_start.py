@@ -1,15 +1,18 @@
-"""Start-up of the package's executables: a command line rcl refuses is one clear fatal line.
+"""A node's start-up and shutdown, the same for every executable of the simulator.
 
-``rclpy.init`` raises ``RCLError`` (a traceback) for a ROS argument it cannot parse, e.g.
-``--ros-args -p model:=`` (an override without a value). :func:`init_rclpy` turns that into one
-``[FATAL]`` line naming the argument, so ``main`` can exit with the invalid-parameters code.
+- :func:`init_rclpy`: ``rclpy.init`` raises ``RCLError`` (a traceback) for a ROS argument it cannot
+  parse, e.g. ``--ros-args -p model:=`` (an override without a value); here that is one ``[FATAL]``
+  line naming the argument, and ``main`` exits with :data:`EXIT_PARAMS`.
+- :func:`stop_on_signals`: Ctrl-C and SIGTERM set a flag instead of running rclpy's handlers.
 """
 
 from __future__ import annotations
 
 import re
+import signal
+import threading
 
-#: exit code of invalid parameters or command-line arguments (documented in the README)
+#: exit code of invalid parameters or command-line arguments (documented in the READMEs)
 EXIT_PARAMS = 2
 
 #: what rcl calls the argument it could not parse -> the form it expects
@@ -46,3 +49,21 @@ def describe_rcl_error(text: str) -> str:
     # anything else: rcl's own words, without the C source locations
     text = re.sub(r'^failed to initialize rcl: ', '', text)
     return 'invalid command-line arguments: ' + re.sub(r'(, at /\S+:\d+)+$', '', text)
+
+
+def stop_on_signals() -> threading.Event:
+    """Replace rclpy's SIGINT/SIGTERM handlers by ones that only set the returned event.
+
+    rclpy's own handlers shut the context down from another thread, so a callback running at that
+    moment fails (a publish raises ``RCLError``), and a ``KeyboardInterrupt`` raised inside a
+    callback reaches ``spin_once`` as a ``RuntimeError`` from the EventsExecutor's C++; either made
+    a node exit 1 on Ctrl-C. With a flag the spin loop ends between callbacks and the node shuts
+    down in order. Call it once the node is built (Ctrl-C still interrupts a slow start-up).
+    """
+    from rclpy.signals import uninstall_signal_handlers
+
+    stop = threading.Event()
+    uninstall_signal_handlers()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop

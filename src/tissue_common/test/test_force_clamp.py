@@ -1,8 +1,8 @@
-"""The force clamps keep their promise exactly: the clamped norm never exceeds the limit by rounding.
+"""The force clamp keeps its promise exactly: the clamped norm never exceeds the limit by rounding.
 
 ``f * (limit / norm)`` lands one ulp above the limit for about a third of all vectors (the sim
-published 3.3000000000000003 N); both clamps (``mapping.clamp_norm`` for the device force,
-``core.contact.clamp_force`` for the solver's) are checked with the norms a reader computes.
+published 3.3000000000000003 N). The one clamp that the solver, the sim's device force and the
+driver's safety chain use is checked with the norms a reader computes.
 """
 
 import math
@@ -10,13 +10,9 @@ import math
 import numpy as np
 import pytest
 
-from sph_tissue_sim.core.contact import clamp_force
-from sph_tissue_sim.core.errors import ConfigError
-from sph_tissue_sim.mapping import clamp_norm
+from tissue_common.force import HARD_FORCE_LIMIT, clamp_norm
 
-CLAMPS = [pytest.param(clamp_norm, id='mapping.clamp_norm'),
-          pytest.param(clamp_force, id='contact.clamp_force')]
-LIMITS = [3.3, 0.88, 1.0, 0.1, 1e-3]
+LIMITS = [HARD_FORCE_LIMIT, 0.88, 1.0, 0.1, 1e-3]
 
 
 def norms(vec) -> tuple[float, float]:
@@ -31,17 +27,16 @@ def random_vectors(n: int, seed: int) -> np.ndarray:
 
 
 def test_plain_scaling_does_exceed_the_limit():
-    """The pattern both clamps used: the property tests below would catch it."""
+    """The pattern the clamps used to follow: the property tests below would catch it."""
     over = [v for v in random_vectors(2000, seed=1) if np.linalg.norm(v) > 3.3]
     exceed = sum(np.linalg.norm(v * (3.3 / np.linalg.norm(v))) > 3.3 for v in over)
     assert exceed > len(over) // 10
 
 
-@pytest.mark.parametrize('clamp', CLAMPS)
 @pytest.mark.parametrize('limit', LIMITS)
-def test_clamped_norm_never_exceeds_the_limit_for_random_vectors(clamp, limit):
+def test_clamped_norm_never_exceeds_the_limit_for_random_vectors(limit):
     for vec in random_vectors(4000, seed=21):
-        out, clamped = clamp(vec, limit)
+        out, clamped = clamp_norm(vec, limit)
         assert max(norms(out)) <= limit, (vec.tolist(), out.tolist())
         assert clamped == (max(norms(vec)) > limit)
         if clamped:  # same direction, as long as allowed
@@ -51,43 +46,38 @@ def test_clamped_norm_never_exceeds_the_limit_for_random_vectors(clamp, limit):
             assert np.array_equal(out, vec)
 
 
-@pytest.mark.parametrize('clamp', CLAMPS)
-def test_vector_at_the_limit_passes_unchanged_and_clamping_twice_changes_nothing(clamp):
+def test_vector_at_the_limit_passes_unchanged_and_clamping_twice_changes_nothing():
     for vec in random_vectors(3000, seed=4):
-        once, _ = clamp(vec, 3.3)
-        twice, clamped = clamp(once, 3.3)
+        once, _ = clamp_norm(vec, 3.3)
+        twice, clamped = clamp_norm(once, 3.3)
         assert not clamped and np.array_equal(twice, once)
-    at, clamped = clamp(np.array([0.0, 3.3, 0.0]), 3.3)
+    at, clamped = clamp_norm(np.array([0.0, 3.3, 0.0]), 3.3)
     assert not clamped and at.tolist() == [0.0, 3.3, 0.0]
 
 
-@pytest.mark.parametrize('clamp', CLAMPS)
 @pytest.mark.parametrize('vec', [[1e300, -1e300, 1e300], [1.7e308, 1.7e308, 0.0],
                                  [0.0, 0.0, -1e200], [1e-300, 1e300, 0.0]])
-def test_huge_finite_components_are_scaled_not_zeroed(clamp, vec):
-    out, clamped = clamp(np.array(vec), 3.3)
+def test_huge_finite_components_are_scaled_not_zeroed(vec):
+    out, clamped = clamp_norm(np.array(vec), 3.3)
     assert clamped and max(norms(out)) <= 3.3
     unit = np.array(vec) / np.max(np.abs(vec))
     assert out == pytest.approx(3.3 * unit / np.linalg.norm(unit), rel=1e-12)
 
 
-@pytest.mark.parametrize('clamp', CLAMPS)
 @pytest.mark.parametrize('bad', [[math.nan, 0.0, 0.0], [0.0, math.inf, 0.0], [0.0, 0.0, -math.inf]])
-def test_non_finite_force_becomes_zero(clamp, bad):
-    out, clamped = clamp(np.array(bad), 3.3)
+def test_non_finite_force_becomes_zero(bad):
+    out, clamped = clamp_norm(np.array(bad), 3.3)
     assert clamped and np.array_equal(out, np.zeros(3))
 
 
-@pytest.mark.parametrize('clamp', CLAMPS)
-def test_zero_limit_gives_zero_force(clamp):
-    out, clamped = clamp(np.array([0.1, -0.2, 0.3]), 0.0)
+def test_zero_limit_gives_zero_force():
+    out, clamped = clamp_norm(np.array([0.1, -0.2, 0.3]), 0.0)
     assert clamped and not np.any(out)
-    out, clamped = clamp(np.zeros(3), 0.0)
+    out, clamped = clamp_norm(np.zeros(3), 0.0)
     assert not clamped and not np.any(out)
 
 
-@pytest.mark.parametrize('clamp', CLAMPS)
 @pytest.mark.parametrize('limit', [-1.0, math.nan])
-def test_negative_or_nan_limit_is_a_config_error(clamp, limit):
-    with pytest.raises(ConfigError, match='force limit'):
-        clamp(np.array([1.0, 2.0, 3.0]), limit)
+def test_negative_or_nan_limit_is_a_value_error(limit):
+    with pytest.raises(ValueError, match='force limit'):
+        clamp_norm(np.array([1.0, 2.0, 3.0]), limit)
