@@ -249,10 +249,11 @@ class OmniDriver(Node):
         status = self.safety.status(now)
         flags = status.flags()
         if flags != self._last_flags:
-            old = self._last_flags
+            # the first tick compares with all flags off: a command taken before the servo thread
+            # first ran (a busy machine) may already be clamped, and that is still worth a line
+            old = self._last_flags or tuple(False for _ in flags)
             self._last_flags = flags
-            if old is not None:
-                self._log_flag_change(old, flags, status)
+            self._log_flag_change(old, flags, status)
             self._publish_state()
         return force
 
