@@ -97,6 +97,14 @@ class DeviceMapping:
         """Tissue-frame point [m] of a device-frame point [m]."""
         return self.rotation @ (self.scale * np.asarray(p_device, dtype=np.float64)) + self.origin
 
+    def rotation_to_tissue(self, q_device) -> np.ndarray:
+        """Tissue-frame orientation (3x3) of a device-frame orientation quaternion (x, y, z, w).
+
+        Raises:
+            ValueError: not a finite, non-zero quaternion.
+        """
+        return self.rotation @ quaternion_matrix(q_device)
+
     def to_device(self, p_tissue) -> np.ndarray:
         """Inverse of :meth:`to_tissue`."""
         return (self.rotation.T @ (np.asarray(p_tissue, dtype=np.float64) - self.origin)) / self.scale

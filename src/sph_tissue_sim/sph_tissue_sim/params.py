@@ -25,6 +25,7 @@ from .core.material import Material, load_material
 from .core.factory import MODELS, make_model
 from .core.models import TissueModel
 from .core.solver import MODES, SCHEMES, SolverConfig
+from .core.tools import TOOLS
 from .mapping import ANCHORS, DEFAULT_ROTATION
 
 TIMING_MODES = ('live', 'lockstep')
@@ -63,7 +64,13 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                False, 'solver'),
     'k1_max': (6.0, 'upper clamp of k1', (0.01, 100.0), False, 'solver'),
     'n_layers': (2, 'transmission layers N (paper eqs. 20-21)', (0, 8), False, 'solver'),
-    'tool_radius': (0.005, '[m] radius of the tool-tip sphere', (1e-4, 0.05), False, 'solver'),
+    'tool_shape': ('sphere', 'sphere (a probe tip at the stylus tip) | capsule (a shaft of tool_length '
+                             'from the stylus tip along the stylus axis, rounded at both ends)',
+                   tuple(TOOLS), False, 'solver'),
+    'tool_radius': (0.005, '[m] radius of the sphere, or of the capsule shaft', (1e-4, 0.05), False,
+                    'solver'),
+    'tool_length': (0.05, '[m] capsule shaft length (tool_shape capsule)', (0.0, 0.3), False,
+                    'solver'),
     'contact_stiffness': (300.0, '[N/m] penalty stiffness per contacted particle', (1.0, 1e5), False,
                           'solver'),
     'contact_damping_ratio': (1.0, '[-] contact dashpot as a fraction of critical', (0.0, 10.0),
@@ -251,7 +258,8 @@ def build_config(p: dict) -> SolverConfig:
     cfg = SolverConfig(scheme=p['scheme'], mode=p['mode'], h_ratio=float(p['h_ratio']),
                        k1_gain=float(p['k1_gain']), k1_min=float(p['k1_min']),
                        k1_max=float(p['k1_max']), n_layers=int(p['n_layers']),
-                       tool_radius=float(p['tool_radius']),
+                       tool_shape=p['tool_shape'], tool_radius=float(p['tool_radius']),
+                       tool_length=float(p['tool_length']),
                        contact_stiffness=float(p['contact_stiffness']),
                        contact_damping_ratio=float(p['contact_damping_ratio']),
                        force_limit=float(p['force_limit']), cfl=float(p['cfl']),

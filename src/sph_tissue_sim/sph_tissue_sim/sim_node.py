@@ -334,7 +334,14 @@ class SimNode(Node):
             tool = self.mapping.to_tissue((pos.x, pos.y, pos.z))
             solver = self.solver
             try:
-                res = solver.step(tool, dt)
+                rot = None
+                if solver.tool.oriented:
+                    q = msg.pose.orientation
+                    try:
+                        rot = self.mapping.rotation_to_tissue((q.x, q.y, q.z, q.w))
+                    except ValueError as exc:   # refused below like any bad tool input
+                        raise InvalidInput(f'stylus orientation: {exc}') from exc
+                res = solver.step(tool, dt, rot)
             except InvalidInput as exc:
                 self.counts['rejected'] += 1
                 self._throttled('invalid', 'warn', f'step refused the input ({exc}): answered zero '

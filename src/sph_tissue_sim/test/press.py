@@ -16,3 +16,27 @@ def press(solver, depth: float, frames: int = 300, dt: float = 1e-3):
         d = depth * min(1.0, (k + 1) / (0.7 * frames))
         res = solver.step(centre - np.array([0.0, 0.0, d]), dt)
     return res
+
+
+def rotation_y(angle: float) -> np.ndarray:
+    """Rotation by ``angle`` [rad] about the y axis: the tool's +z axis goes to (sin, 0, cos)."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def tilted_shaft_press(X: np.ndarray, tool, particle_radius: float, tilt: float, depth: float,
+                       frames: int = 400, ramp: int = 250):
+    """A capsule ``tool`` tilted ``tilt`` [rad] down towards +x, its shaft's middle above the model
+    centre, lowered from first touch to ``depth`` [m] over ``ramp`` frames, then held.
+
+    Returns ``(tips (frames, 3), rotation (3, 3), shaft axis (3,))`` in the model's frame.
+    """
+    rot = rotation_y(np.pi / 2 + tilt)              # tool +z -> (cos tilt, 0, -sin tilt)
+    axis = rot[:, 2]
+    centre = np.array([X[:, 0].mean(), X[:, 1].mean(), X[:, 2].max() + 0.03])
+    tip = centre - 0.5 * tool.length * axis
+    gap = float((tool.signed_distance(X, tip, rot)[0] - particle_radius).min())
+    assert gap > 0.0, 'the shaft starts inside the model'
+    tip = tip - [0.0, 0.0, gap]                     # touching now
+    tips = np.array([tip - [0.0, 0.0, depth * min(1.0, (k + 1) / ramp)] for k in range(frames)])
+    return tips, rot, axis

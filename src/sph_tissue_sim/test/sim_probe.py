@@ -54,6 +54,7 @@ class SimProbe:
 
         self.node = node
         self.ns = ns
+        self.orientation = (0.0, 0.0, 0.0, 1.0)   # of every pose published (x, y, z, w)
         self.pose_pub = node.create_publisher(PoseStamped, ns + 'omni/pose', qos(True))
         self.forces: dict[int, object] = {}
         self.force_order: list[int] = []
@@ -105,7 +106,8 @@ class SimProbe:
         msg.header.frame_id = frame
         msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
         msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pos)
-        msg.pose.orientation.w = 1.0
+        q = msg.pose.orientation
+        q.x, q.y, q.z, q.w = (float(v) for v in self.orientation)
         self.pose_pub.publish(msg)
 
     def exchange(self, pos, ns: int, frame: str = 'omni_base', timeout: float = 10.0,

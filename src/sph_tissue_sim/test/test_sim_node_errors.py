@@ -66,7 +66,7 @@ def test_unstable_step_answers_zero_and_resets_the_tissue(node, monkeypatch):
     t = press(node)
     assert node.sent[-1][1][1] > 0.0 and node.solver.sim_time > 0.0
 
-    def unstable(tool, dt):
+    def unstable(tool, dt, rot=None):
         raise SimError('tlsph local step went unstable')
 
     monkeypatch.setattr(node.solver, 'step', unstable)
@@ -85,7 +85,7 @@ def test_input_refused_by_the_core_answers_zero_and_leaves_the_state(node, monke
 
     t = press(node)
     before = node.solver.positions.copy()
-    monkeypatch.setattr(node.solver, 'step', lambda tool, dt: (_ for _ in ()).throw(
+    monkeypatch.setattr(node.solver, 'step', lambda tool, dt, rot=None: (_ for _ in ()).throw(
         InvalidInput('tool position is more than 10 m from the tissue')))
     node._handle(pose((0.0, -0.004, 0.0), t))
     assert np.all(node.sent[-1][1] == 0.0)
@@ -95,7 +95,7 @@ def test_input_refused_by_the_core_answers_zero_and_leaves_the_state(node, monke
 def test_an_unexpected_exception_answers_zero_and_the_node_goes_on(node, monkeypatch):
     t = press(node)
     step = node.solver.step
-    monkeypatch.setattr(node.solver, 'step', lambda tool, dt: 1 / 0)
+    monkeypatch.setattr(node.solver, 'step', lambda tool, dt, rot=None: 1 / 0)
     node._handle(pose((0.0, -0.004, 0.0), t))
     assert node.sent[-1][0] == t and np.all(node.sent[-1][1] == 0.0)
     monkeypatch.setattr(node.solver, 'step', step)

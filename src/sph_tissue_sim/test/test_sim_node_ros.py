@@ -7,6 +7,7 @@ between tests); lockstep and bad start-up parameters get their own processes.
 from __future__ import annotations
 
 import importlib.util
+import math
 import os
 import re
 import time
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 
 import harness
+from press import tilted_shaft_press
 from sim_probe import (N_BLOCK, START_TIMEOUT, T0_NS, SimProbe, call_reset, finite_and_bounded,
                        force_of, press_path, qos, set_parameters, sim, stamp_ns)
 
@@ -414,6 +416,40 @@ def test_scripted_driver_press_is_felt_through_the_default_device_mapping(rclpy_
     # the only rejection allowed (the driver logs each reason it rejects for)
     reasons = re.findall(r'rejected force command \((\w+)', driver_out)
     assert set(reasons) <= {'stale'}, driver_out
+
+
+
+def test_a_capsule_chosen_by_parameter_follows_the_stylus_orientation_and_is_pushed_normal_to_its_shaft(
+        rclpy_node):
+    """tool_shape capsule through the node: the stylus orientation (device frame) tilts the shaft
+    20 degrees down towards tissue +x, the device map takes the shaft onto the liver (tip in the
+    air), and the force sent back, taken into the tissue frame, is normal to the shaft
+    (test_core_tools checks the same press in the core)."""
+    from tissue_common.rotation import matrix_quaternion, quaternion_matrix
+
+    from sph_tissue_sim.core.factory import make_model
+    from sph_tissue_sim.core.tools import Capsule
+    from sph_tissue_sim.mapping import DEFAULT_ROTATION
+
+    n, radius, length = 2000, 0.004, 0.15
+    model = make_model('liver', n_particles=n)          # the node builds the same model
+    # particles meet the tool one spacing from their centre (the core's contact_particle_radius)
+    tips, rot, axis = tilted_shaft_press(model.positions, Capsule(radius, length), model.spacing,
+                                         math.radians(20.0), 0.004)
+    r_map = quaternion_matrix(DEFAULT_ROTATION)          # device -> tissue (anchor origin: no offset)
+    params = {'model': 'liver', 'n_particles': n, 'tool_shape': 'capsule', 'tool_radius': radius,
+              'tool_length': length, 'anchor': 'origin', 'particles_rate': 0.0}
+    with sim(params, ros_args=['-r', '__ns:=/cap']) as proc:     # apart from the module's sim
+        probe = SimProbe(rclpy_node, ns='/cap/')
+        probe.wait_matched(proc)
+        probe.orientation = matrix_quaternion(r_map.T @ rot)
+        forces = probe.run_path(tips @ r_map, _unique_t0(40))      # rows: R^T p for each tip
+        assert proc.stop() == 0
+    f = r_map @ forces[-1]                                   # back into the tissue frame
+    print(f'capsule force through the node (tissue frame): {f} N')
+    assert np.linalg.norm(f) > 0.1 and f[2] > 0.0
+    assert abs(f @ axis) < 0.05 * np.linalg.norm(f)
+    assert f[0] / f[2] == pytest.approx(math.tan(math.radians(20.0)), rel=0.25)
 
 
 @pytest.mark.parametrize('step_thread', [None, False])

@@ -1,12 +1,16 @@
-"""Tool-tissue contact: a small rigid sphere (the tool tip) against the particles.
+"""Tool-tissue contact: a rigid swept sphere (the tool, see :mod:`.tools`) against the particles.
 
-Penalty contact with a dashpot (for passivity): a particle at ``x_i`` overlapping the tool sphere
-(centre ``c``, radius ``r_t``; particle radius ``r_p`` = spacing / 2) by
+The kernels see every tool as a segment ``seg = [a, b]`` (2, 3) swept by a sphere of radius ``r_t``:
+a sphere is the segment of length 0 (``a == b``), a capsule (an instrument shaft with a rounded tip)
+one of the shaft's length. ``c_i`` is the point of the segment closest to particle ``i``.
+Penalty contact with a dashpot (for passivity): a particle at ``x_i`` overlapping the tool
+(particle radius ``r_p``) by
 
-    d_i = r_t + r_p - |x_i - c| > 0
+    d_i = r_t + r_p - |x_i - c_i| > 0
 
-receives ``f_i = max(0, k_c d_i - c_c (v_i - v_tool) . n_i) n_i`` with ``n_i = (x_i - c)/|x_i - c|``
-(push only, never pull). A surface particle is not a ball but a patch of surface: the overlap is
+receives ``f_i = max(0, k_c d_i - c_c (v_i - v_tool(c_i)) . n_i) n_i`` with
+``n_i = (x_i - c_i)/|x_i - c_i|`` (push only, never pull; ``v_tool(c_i)`` interpolates the
+velocities of the segment's ends). A surface particle is not a ball but a patch of surface: the overlap is
 measured from the closest point of a disc of radius ``contact_disc * spacing`` (a
 :class:`~.solver.SolverConfig` option; 0, the default, is the ball model) through ``x_i`` normal to the
 current surface (``n_i`` then points from the tool centre to that point). Pressing on a flat
@@ -29,17 +33,42 @@ from numba import njit
 
 
 @njit(cache=True, fastmath=True, inline='always')
-def contact_vector(i, x, tool, surf):
-    """Vector from the tool centre to the closest point of particle ``i``'s contact shape.
+def closest_on_segment(p0, p1, p2, seg):
+    """``(c0, c1, c2, t)``: the point of segment ``seg[0]``-``seg[1]`` closest to ``p``, at
+    ``seg[0] + t (seg[1] - seg[0])`` (``t`` = 0 for a segment of length 0: a sphere's centre)."""
+    a0 = seg[0, 0]; a1 = seg[0, 1]; a2 = seg[0, 2]
+    d0 = seg[1, 0] - a0; d1 = seg[1, 1] - a1; d2 = seg[1, 2] - a2
+    dd = d0 * d0 + d1 * d1 + d2 * d2
+    t = 0.0
+    if dd > 0.0:
+        t = ((p0 - a0) * d0 + (p1 - a1) * d1 + (p2 - a2) * d2) / dd
+        t = min(max(t, 0.0), 1.0)
+    return a0 + t * d0, a1 + t * d1, a2 + t * d2, t
 
-    Returns ``(u0, u1, u2, s0, s1, s2)``: the vector [m] and the particle's current unit outward
-    surface normal (zero for a bulk particle, whose shape is the point ``x_i``).
+
+@njit(cache=True, fastmath=True, inline='always')
+def segment_distance2(i, x, seg):
+    """Squared distance [m^2] of particle ``i``'s centre from the tool segment."""
+    c0, c1, c2, t = closest_on_segment(x[i, 0], x[i, 1], x[i, 2], seg)
+    e0 = x[i, 0] - c0; e1 = x[i, 1] - c1; e2 = x[i, 2] - c2
+    return e0 * e0 + e1 * e1 + e2 * e2
+
+
+@njit(cache=True, fastmath=True, inline='always')
+def contact_vector(i, x, seg, surf):
+    """Vector from the tool segment's closest point to the closest point of particle ``i``'s
+    contact shape.
+
+    Returns ``(u0, u1, u2, s0, s1, s2, t)``: the vector [m], the particle's current unit outward
+    surface normal (zero for a bulk particle, whose shape is the point ``x_i``) and where on the
+    segment the closest point lies (0 at ``seg[0]``, 1 at ``seg[1]``).
     """
     X, offsets, indices, cw, Minv, N, disc = surf
     a = disc[i]
-    e0 = x[i, 0] - tool[0]
-    e1 = x[i, 1] - tool[1]
-    e2 = x[i, 2] - tool[2]
+    tc0, tc1, tc2, tseg = closest_on_segment(x[i, 0], x[i, 1], x[i, 2], seg)
+    e0 = x[i, 0] - tc0
+    e1 = x[i, 1] - tc1
+    e2 = x[i, 2] - tc2
     u0 = e0; u1 = e1; u2 = e2
     s0 = 0.0; s1 = 0.0; s2 = 0.0
     if a > 0.0:
@@ -78,25 +107,26 @@ def contact_vector(i, x, tool, surf):
             hgt = e0 * s0 + e1 * s1 + e2 * s2
             q0 = e0 - hgt * s0; q1 = e1 - hgt * s1; q2 = e2 - hgt * s2
             rho = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
-            # closest point of the particle's surface disc to the tool centre
+            # closest point of the particle's surface disc to the tool's closest point
             cut = 1.0 if rho <= a else a / rho
             u0 = e0 - cut * q0; u1 = e1 - cut * q1; u2 = e2 - cut * q2
         else:
             s0 = 0.0; s1 = 0.0; s2 = 0.0
-    return u0, u1, u2, s0, s1, s2
+    return u0, u1, u2, s0, s1, s2, tseg
 
 
 @njit(cache=True)
-def contact_vector_py(i, x, tool, surf):
-    """:func:`contact_vector` callable from Python (``(u0, u1, u2, s0, s1, s2)``)."""
-    return contact_vector(i, x, tool, surf)
+def contact_vector_py(i, x, seg, surf):
+    """:func:`contact_vector` callable from Python (``(u0, u1, u2, s0, s1, s2, t)``)."""
+    return contact_vector(i, x, seg, surf)
 
 
 @njit(cache=True, fastmath=True)
-def contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, tool, tool_vel, reach, k_c, c_c, react,
+def contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, seg, seg_vel, reach, k_c, c_c, react,
                    surf):
     """Add contact accelerations to ``acc`` for ``cand[:n_cand]``; accumulate the reaction in ``react``.
 
+    ``seg`` (2, 3) is the tool's segment now and ``seg_vel`` (2, 3) the velocities of its ends [m/s].
     ``surf = (X, offsets, indices, cw, Minv, N, disc)``: reference positions and neighbour CSR,
     pair weights ``V_j W(R0_ij)``, inverse second moments, reference outward normals and the
     surface-disc radius of each particle [m] (0 in the bulk), see :func:`surface_discs`.
@@ -106,19 +136,16 @@ def contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, tool, tool_vel, rea
     best = 0.0
     for t in range(n_cand):
         i = cand[t]
-        e0 = x[i, 0] - tool[0]
-        e1 = x[i, 1] - tool[1]
-        e2 = x[i, 2] - tool[2]
         a = disc[i]
         lim = reach + a
-        if e0 * e0 + e1 * e1 + e2 * e2 >= lim * lim:
+        if segment_distance2(i, x, seg) >= lim * lim:
             continue
-        u0, u1, u2, s0, s1, s2 = contact_vector(i, x, tool, surf)
+        u0, u1, u2, s0, s1, s2, ts = contact_vector(i, x, seg, surf)
         r = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
         if r >= reach:
             continue
         if r < 1e-12:
-            # tool centre exactly on the particle's disc: push along its surface normal (or +z)
+            # the tool's closest point exactly on the particle's disc: push along its surface normal (or +z)
             if s0 * s0 + s1 * s1 + s2 * s2 > 0.5:
                 n0 = -s0; n1 = -s1; n2 = -s2
             else:
@@ -128,7 +155,10 @@ def contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, tool, tool_vel, rea
         overlap = reach - r
         if overlap > best:
             best = overlap
-        vn = (v[i, 0] - tool_vel[0]) * n0 + (v[i, 1] - tool_vel[1]) * n1 + (v[i, 2] - tool_vel[2]) * n2
+        tv0 = seg_vel[0, 0] + ts * (seg_vel[1, 0] - seg_vel[0, 0])
+        tv1 = seg_vel[0, 1] + ts * (seg_vel[1, 1] - seg_vel[0, 1])
+        tv2 = seg_vel[0, 2] + ts * (seg_vel[1, 2] - seg_vel[0, 2])
+        vn = (v[i, 0] - tv0) * n0 + (v[i, 1] - tv1) * n1 + (v[i, 2] - tv2) * n2
         fmag = k_c * overlap - c_c * vn
         if fmag <= 0.0:
             continue
@@ -187,7 +217,7 @@ def surface_discs(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: fl
 
 
 @njit(cache=True)
-def deepest_contact(x, cand, n_cand, tool, reach, surf):
+def deepest_contact(x, cand, n_cand, seg, reach, surf):
     """Collision detection (paper sec. 4.4): the candidate with the largest overlap, or -1.
 
     The overlap is measured to the same contact shape as :func:`contact_forces` uses.
@@ -197,13 +227,10 @@ def deepest_contact(x, cand, n_cand, tool, reach, surf):
     best_d = 0.0
     for t in range(n_cand):
         i = cand[t]
-        d0 = x[i, 0] - tool[0]
-        d1 = x[i, 1] - tool[1]
-        d2 = x[i, 2] - tool[2]
         lim = reach + disc[i]
-        if d0 * d0 + d1 * d1 + d2 * d2 >= lim * lim:
+        if segment_distance2(i, x, seg) >= lim * lim:
             continue
-        u0, u1, u2, s0, s1, s2 = contact_vector(i, x, tool, surf)
+        u0, u1, u2, s0, s1, s2, ts = contact_vector(i, x, seg, surf)
         overlap = reach - math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
         if overlap > best_d:
             best_d = overlap

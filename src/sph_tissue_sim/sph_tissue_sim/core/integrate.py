@@ -49,11 +49,13 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
               G, K, eta_s, eta_v, hg_k, hg_c, tau,
               stress_list, n_stress, sph_list, n_sph, layer_list, layer_w, n_lp,
               cand, n_cand, contact_idx,
-              tool0, tool1, tool_on, reach, k_c, c_c,
+              seg0, seg1, tool_on, reach, k_c, c_c,
               n_sub, dt, frame_dt, react, fbuf, ext_idx, ext_force, n_ext, surf,
               touch_idx, touch_w, n_touch, par_min, abort):
     """Advance ``n_sub`` sub-steps; returns the last overlap [m].
 
+    ``seg0``, ``seg1`` (2, 3) are the tool's segment (:mod:`.contact`, :mod:`.tools`) at the start
+    and the end of the frame: both ends move linearly across the sub-steps.
     ``react`` (3,) receives the mean reaction force on the tool over the sub-steps [N].
     ``H`` (N, 3, 3) is scratch for the TLSPH hourglass map of the stressed particles.
     ``gv`` (nnz, 3) holds the TLSPH reference pair gradients ``V_j DWIJ0`` (:func:`~.tlsph.pair_gradients`).
@@ -69,18 +71,20 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
     released while it runs); the caller then restores the state.
     """
     react[0] = 0.0; react[1] = 0.0; react[2] = 0.0
-    tool = np.empty(3)
-    tool_vel = np.empty(3)
+    seg = np.empty((2, 3))
+    seg_vel = np.empty((2, 3))
     rsum = np.zeros(3)
-    for a in range(3):
-        tool_vel[a] = (tool1[a] - tool0[a]) / frame_dt
+    for e in range(2):
+        for a in range(3):
+            seg_vel[e, a] = (seg1[e, a] - seg0[e, a]) / frame_dt
     overlap = 0.0
     for s in range(n_sub):
         if abort[0] != 0:
             break
         frac = (s + 1.0) / n_sub
-        for a in range(3):
-            tool[a] = tool0[a] + frac * (tool1[a] - tool0[a])
+        for e in range(2):
+            for a in range(3):
+                seg[e, a] = seg0[e, a] + frac * (seg1[e, a] - seg0[e, a])
         # internal forces
         if scheme == SCHEME_TLSPH and n_stress >= par_min:
             tlsph_pass_parallel(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
@@ -104,7 +108,7 @@ def run_frame(scheme, X, x, v, acc, fixed, inv_mass, volume,
         # contact (pushes the tissue, reaction on the tool)
         if tool_on:
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
-            overlap = contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, tool, tool_vel, reach,
+            overlap = contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, seg, seg_vel, reach,
                                      k_c, c_c, rsum, surf)
             react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
         # symplectic Euler

@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import contact_vector
+from .contact import contact_vector, segment_distance2
 from .neighbours import query_ball
 
 
@@ -265,8 +265,9 @@ def active_stats(x, X, v, idx, n, mass):
 
 @njit(cache=True)
 def detect_local(X, x, active_list, n_active, origin, cell, dims, cell_start, cell_particles,
-                 tool, reach, margin, tmp, surf, touch_idx, touch_w, centre):
-    """Deepest-overlap particle at ``tool`` in local mode, O(active + cells near the tool), or -1.
+                 seg, reach, margin, tmp, surf, touch_idx, touch_w, centre):
+    """Deepest-overlap particle of the tool segment ``seg`` (2, 3) in local mode, O(active + cells
+    near the tool), or -1.
 
     Inactive particles sit within ``margin`` of their reference position, so the reference grid
     finds them; active ones (possibly far from home) are checked directly. The overlap is measured
@@ -283,17 +284,20 @@ def detect_local(X, x, active_list, n_active, origin, cell, dims, cell_start, ce
     wsum = 0.0
     c0 = 0.0; c1 = 0.0; c2 = 0.0
     disc = surf[6]
-    nq = query_ball(tool, reach + margin + np.max(disc), X, origin, cell, dims, cell_start, cell_particles, tmp)
+    mid = np.empty(3)
+    half2 = 0.0
+    for a in range(3):
+        mid[a] = 0.5 * (seg[0, a] + seg[1, a])
+        half2 += (0.5 * (seg[1, a] - seg[0, a])) ** 2
+    nq = query_ball(mid, math.sqrt(half2) + reach + margin + np.max(disc), X, origin, cell, dims,
+                    cell_start, cell_particles, tmp)
     nq = min(nq, tmp.shape[0])
     for q in range(nq + n_active):
         j = tmp[q] if q < nq else active_list[q - nq]
-        d0 = x[j, 0] - tool[0]
-        d1 = x[j, 1] - tool[1]
-        d2 = x[j, 2] - tool[2]
         lim = reach + disc[j]
-        if d0 * d0 + d1 * d1 + d2 * d2 >= lim * lim:
+        if segment_distance2(j, x, seg) >= lim * lim:
             continue
-        u0, u1, u2, s0, s1, s2 = contact_vector(j, x, tool, surf)
+        u0, u1, u2, s0, s1, s2, ts = contact_vector(j, x, seg, surf)
         overlap = reach - math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
         if overlap <= 0.0:
             continue

@@ -287,7 +287,7 @@ def momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form, out):
 def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
                 rows, n_rows, search, n_search, n_sph,
                 layer_list, layer_w, n_lp, cand, n_cand, contact_idx,
-                tool0, tool1, tool_on, reach, k_c, c_c,
+                seg0, seg1, tool_on, reach, k_c, c_c,
                 n_sub, dt, frame_dt, v_limit, react, ext_idx, ext_force, n_ext,
                 rho, eps, epsd, sig, pos, nb_off, nb_idx, nb_dw, nb_w, surf, abort):
     """Advance ``n_sub`` sub-steps of the paper scheme.
@@ -304,21 +304,23 @@ def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
     another thread sets ``abort[0]`` (the GIL is released while it runs).
     """
     react[0] = 0.0; react[1] = 0.0; react[2] = 0.0
-    tool = np.empty(3)
-    tool_vel = np.empty(3)
+    seg = np.empty((2, 3))
+    seg_vel = np.empty((2, 3))
     rsum = np.zeros(3)
     fbuf = np.empty(3)
     inv_mass = 1.0 / mass
     vl2 = v_limit * v_limit
-    for a in range(3):
-        tool_vel[a] = (tool1[a] - tool0[a]) / frame_dt
+    for e in range(2):
+        for a in range(3):
+            seg_vel[e, a] = (seg1[e, a] - seg0[e, a]) / frame_dt
     overlap = 0.0
     for s in range(n_sub):
         if abort[0] != 0:
             break
         frac = (s + 1.0) / n_sub
-        for a in range(3):
-            tool[a] = tool0[a] + frac * (tool1[a] - tool0[a])
+        for e in range(2):
+            for a in range(3):
+                seg[e, a] = seg0[e, a] + frac * (seg1[e, a] - seg0[e, a])
         ok, nb_idx, nb_dw, nb_w = current_neighbours(x, search, n_search, rows, n_rows, h, pos,
                                                      nb_off, nb_idx, nb_dw, nb_w)
         if not ok:
@@ -343,7 +345,7 @@ def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
                     acc[i, a] += ext_force[t, a] * inv_mass
         if tool_on:
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
-            overlap = contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, tool, tool_vel, reach,
+            overlap = contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, seg, seg_vel, reach,
                                      k_c, c_c, rsum, surf)
             react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
         # transmission layers follow the contact particle's acceleration (eqs. 20-21)
@@ -518,7 +520,7 @@ class PaperScheme:
             self.rho[:] = s.material.rho
         self._mass = s.mass
 
-    def run(self, lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt) -> tuple[float, bool]:
+    def run(self, lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt) -> tuple[float, bool]:
         """One frame on the solver's index sets (same tuple as the tlsph path); returns ``(overlap, ok)``."""
         s = self.solver
         m = s.material
@@ -539,7 +541,7 @@ class PaperScheme:
             s.X, s.x, s.v, s.acc, s.fixed, s.mass, s.h, m.G, m.K, m.eta_shear, m.eta_bulk,
             s.config.paper_momentum, rows, n_rows, search, n_search, n_sph,
             layer, layer_w, n_lp, cand, n_cand, contact,
-            tool0, tool1, tool_on, reach, s.config.contact_stiffness, s.contact_damping,
+            seg0, seg1, tool_on, reach, s.config.contact_stiffness, s.contact_damping,
             n_sub, sub_dt, dt, s.config.velocity_limit, s.react, s.ext_idx, s.ext_force, len(s.ext_idx),
             self.rho, self.eps, self.epsd, self.sig, self.pos, self.nb_off,
             self.nb_idx, self.nb_dw, self.nb_w, s.contact_surf, s.abort)

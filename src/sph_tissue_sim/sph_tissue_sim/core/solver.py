@@ -1,4 +1,4 @@
-"""One solver for every scheme and mode: ``Solver(model, material, config).step(tool_pos, dt)``.
+"""One solver for every scheme and mode: ``Solver(model, material, config).step(tool_pos, dt, tool_rot)``.
 
 Schemes (index order = ``SimMetrics.SCHEME_*``): ``paper`` (updated-Lagrangian SPH, eqs. 11-16),
 ``tlsph`` (total-Lagrangian SPH, the default) and ``mass_spring`` (the paper's Table 1 baseline).
@@ -7,7 +7,8 @@ local interaction area, see :mod:`.local_area`).
 
 A frame of ``dt`` seconds is split into sub-steps bounded by the CFL, viscous and (when a tool is
 given) contact limits;
-the tool moves linearly from its previous to its new position across the sub-steps, and the force
+the tool (a shape from :mod:`.tools`, posed by its tip position and orientation) moves linearly
+from its previous to its new pose across the sub-steps, and the force
 returned is the mean reaction of the tissue on the tool over the frame, clamped to ``force_limit``.
 """
 
@@ -33,6 +34,7 @@ from .models import TissueModel
 from .neighbours import CellGrid, find_neighbours
 from .paper import PaperScheme
 from .tlsph import pair_gradients, reference_pairs, tlsph_von_mises
+from .tools import NO_ROTATION, TOOLS, make_tool
 
 SCHEMES = ('paper', 'tlsph', 'mass_spring')
 MODES = ('global', 'local')
@@ -57,7 +59,10 @@ class SolverConfig:
         k1_gain: k1 = k1_gain * f_ext [1/N] (paper eq. 18: 0.5).
         k1_min, k1_max: clamp of k1 (Dr = k1 h); k1_min keeps the area non-empty without force.
         n_layers: transmission layers N (paper eqs. 20-21), 0..8.
-        tool_radius: radius of the tool-tip sphere [m].
+        tool_shape: ``sphere`` (default: a probe tip) or ``capsule`` (a shaft of ``tool_length``
+            with a rounded tip, along the tool frame's +z), see :mod:`.tools`.
+        tool_radius: radius of the tool's sphere, or of the capsule's shaft [m].
+        tool_length: length of the capsule's shaft [m] (unused by the sphere).
         contact_stiffness: penalty stiffness per contacted particle [N/m].
         contact_damping_ratio: contact dashpot as a fraction of critical for one particle [-].
         force_limit: clamp of the force norm sent to the device [N] (Omni peak 3.3 N).
@@ -111,7 +116,9 @@ class SolverConfig:
     k1_min: float = 1.0
     k1_max: float = 6.0
     n_layers: int = 2
+    tool_shape: str = 'sphere'
     tool_radius: float = 0.005
+    tool_length: float = 0.0
     contact_stiffness: float = 300.0
     contact_damping_ratio: float = 1.0
     force_limit: float = 3.3
@@ -136,9 +143,11 @@ class SolverConfig:
             raise ConfigError(f'scheme must be one of {SCHEMES}, got {self.scheme!r}')
         if self.mode not in MODES:
             raise ConfigError(f'mode must be one of {MODES}, got {self.mode!r}')
+        if self.tool_shape not in TOOLS:
+            raise ConfigError(f'tool_shape must be one of {tuple(TOOLS)}, got {self.tool_shape!r}')
         for f in fields(self):
             val = getattr(self, f.name)
-            if f.name in ('scheme', 'mode'):
+            if f.name in ('scheme', 'mode', 'tool_shape'):
                 continue
             if not isinstance(val, (int, float)) or isinstance(val, bool) or not math.isfinite(val):
                 raise ConfigError(f'{f.name} must be a finite number, got {val!r}')
@@ -148,7 +157,7 @@ class SolverConfig:
         for name in positive:
             if getattr(self, name) <= 0.0:
                 raise ConfigError(f'{name} must be > 0, got {getattr(self, name)}')
-        for name in ('k1_gain', 'contact_damping_ratio', 'hourglass'):
+        for name in ('k1_gain', 'contact_damping_ratio', 'hourglass', 'tool_length'):
             if getattr(self, name) < 0.0:
                 raise ConfigError(f'{name} must be >= 0, got {getattr(self, name)}')
         if not 0.2 <= self.h_ratio <= 4.0:
@@ -236,7 +245,9 @@ class Solver:
         self.free_idx = np.flatnonzero(~self.fixed).astype(np.int32)
         self.all_idx = np.arange(self.n, dtype=np.int32)
         self.centre = self.X.mean(axis=0)
-        self.contact_reach = self.config.tool_radius + self.config.contact_particle_radius * model.spacing
+        cfg = self.config
+        self.tool = make_tool(cfg.tool_shape, cfg.tool_radius, cfg.tool_length)
+        self.contact_reach = self.tool.radius + cfg.contact_particle_radius * model.spacing
         self.extent = float(np.linalg.norm(self.X.max(axis=0) - self.X.min(axis=0)))
         self._setup_neighbours()
         self._alloc()
@@ -392,7 +403,8 @@ class Solver:
         self.n_ff = 0
         self.sim_time = 0.0
         self.f_prev = 0.0
-        self.tool_prev: np.ndarray | None = None
+        self.tool_prev: np.ndarray | None = None     # the tip position [m] of the previous frame
+        self.seg_prev: np.ndarray | None = None      # and the tool's segment (2, 3)
         self.last_result: StepResult | None = None
         self.n_stress_last = 0
         if self.config.mode == 'global':
@@ -473,8 +485,22 @@ class Solver:
                                f'from the tissue')
         return tool.copy()
 
-    def step(self, tool_pos, dt: float) -> StepResult:
-        """Advance the tissue by ``dt`` seconds with the tool tip at ``tool_pos`` (tissue frame, m).
+    @staticmethod
+    def _check_rotation(tool_rot) -> np.ndarray:
+        """The tool's orientation as a finite 3x3 matrix (identity for None)."""
+        if tool_rot is None:
+            return NO_ROTATION
+        try:
+            rot = np.asarray(tool_rot, dtype=np.float64).reshape(3, 3)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInput(f'tool rotation must be a 3x3 matrix, got {tool_rot!r}') from exc
+        if not np.all(np.isfinite(rot)):
+            raise InvalidInput(f'tool rotation is not finite: {rot.tolist()}')
+        return rot
+
+    def step(self, tool_pos, dt: float, tool_rot=None) -> StepResult:
+        """Advance the tissue by ``dt`` seconds with the tool's tip at ``tool_pos`` (tissue frame, m)
+        and its orientation ``tool_rot`` (3x3 rotation matrix, tissue frame; None: identity).
 
         ``tool_pos=None`` means no tool. Raises :class:`InvalidInput` (state untouched) for
         non-finite/absurd inputs and :class:`SimError` (state restored) if the step went unstable.
@@ -487,22 +513,25 @@ class Solver:
         n_sub, sub_dt, capped = substeps_for(dt, self.dt_max if tool_on else self.dt_max_free,
                                              cfg.max_substeps)
         tool_lag = 0.0
-        if tool_on and self.tool_prev is not None:
-            tool, tool_lag = self._limit_travel(self.tool_prev, tool, cfg.max_tool_speed * dt)
-        tool1 = tool if tool_on else self.centre.copy()
-        tool0 = self.tool_prev if (tool_on and self.tool_prev is not None) else tool1
-        reach = self.contact_reach
-        if cfg.scheme == 'paper':
-            res = self._paper_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
-        elif cfg.mode == 'global':
-            res = self._global_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
+        if tool_on:
+            rot = self._check_rotation(tool_rot)
+            if self.tool_prev is not None:
+                tool, tool_lag = self._limit_travel(self.tool_prev, tool, cfg.max_tool_speed * dt)
+            seg1 = self.tool.segment(tool, rot)
+            seg0 = self.seg_prev if self.seg_prev is not None else seg1
         else:
-            res = self._local_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
+            seg0 = seg1 = np.stack([self.centre, self.centre])
+        reach = self.contact_reach
+        if cfg.mode == 'global':
+            res = self._global_step(seg0, seg1, tool_on, reach, n_sub, sub_dt, dt)
+        else:
+            res = self._local_step(seg0, seg1, tool_on, reach, n_sub, sub_dt, dt)
         force_raw = self.react.copy()
         force, clamped = clamp_norm(force_raw, cfg.force_limit)
         f0, f1, f2 = force.tolist()
         self.f_prev = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
-        self.tool_prev = tool1 if tool_on else None
+        self.tool_prev = tool if tool_on else None
+        self.seg_prev = seg1 if tool_on else None
         self.sim_time += n_sub * sub_dt
         result = StepResult(force=force, force_raw=force_raw, clamped=clamped, substeps=n_sub,
                             substep_dt=sub_dt, wall_time=time.perf_counter() - t0,
@@ -522,7 +551,7 @@ class Solver:
         f = max_travel / dist
         return np.array([p0 + f * d0, p1 + f * d1, p2 + f * d2]), dist - max_travel
 
-    def _sticky_contact(self, tool: np.ndarray, reach: float) -> int:
+    def _sticky_contact(self, seg: np.ndarray, reach: float) -> int:
         """Keep the previous contact particle while the tool still touches it.
 
         The interaction area is centred on the contact particle; letting it hop between equally
@@ -531,7 +560,7 @@ class Solver:
         """
         prev = self.last_result.contact_index if self.last_result is not None else -1
         if prev >= 0:
-            u = contact_vector_py(prev, self.x, tool, self.contact_surf)
+            u = contact_vector_py(prev, self.x, seg, self.contact_surf)
             if u[0] * u[0] + u[1] * u[1] + u[2] * u[2] < reach * reach:
                 return prev
         return -1
@@ -541,7 +570,7 @@ class Solver:
             return SCHEME_MASS_SPRING, self.s_offsets, self.s_indices, self.s_k, self.s_rest
         return SCHEME_TLSPH, self.offsets, self.indices, self.dw, self.w0
 
-    def _run(self, lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt):
+    def _run(self, lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt):
         """One frame on the index sets ``lists``; returns ``(overlap, ok)``.
 
         ``ok`` is False when the frame left a non-finite or too fast particle or a non-finite
@@ -549,7 +578,7 @@ class Solver:
         """
         (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
         if self.config.scheme == 'paper':
-            overlap, ok = self._paper.run(lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt)
+            overlap, ok = self._paper.run(lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt)
         else:
             m = self.material
             sid, off, idx, dw, w0 = self._scheme_arrays()
@@ -558,7 +587,7 @@ class Solver:
                 off, idx, dw, w0, self.Linv, self.F, self.Fd, self.A, self.H, self.gv,
                 m.G, m.K, m.eta_shear, m.eta_bulk, self.hg_k, self.hg_c, m.retardation_time,
                 stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand, contact,
-                tool0, tool1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,
+                seg0, seg1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,
                 n_sub, sub_dt, dt, self.react, self.fbuf,
                 self.ext_idx, self.ext_force, len(self.ext_idx), self.contact_surf,
                 self.touch_idx, self.touch_w, self.n_touch, self.par_min, self.abort)
@@ -574,15 +603,15 @@ class Solver:
         return SimError(f'{self.config.scheme} {mode} step went unstable (non-finite or speed > '
                         f'{self.config.velocity_limit} m/s); state restored')
 
-    def _global_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
-        contact = self._sticky_contact(tool1, reach) if tool_on else -1
+    def _global_step(self, seg0, seg1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
+        contact = self._sticky_contact(seg1, reach) if tool_on else -1
         if tool_on and contact < 0:
-            contact = deepest_contact(self.x, self.all_idx, self.n, tool1, reach, self.contact_surf)
+            contact = deepest_contact(self.x, self.all_idx, self.n, seg1, reach, self.contact_surf)
         self.buf_x[:] = self.x
         self.buf_v[:] = self.v
         lists = (self.all_idx, self.n, self.free_idx, len(self.free_idx), self.layer_list, self.layer_w, 0,
                  self.all_idx, self.n)
-        overlap, ok = self._run(lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt)
+        overlap, ok = self._run(lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt)
         if not ok:
             self.x[:] = self.buf_x
             self.v[:] = self.buf_v
@@ -595,7 +624,7 @@ class Solver:
                     n_relaxing=0, max_displacement=float(md), kinetic_energy=float(ke), k1=0.0,
                     n_active=len(self.free_idx))
 
-    def _local_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
+    def _local_step(self, seg0, seg1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
         cfg = self.config
         g = self.grid
         margin = cfg.relax_disp_tol
@@ -603,16 +632,16 @@ class Solver:
         if tool_on:
             deepest, self.n_touch = detect_local(
                 self.X, self.x, self.active_list, self.n_active, g.origin, g.cell, g.dims,
-                g.cell_start, g.cell_particles, tool1, reach, margin, self.tmp, self.contact_surf,
+                g.cell_start, g.cell_particles, seg1, reach, margin, self.tmp, self.contact_surf,
                 self.touch_idx, self.touch_w, self.area_centre)
-            contact = self._sticky_contact(tool1, reach)
+            contact = self._sticky_contact(seg1, reach)
             if contact < 0:
                 contact = deepest
         if tool_on:
-            cand_centre = 0.5 * (tool0 + tool1)
-            a0, a1, a2 = tool0.tolist()
-            b0, b1, b2 = tool1.tolist()
-            cand_radius = (0.5 * math.sqrt((b0 - a0) ** 2 + (b1 - a1) ** 2 + (b2 - a2) ** 2) + reach
+            # candidates: every particle the tool can reach anywhere on its way through the frame
+            ends = np.concatenate([seg0, seg1])
+            cand_centre = 0.25 * (ends[0] + ends[1]) + 0.25 * (ends[2] + ends[3])
+            cand_radius = (float(np.sqrt(((ends - cand_centre) ** 2).sum(axis=1)).max()) + reach
                            + self.disc_max + margin)
         else:
             contact = -1
@@ -653,7 +682,7 @@ class Solver:
         save_state(self.x, self.v, self.sph_list, n_sph, self.layer_list, n_lp, self.buf_x, self.buf_v)
         lists = (self.stress_list, n_stress, self.sph_list, n_sph, self.layer_list, self.layer_w, n_lp,
                  self.cand_list, n_cand)
-        overlap, ok = self._run(lists, tool0, tool1, tool_on, reach, contact, n_sub, sub_dt, dt)
+        overlap, ok = self._run(lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt)
         if not ok:
             restore_state(self.x, self.v, self.sph_list, n_sph, self.layer_list, n_lp, self.buf_x, self.buf_v)
             self.react[:] = 0.0
@@ -667,12 +696,6 @@ class Solver:
                     n_interaction=int(n_inter), n_layer=self.layer_counts[:cfg.n_layers].copy(),
                     n_relaxing=int(n_relax), max_displacement=float(md), kinetic_energy=float(ke),
                     k1=float(k1), n_active=int(n_active_frame))
-
-    def _paper_step(self, tool0, tool1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
-        # same bookkeeping as tlsph; _run hands the frame to paper.PaperScheme
-        if self.config.mode == 'global':
-            return self._global_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
-        return self._local_step(tool0, tool1, tool_on, reach, n_sub, sub_dt, dt)
 
 
 def warmup(scheme: str | None = None) -> float:

@@ -1,0 +1,26 @@
+"""Tool shapes, chosen by name (``SolverConfig.tool_shape``, the node's ``tool_shape`` parameter).
+
+A new shape is one file here with a class following :class:`~.base.Tool` (usually a
+:class:`~.base.SweptSphere` that says which segment it puts where, built by
+``from_dimensions(radius, length)``), plus its line in :data:`TOOLS`.
+"""
+
+from __future__ import annotations
+
+from ..errors import ConfigError
+from .base import NO_ROTATION, SweptSphere, Tool
+from .capsule import Capsule
+from .sphere import Sphere
+
+#: every shape by name
+TOOLS = {'sphere': Sphere, 'capsule': Capsule}
+
+
+def make_tool(shape: str, radius: float, length: float = 0.0) -> Tool:
+    """The tool ``shape`` with its dimensions [m] (``length``: the capsule's shaft)."""
+    if shape not in TOOLS:
+        raise ConfigError(f'tool_shape must be one of {", ".join(TOOLS)}, got {shape!r}')
+    return TOOLS[shape].from_dimensions(radius=radius, length=length)
+
+
+__all__ = ['NO_ROTATION', 'TOOLS', 'Capsule', 'Sphere', 'SweptSphere', 'Tool', 'make_tool']
