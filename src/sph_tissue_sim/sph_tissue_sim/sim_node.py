@@ -405,6 +405,14 @@ class SimNode(Node):
         m.contact_index = int(res.contact_index)
         m.penetration = float(res.penetration)
         m.contact_force.x, m.contact_force.y, m.contact_force.z = (float(v) for v in res.force)
+        if res.tool_segment is not None:
+            tip, shaft = res.tool_segment[0], res.tool_segment[1] - res.tool_segment[0]
+            length = float(np.linalg.norm(shaft))
+            axis = shaft / length if length > 0.0 else shaft
+            m.tool_position.x, m.tool_position.y, m.tool_position.z = (float(v) for v in tip)
+            m.tool_axis.x, m.tool_axis.y, m.tool_axis.z = (float(v) for v in axis)
+            m.tool_length = length
+        m.tool_radius = float(solver.tool.radius)
         m.max_displacement = float(res.max_displacement)
         m.kinetic_energy = float(res.kinetic_energy)
         m.scheme = solver.config.scheme_index

@@ -444,6 +444,15 @@ def test_a_capsule_chosen_by_parameter_follows_the_stylus_orientation_and_is_pus
         probe.wait_matched(proc)
         probe.orientation = matrix_quaternion(r_map.T @ rot)
         forces = probe.run_path(tips @ r_map, _unique_t0(40))      # rows: R^T p for each tip
+        # the metrics report the simulated tool in the tissue frame (what tissue_viz draws)
+        assert rclpy_node.spin_until(lambda: any(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+                                                 == _unique_t0(40) + (len(tips) - 1) * 1_000_000
+                                                 for m in probe.metrics), 10.0)
+        last = probe.metrics[-1]
+        p, a = last.tool_position, last.tool_axis
+        assert (p.x, p.y, p.z) == pytest.approx(tuple(tips[-1]), abs=1e-9)
+        assert (a.x, a.y, a.z) == pytest.approx(tuple(axis), abs=1e-9)
+        assert (last.tool_length, last.tool_radius) == pytest.approx((length, radius))
         assert proc.stop() == 0
     f = r_map @ forces[-1]                                   # back into the tissue frame
     print(f'capsule force through the node (tissue frame): {f} N')

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tissue_viz.errors import VizConfigError
-from tissue_viz.markers import ToolFrame, force_arrow
+from tissue_viz.markers import ToolShape, force_arrow
 from tissue_viz.stats import (LIMITS, DecimatingRecorder, LatencyMatcher, Limit, RateMeter,
                               StampOrder, VizStats, percentile, press_displacement, summary_line)
 
@@ -254,16 +254,23 @@ def test_summary_line_is_one_compact_line_with_units():
     assert 'active 7' in line and 'lat p50 -' in line
 
 
-def test_tool_frame_maps_device_points_into_the_tissue_frame():
-    # 90 degrees about z, scale 2, then shift by (1, 0, 0): (1, 0, 0) -> (0, 2, 0) + (1, 0, 0)
+def test_a_shaft_is_drawn_as_a_cylinder_along_its_axis_and_the_arrow_starts_at_the_tip():
+    from tissue_msgs.msg import SimMetrics
+
+    msg = SimMetrics()
+    msg.tool_position.x, msg.tool_position.y, msg.tool_position.z = 0.1, 0.0, 0.05
     s = math.sqrt(0.5)
-    frame = ToolFrame(to_tissue=True, translation=(1.0, 0.0, 0.0), rotation=(0.0, 0.0, s, s),
-                      scale=2.0)
-    assert frame.point((1.0, 0.0, 0.0)) == pytest.approx([1.0, 2.0, 0.0])
-    assert frame.vector((1.0, 0.0, 0.0)) == pytest.approx([0.0, 1.0, 0.0])   # forces not scaled
+    msg.tool_axis.x, msg.tool_axis.z = s, s
+    msg.tool_length, msg.tool_radius = 0.08, 0.004
+    tool = ToolShape.from_metrics(msg)
+    centre, q = tool.shaft_pose()
+    assert centre == pytest.approx([0.1 + 0.04 * s, 0.0, 0.05 + 0.04 * s])
+    x, y, z, w = q                      # the quaternion takes the cylinder's z onto the axis
+    rz = [2 * (x * z + y * w), 2 * (y * z - x * w), 1 - 2 * (x * x + y * y)]
+    assert rz == pytest.approx([s, 0.0, s])
+    msg.tool_length = 0.0                               # a sphere: no shaft
+    assert ToolShape.from_metrics(msg).shaft_pose() is None
+    msg.tool_radius = math.nan                          # nothing usable: nothing drawn
+    assert ToolShape.from_metrics(msg) is None
     start, end = force_arrow((0.0, 0.0, 0.01), (0.0, 0.0, 2.0), scale=0.02)
     assert end == pytest.approx([0.0, 0.0, 0.05]) and start == pytest.approx([0.0, 0.0, 0.01])
-    with pytest.raises(VizConfigError):
-        ToolFrame(rotation=(0.0, 0.0, 0.0, 0.0))
-    with pytest.raises(VizConfigError):
-        ToolFrame(scale=-1.0)

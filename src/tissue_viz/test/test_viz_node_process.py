@@ -228,21 +228,17 @@ def test_write_report_service_writes_a_folder_while_running(rclpy_node, tmp_path
     assert summary['steps'] >= 1
 
 
-S = math.sqrt(0.5)
-TISSUE_MAP = {'tool_in_tissue_frame': True, 'device_to_tissue_rotation': [S, 0.0, 0.0, S],
-              'device_to_tissue_translation': [0.1, 0.0, 0.05], 'workspace_scale': 2.0}
-
-
 @pytest.mark.parametrize('frame_params, frame, tip, end', [
+    # the stylus tip and the force sent to the device, as the pose and the wrench give them
     ({}, 'omni_base', (0.01, 0.02, 0.03), (0.01, 0.02, 0.03 + 0.1 * 2.0)),
-    # 90 deg about x (device y up -> tissue z up): (x, y, z) -> (x, -z, y); tip = R (2 p) + t,
-    # force (0, 0, 2) -> (0, -2, 0)
-    (TISSUE_MAP, 'tissue', (0.12, -0.06, 0.09), (0.12, -0.06 - 0.1 * 2.0, 0.09)),
+    # the simulated tool and the reaction on it, as tissue/metrics reports them (no device map here)
+    ({'tool_in_tissue_frame': True}, 'tissue', (0.12, -0.06, 0.09), (0.12, -0.06 + 0.1 * 0.5, 0.09)),
 ], ids=['device_frame', 'tissue_frame'])
 def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node, frame_params, frame,
                                                                 tip, end):
     from geometry_msgs.msg import PoseStamped, WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from tissue_msgs.msg import SimMetrics
     from visualization_msgs.msg import Marker, MarkerArray
 
     params = dict(FAST, marker_rate=20.0, force_arrow_scale=0.1, **frame_params)
@@ -251,10 +247,15 @@ def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node, frame
         viz.wait_for_output(r'ready:', timeout=30)
         pose_pub = rclpy_node.create_publisher(PoseStamped, 'omni/pose', qos)
         force_pub = rclpy_node.create_publisher(WrenchStamped, 'omni/force_feedback', qos)
+        metrics_pub = rclpy_node.create_publisher(SimMetrics, 'tissue/metrics', 10)
         got = []
         sub = rclpy_node.create_subscription(MarkerArray, 'viz/markers', got.append, 10)
-        for endpoint in (pose_pub, force_pub, sub):
+        for endpoint in (pose_pub, force_pub, metrics_pub, sub):
             harness.wait_for_matching(rclpy_node, endpoint)
+        metrics = _metrics(5_000_000_000, fz=0.0)
+        metrics.contact_force.y = 0.5
+        metrics.tool_position.x, metrics.tool_position.y, metrics.tool_position.z = 0.12, -0.06, 0.09
+        metrics.tool_axis.z, metrics.tool_length, metrics.tool_radius = 1.0, 0.05, 0.004
 
         def send():
             pose = PoseStamped()
@@ -267,6 +268,7 @@ def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node, frame
             wrench.header = pose.header
             wrench.wrench.force.z = 2.0
             force_pub.publish(wrench)
+            metrics_pub.publish(metrics)
 
         def have_arrow():
             send()
@@ -282,6 +284,14 @@ def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node, frame
         a, b = arrow.points
         assert (a.x, a.y, a.z) == pytest.approx(tip)
         assert (b.x, b.y, b.z) == pytest.approx(end)
+        shafts = [m for m in array.markers if m.type == Marker.CYLINDER]
+        if frame == 'tissue':         # the simulated capsule's shaft, up from its tip
+            (shaft,) = shafts
+            assert shaft.scale.z == pytest.approx(0.05) and shaft.scale.x == pytest.approx(0.008)
+            p = shaft.pose.position
+            assert (p.x, p.y, p.z) == pytest.approx((0.12, -0.06, 0.09 + 0.025))
+        else:
+            assert not shafts
 
 
 def test_inconsistent_rate_targets_are_rejected_at_start_with_a_clear_message():

@@ -1,8 +1,8 @@
 """Tool and force marker geometry (pure Python + numpy, no rclpy).
 
-The device publishes the stylus tip in ``omni_base``. If the node is given the device→tissue map
-used by the simulator, the markers are drawn in the ``tissue`` frame instead:
-``p_tissue = R (scale * p_device) + t`` for positions and ``R f`` for forces.
+In the device frame the markers show the stylus tip (``omni/pose``) and the force sent to the
+device. In the tissue frame they show the simulator's own tool (shape and pose, as it reports them
+in ``tissue/metrics``) and the reaction of the tissue on it: no second copy of the device map.
 """
 
 from __future__ import annotations
@@ -11,41 +11,42 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from tissue_common.rotation import quaternion_matrix
-
-from tissue_viz.errors import VizConfigError
+from tissue_common.rotation import matrix_quaternion
 
 
 @dataclass
-class ToolFrame:
-    """Where to draw the tool: the device frame as is, or mapped into the tissue frame."""
+class ToolShape:
+    """The tool to draw: its tip [m], unit shaft axis, shaft length [m] and radius [m], all in one
+    frame. The simulator reports its tool in the tissue frame (``SimMetrics``); a device-frame
+    drawing has only the stylus tip (no shaft)."""
 
-    frame_id: str = 'omni_base'
-    to_tissue: bool = False
-    translation: tuple = (0.0, 0.0, 0.0)       # [m]
-    rotation: tuple = (0.0, 0.0, 0.0, 1.0)     # quaternion x, y, z, w
-    scale: float = 1.0                         # device workspace → tissue scale
+    tip: np.ndarray
+    axis: np.ndarray
+    length: float
+    radius: float
 
-    def __post_init__(self) -> None:
-        if len(self.translation) != 3 or not all(math.isfinite(v) for v in self.translation):
-            raise VizConfigError(f'translation must be 3 finite numbers, got {self.translation}')
-        if len(self.rotation) != 4:
-            raise VizConfigError(f'rotation must be a quaternion x, y, z, w, got {self.rotation}')
-        if not (math.isfinite(self.scale) and self.scale > 0):
-            raise VizConfigError(f'workspace scale must be > 0, got {self.scale}')
-        try:
-            self._r = quaternion_matrix(self.rotation)
-        except ValueError as exc:
-            raise VizConfigError(str(exc)) from exc
-        self._t = np.asarray(self.translation, dtype=float)
+    @classmethod
+    def from_metrics(cls, msg) -> 'ToolShape | None':
+        """The simulated tool of a ``tissue_msgs/SimMetrics`` (None if it carries no usable tool)."""
+        p, a = msg.tool_position, msg.tool_axis
+        tip, axis = np.array([p.x, p.y, p.z]), np.array([a.x, a.y, a.z])
+        values = [*tip, *axis, msg.tool_length, msg.tool_radius]
+        if not all(math.isfinite(v) for v in values) or not msg.tool_radius > 0.0:
+            return None
+        return cls(tip, axis, max(float(msg.tool_length), 0.0), float(msg.tool_radius))
 
-    def point(self, p) -> np.ndarray:
-        p = np.asarray(p, dtype=float)
-        return self._r @ (self.scale * p) + self._t if self.to_tissue else p
-
-    def vector(self, v) -> np.ndarray:
-        v = np.asarray(v, dtype=float)
-        return self._r @ v if self.to_tissue else v
+    def shaft_pose(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Centre [m] and orientation (quaternion x, y, z, w) of a cylinder marker for the shaft
+        (a marker cylinder runs along its own z axis), or None for a tool without a shaft."""
+        n = float(np.linalg.norm(self.axis))
+        if self.length <= 0.0 or not n > 0.0:
+            return None
+        z = self.axis / n
+        helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = np.cross(helper, z)
+        x /= np.linalg.norm(x)
+        rot = np.column_stack([x, np.cross(z, x), z])
+        return self.tip + 0.5 * self.length * z, matrix_quaternion(rot)
 
 
 def force_arrow(tip, force, scale: float) -> tuple[np.ndarray, np.ndarray]:

@@ -16,6 +16,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped, WrenchStamped
@@ -36,7 +37,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from tissue_viz.diagnostics import RateTarget, Status, Targets, worst_level, evaluate
 from tissue_viz.errors import ReportError, VizConfigError
-from tissue_viz.markers import ToolFrame, force_arrow
+from tissue_viz.markers import ToolShape, force_arrow
 from tissue_viz.report import ReportData, default_report_dir, prepare_report_dir, write_report
 from tissue_viz.stats import TOPICS, VizStats, summary_line
 
@@ -95,14 +96,11 @@ PARAMETERS: dict[str, tuple] = {
     'report_title': ('SPH soft-tissue simulation run', 'title of the report', {}, False),
     'contact_threshold': (0.01, 'force that counts as first contact in the report [N]',
                           _f(0.0, 100.0), False),
-    'tool_in_tissue_frame': (False, 'draw tool and force in tissue_frame using the map below '
-                             '(else in the pose frame, omni_base)', {}, False),
-    'tissue_frame': ('tissue', 'frame of the tissue (particles)', {}, False),
-    'device_to_tissue_translation': ([0.0, 0.0, 0.0], 't of p_tissue = R (s p_device) + t [m]',
-                                     {}, False),
-    'device_to_tissue_rotation': ([0.0, 0.0, 0.0, 1.0], 'R as a quaternion x, y, z, w', {}, False),
-    'workspace_scale': (1.0, 's of p_tissue = R (s p_device) + t', _f(1e-6, 1e6), False),
-    'tool_radius': (0.003, 'radius of the tool sphere marker [m]', _f(1e-5, 1.0), False),
+    'tool_in_tissue_frame': (False, 'draw the simulated tool and its force in the tissue frame, as '
+                             'tissue/metrics reports them (else the stylus tip and the device '
+                             'force in the pose frame, omni_base)', {}, False),
+    'tool_radius': (0.003, 'radius of the stylus tip marker in the pose frame [m] (in the tissue '
+                           'frame the simulated tool has its own)', _f(1e-5, 1.0), False),
     'force_arrow_scale': (0.02, 'force arrow length per newton [m/N]', _f(0.0, 10.0), False),
 }
 for _topic, (_lo, _hi) in _RATE_DEFAULTS.items():
@@ -133,14 +131,6 @@ def targets_from(values: dict) -> Targets:
     return Targets(rates=rates, **{k: float(values[k]) for k in keys}).validate()
 
 
-def tool_frame_from(values: dict) -> ToolFrame:
-    """Marker frame from a parameter dict (raises VizConfigError when invalid)."""
-    return ToolFrame(frame_id=values['tissue_frame'], to_tissue=values['tool_in_tissue_frame'],
-                     translation=tuple(values['device_to_tissue_translation']),
-                     rotation=tuple(values['device_to_tissue_rotation']),
-                     scale=float(values['workspace_scale']))
-
-
 class VizNode(Node):
     """Rolling statistics, diagnostics, markers and reports for the tissue simulator."""
 
@@ -152,13 +142,14 @@ class VizNode(Node):
         self.p = {name: self.get_parameter(name).value for name in PARAMETERS}
         # Cross-parameter checks (min <= max, warn <= error): fail at start with a clear message.
         self.targets = targets_from(self.p)
-        self.tool_frame = tool_frame_from(self.p)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.stats = VizStats(window=self.p['window'], haptic_rate=self.p['haptic_rate'],
                               latency_timeout=self.p['latency_timeout'],
                               max_report_rows=self.p['max_report_rows'])
         self.pose_frame = 'omni_base'
+        # the simulated tool (tissue frame) and the force on it, from the newest tissue/metrics
+        self.sim_tool: tuple[str, ToolShape, np.ndarray] | None = None
         self._report_lock = threading.Lock()
         self._report_thread: threading.Thread | None = None
         self.last_statuses: list[Status] = []
@@ -224,12 +215,11 @@ class VizNode(Node):
         values.update({p.name: p.value for p in params if p.name in values})
         try:
             targets = targets_from(values)
-            tool_frame = tool_frame_from(values)
         except VizConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         except (TypeError, ValueError, KeyError) as exc:
             return SetParametersResult(successful=False, reason=f'invalid value: {exc}')
-        self.p, self.targets, self.tool_frame = values, targets, tool_frame
+        self.p, self.targets = values, targets
         self.stats.period = 1.0 / values['haptic_rate']
         return SetParametersResult(successful=True)
 
@@ -240,6 +230,9 @@ class VizNode(Node):
                               (f.x, f.y, f.z), msg.max_displacement, msg.n_interaction,
                               msg.n_layer, msg.n_relaxing, msg.substeps, msg.contact_index,
                               msg.penetration, msg.kinetic_energy)
+        tool = ToolShape.from_metrics(msg)
+        if tool is not None:
+            self.sim_tool = (msg.header.frame_id, tool, np.array([f.x, f.y, f.z]))
 
     def _on_particles(self, msg: PointCloud2) -> None:
         self.stats.on_particles(time.monotonic(), stamp_to_ns(msg.header.stamp),
@@ -282,42 +275,56 @@ class VizNode(Node):
             self.get_logger().warning(line)
 
     def _on_marker_timer(self) -> None:
-        pose = self.stats.last_pose
-        if pose is None:
-            return
-        frame = self.tool_frame
-        frame_id = frame.frame_id if frame.to_tissue else self.pose_frame
+        if self.p['tool_in_tissue_frame']:
+            if self.sim_tool is None:
+                return
+            frame_id, tool, fvec = self.sim_tool
+        else:
+            pose = self.stats.last_pose
+            if pose is None:
+                return
+            frame_id, fvec = self.pose_frame, self.stats.last_force_vec
+            tool = ToolShape(np.asarray(pose, dtype=float), np.zeros(3), 0.0, self.p['tool_radius'])
         stamp = self.get_clock().now().to_msg()
-        tip = frame.point(pose)
         markers = MarkerArray()
-        tool = Marker(type=Marker.SPHERE, action=Marker.ADD, ns='tool', id=0)
-        tool.header.frame_id, tool.header.stamp = frame_id, stamp
-        tool.pose.position = Point(x=float(tip[0]), y=float(tip[1]), z=float(tip[2]))
-        tool.pose.orientation.w = 1.0
-        d = 2.0 * self.p['tool_radius']
-        tool.scale.x = tool.scale.y = tool.scale.z = d
-        tool.color.r, tool.color.g, tool.color.b, tool.color.a = 0.8, 0.8, 0.9, 1.0
-        tool.lifetime.nanosec = 500_000_000
-        markers.markers.append(tool)
-        fvec = self.stats.last_force_vec
+
+        def marker(kind: int, ns: str, mid: int) -> Marker:
+            m = Marker(type=kind, action=Marker.ADD, ns=ns, id=mid)
+            m.header.frame_id, m.header.stamp = frame_id, stamp
+            m.pose.orientation.w = 1.0
+            m.lifetime.nanosec = 500_000_000
+            return m
+
+        tip = tool.tip
+        d = 2.0 * tool.radius
+        sphere = marker(Marker.SPHERE, 'tool', 0)
+        sphere.pose.position = Point(x=float(tip[0]), y=float(tip[1]), z=float(tip[2]))
+        sphere.scale.x = sphere.scale.y = sphere.scale.z = d
+        sphere.color.r, sphere.color.g, sphere.color.b, sphere.color.a = 0.8, 0.8, 0.9, 1.0
+        markers.markers.append(sphere)
+        shaft_pose = tool.shaft_pose()
+        if shaft_pose is not None:
+            centre, q = shaft_pose
+            shaft = marker(Marker.CYLINDER, 'tool', 3)
+            shaft.pose.position = Point(x=float(centre[0]), y=float(centre[1]), z=float(centre[2]))
+            o = shaft.pose.orientation
+            o.x, o.y, o.z, o.w = (float(v) for v in q)
+            shaft.scale.x = shaft.scale.y = d
+            shaft.scale.z = tool.length
+            shaft.color = sphere.color
+            markers.markers.append(shaft)
         if fvec is not None:
-            start, end = force_arrow(tip, frame.vector(fvec), self.p['force_arrow_scale'])
-            arrow = Marker(type=Marker.ARROW, action=Marker.ADD, ns='force', id=1)
-            arrow.header.frame_id, arrow.header.stamp = frame_id, stamp
+            start, end = force_arrow(tip, fvec, self.p['force_arrow_scale'])
+            arrow = marker(Marker.ARROW, 'force', 1)
             arrow.points = [Point(x=float(start[0]), y=float(start[1]), z=float(start[2])),
                             Point(x=float(end[0]), y=float(end[1]), z=float(end[2]))]
-            arrow.pose.orientation.w = 1.0
             arrow.scale.x, arrow.scale.y, arrow.scale.z = 0.3 * d, 0.6 * d, 0.8 * d
             arrow.color.r, arrow.color.g, arrow.color.b, arrow.color.a = 1.0, 0.3, 0.1, 1.0
-            arrow.lifetime.nanosec = 500_000_000
-            text = Marker(type=Marker.TEXT_VIEW_FACING, action=Marker.ADD, ns='force', id=2)
-            text.header.frame_id, text.header.stamp = frame_id, stamp
+            text = marker(Marker.TEXT_VIEW_FACING, 'force', 2)
             text.pose.position = Point(x=float(end[0]), y=float(end[1]), z=float(end[2]) + d)
-            text.pose.orientation.w = 1.0
             text.scale.z = 1.5 * d
             text.color.r = text.color.g = text.color.b = text.color.a = 1.0
             text.text = f'{math.sqrt(sum(v * v for v in fvec)):.2f} N'
-            text.lifetime.nanosec = 500_000_000
             markers.markers += [arrow, text]
         self.marker_pub.publish(markers)
 

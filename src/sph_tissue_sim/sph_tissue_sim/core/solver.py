@@ -212,6 +212,7 @@ class StepResult:
     wall_time: float                  # [s]
     substeps_capped: bool = False     # the frame needed more than max_substeps (time lagged)
     tool_lag: float = 0.0             # [m] requested minus simulated tool position (max_tool_speed)
+    tool_segment: np.ndarray | None = None   # (2, 3) [m] the tool's segment after the step (None: no tool)
     k1: float = 0.0                   # interaction radius factor used (local mode)
     n_active: int = 0                 # particles integrated this frame
 
@@ -535,7 +536,8 @@ class Solver:
         self.sim_time += n_sub * sub_dt
         result = StepResult(force=force, force_raw=force_raw, clamped=clamped, substeps=n_sub,
                             substep_dt=sub_dt, wall_time=time.perf_counter() - t0,
-                            substeps_capped=capped, tool_lag=tool_lag, **res)
+                            substeps_capped=capped, tool_lag=tool_lag,
+                            tool_segment=seg1 if tool_on else None, **res)
         self.last_result = result
         return result
 
