@@ -36,11 +36,10 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(HERE.parent / 'test'))
+sys.path.insert(0, str(HERE))   # sessions.py, beside this script
 
-import harness  # noqa: E402
-import system_graph as graph  # noqa: E402
+from tissue_testing import harness  # noqa: E402
+from tissue_testing import system_graph as graph  # noqa: E402
 from haptic_omni_driver import bagio  # noqa: E402
 from sessions import SESSIONS, Geometry, session_messages  # noqa: E402
 

@@ -30,10 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / 'test'))
+from tissue_testing import harness
 
-import harness  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def pressing_path(t: float, depth: float, period: float) -> tuple[float, float, float]:

@@ -23,11 +23,10 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / 'test'))
+from tissue_testing import harness
+from tissue_testing import system_graph as graph
 
-import harness  # noqa: E402
-import system_graph as graph  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def _fmt_line(mon: graph.Monitor, t_prev: tuple, step_ms: float | None) -> tuple[str, tuple]:

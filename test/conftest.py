@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-import harness
+from tissue_testing import harness
 
 
 @pytest.fixture(scope='module')

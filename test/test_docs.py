@@ -6,7 +6,7 @@ import re
 
 import pytest
 
-import harness
+from tissue_testing import harness
 
 
 def _declared(pkg: str) -> list[str]:

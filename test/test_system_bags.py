@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-import system_graph as graph
+from tissue_testing import system_graph as graph
 from haptic_omni_driver import bagio
 from haptic_omni_driver.backends.replay import load_replay
 

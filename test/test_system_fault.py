@@ -17,8 +17,8 @@ import time
 
 import pytest
 
-import harness
-import system_graph as graph
+from tissue_testing import harness
+from tissue_testing import system_graph as graph
 
 pytestmark = pytest.mark.ros
 

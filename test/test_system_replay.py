@@ -15,8 +15,8 @@ import time
 
 import pytest
 
-import harness
-import system_graph as graph
+from tissue_testing import harness
+from tissue_testing import system_graph as graph
 from haptic_omni_driver import bagio
 
 pytestmark = pytest.mark.ros

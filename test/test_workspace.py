@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-import harness
+from tissue_testing import harness
 
 PACKAGES = ('sph_tissue_sim', 'haptic_omni_driver', 'tissue_viz')
 

@@ -2,7 +2,7 @@
 
 import importlib.util
 
-import harness
+from tissue_testing import harness
 
 _spec = importlib.util.spec_from_file_location(
     'haptic_omni_driver_shared_conftest', harness.REPO_ROOT / 'test' / 'conftest.py')

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-import harness
+from tissue_testing import harness
 
 pytestmark = pytest.mark.ros
 

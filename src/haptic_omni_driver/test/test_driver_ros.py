@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-import harness
+from tissue_testing import harness
 from haptic_omni_driver import bagio
 from omni_test_utils import build_fake_libhd, make_pose_bag
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import harness
+from tissue_testing import harness
 from test_driver_ros import PKG, StateWatch, driver, reliable_qos, stamp_ns
 
 pytestmark = pytest.mark.ros

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-import harness
+from tissue_testing import harness
 from haptic_omni_driver import bagio
 from omni_test_utils import make_pose_bag
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-import harness
+from tissue_testing import harness
 from haptic_omni_driver import bagio, recover
 from haptic_omni_driver.backends.replay import load_replay
 from haptic_omni_driver.errors import BagError, OutputError

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-import harness
+from tissue_testing import harness
 
 PKG = 'sph_tissue_sim'
 # 8 x 8 x 4 cm block at 1 cm spacing: exactly 8 * 8 * 4 = 256 particles, bottom layer (64) fixed

@@ -9,7 +9,7 @@ import importlib.util
 import numpy as np
 import pytest
 
-import harness
+from tissue_testing import harness
 from sim_probe import BLOCK, T0_NS, press_path
 
 pytestmark = pytest.mark.ros

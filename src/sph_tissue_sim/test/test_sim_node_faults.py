@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-import harness
+from tissue_testing import harness
 from sim_probe import (T0_NS, SimProbe, call_reset, finite_and_bounded, force_of, press_path,
                        set_parameters, sim)
 

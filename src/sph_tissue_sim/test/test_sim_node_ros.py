@@ -1,4 +1,4 @@
-"""sim_node as a real process over DDS (installed executable, isolated domain, see test/harness.py).
+"""sim_node as a real process over DDS (installed executable, isolated domain, see tissue_testing.harness).
 
 One live-mode node on a 256-particle block serves most tests of this module (started once, reset
 between tests); lockstep and bad start-up parameters get their own processes.
@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 
-import harness
+from tissue_testing import harness
 from press import tilted_shaft_press
 from sim_probe import (N_BLOCK, START_TIMEOUT, T0_NS, SimProbe, call_reset, finite_and_bounded,
                        force_of, press_path, qos, set_parameters, sim, stamp_ns)

@@ -2,7 +2,7 @@
 
 import importlib.util
 
-import harness
+from tissue_testing import harness
 
 _spec = importlib.util.spec_from_file_location(
     'tissue_viz_shared_conftest', harness.REPO_ROOT / 'test' / 'conftest.py')

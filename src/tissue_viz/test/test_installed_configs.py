@@ -7,7 +7,7 @@ import json
 
 import yaml
 
-import harness
+from tissue_testing import harness
 from tissue_viz.viz_node import PARAMETERS
 
 SHARE = harness.INSTALL / 'tissue_viz' / 'share' / 'tissue_viz'

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-import harness
+from tissue_testing import harness
 
 pytestmark = pytest.mark.ros
 

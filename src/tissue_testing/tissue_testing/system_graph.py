@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Mapping
 
-import harness
+from . import harness
 
 # A shell runs background jobs with SIGINT ignored, and child processes inherit an ignored signal:
 # the nodes would then ignore the SIGINT that stops them cleanly. A handler here (reset to the

@@ -21,7 +21,8 @@ from typing import Callable, Iterable, Mapping
 
 import yaml
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+#: the workspace: this file is src/tissue_testing/tissue_testing/harness.py (installed as a symlink)
+REPO_ROOT = Path(__file__).resolve().parents[3]
 _PR_SET_PDEATHSIG = 1
 
 
