@@ -33,6 +33,7 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
 from tissue_common.stamps import set_stamp, stamp_to_ns
+from tissue_common.throttle import EventThrottle
 from tissue_msgs.msg import DeviceState
 
 from .backends.base import Backend, Sample
@@ -138,7 +139,7 @@ class OmniDriver(Node):
         self.n_poses = 0
         self.n_commands = 0
         self._rejected_logged = 0
-        self._reject_log_time: dict[str, float] = {}
+        self._reject_log = EventThrottle()
         self._servo_thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._t_start = time.monotonic()
@@ -359,10 +360,8 @@ class OmniDriver(Node):
 
     def _log_rejection(self, reason: str, msg: WrenchStamped, now: float) -> None:
         # At most one line per reason and second: a flood of bad commands must not flood the log.
-        last = self._reject_log_time.get(reason, -1e9)
-        if now - last < 1.0:
+        if self._reject_log.event(reason, now, 1.0) is None:
             return
-        self._reject_log_time[reason] = now
         text = REJECTION_TEXT.get(reason) or (
             f'frame {msg.header.frame_id!r} is not {self.p["frame_id"]!r}')
         f, stamp = msg.wrench.force, msg.header.stamp

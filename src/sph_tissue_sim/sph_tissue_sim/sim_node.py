@@ -49,6 +49,7 @@ from sensor_msgs.msg import PointCloud2
 from tissue_common.force import clamp_norm
 from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
 from tissue_common.stamps import stamp_to_ns
+from tissue_common.throttle import EventThrottle
 from tissue_msgs.msg import SimMetrics
 from tissue_msgs.srv import ResetTissue
 
@@ -107,7 +108,7 @@ class SimNode(Node):
         self.p = declare_all(self, SIM_PARAMS)
         p = self.p
         log = self.get_logger()
-        self._log_times: dict[str, float] = {}
+        self._log_throttle = EventThrottle()
         self.counts = collections.Counter()
 
         self.model = build_model(p)
@@ -244,12 +245,10 @@ class SimNode(Node):
     def _throttled(self, kind: str, level: str, text: str) -> None:
         """At most one line per kind of event and ``log_throttle`` seconds (a flood must not flood
         the log); the count of such events so far is appended."""
-        self.counts['ev_' + kind] += 1
-        now = time.monotonic()
-        if now - self._log_times.get(kind, -1e18) < self.p['log_throttle']:
+        n = self._log_throttle.event(kind, time.monotonic(), self.p['log_throttle'])
+        if n is None:
             return
-        self._log_times[kind] = now
-        text = f'{text} ({self.counts["ev_" + kind]} so far)'
+        text = f'{text} ({n} so far)'
         # one call site per severity: rclpy refuses a call site whose severity changes
         log = self.get_logger()
         if level == 'error':
