@@ -32,13 +32,14 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.params import check_choice, declare_all
 from tissue_common.stamps import set_stamp, stamp_to_ns
 from tissue_common.throttle import EventThrottle
 from tissue_msgs.msg import DeviceState
 
 from .backends.base import Backend, Sample
 from .errors import ConfigError, DriverError
-from .params import DRIVER_PARAMS, check_choice, declare_all
+from .params import DRIVER_PARAMS
 from .safety import ForceSafety, SafetyConfig
 
 EXIT_OK, EXIT_INPUT = 0, 1
@@ -86,7 +87,7 @@ class OmniDriver(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('omni_driver', **kwargs)
-        self.p = declare_all(self, DRIVER_PARAMS)
+        self.p = declare_all(self, DRIVER_PARAMS, ConfigError)
         p = self.p
         self.safety = ForceSafety(self._safety_config(p))
         self.add_on_set_parameters_callback(self._on_set_parameters)

@@ -25,10 +25,11 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.params import declare_all
 
 from . import bagio
 from .errors import ConfigError, DriverError
-from .params import RECORDER_PARAMS, declare_all
+from .params import RECORDER_PARAMS
 
 EXIT_OK, EXIT_OUTPUT = 0, 1
 
@@ -61,7 +62,7 @@ class OmniRecorder(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('omni_record', **kwargs)
-        self.p = declare_all(self, RECORDER_PARAMS)
+        self.p = declare_all(self, RECORDER_PARAMS, ConfigError)
         p = self.p
         topics = resolve_topics(p['topics'])  # ConfigError before anything exists on disk
         bagio.typestore()  # built now (~1 s): in the first callback it stalled the stream that long

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 from tissue_common.force import HARD_FORCE_LIMIT
+from tissue_common.params import check_choice
 
 from .core.errors import ConfigError, ModelError
 from .core.material import Material, load_material
@@ -147,50 +148,11 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
 }
 
 
-def descriptor(name: str, spec: tuple):
-    """ParameterDescriptor for one entry of :data:`SIM_PARAMS`."""
-    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-
-    default, text, rng, read_only, _ = spec
-    desc = ParameterDescriptor(name=name, description=text, read_only=read_only)
-    if isinstance(rng, tuple) and len(rng) == 2 and not isinstance(rng[0], str):
-        if isinstance(default, bool):
-            pass
-        elif isinstance(default, int):
-            desc.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]), step=0)]
-        elif isinstance(default, float):
-            desc.floating_point_range = [FloatingPointRange(from_value=float(rng[0]),
-                                                            to_value=float(rng[1]), step=0.0)]
-    elif isinstance(rng, tuple):
-        desc.additional_constraints = 'one of: ' + ', '.join(rng)
-    return desc
-
-
-def declare_all(node, table: dict = SIM_PARAMS) -> dict[str, Any]:
-    """Declare every parameter of ``table`` on ``node``; return name -> value.
-
-    Raises:
-        ConfigError: a value is out of range, of the wrong type or not one of the choices.
-    """
-    from rclpy.exceptions import ParameterException
-
-    values = {}
-    for name, spec in table.items():
-        try:
-            values[name] = node.declare_parameter(name, spec[0], descriptor(name, spec)).value
-        except (ParameterException, TypeError, ValueError) as exc:
-            raise ConfigError(f'parameter {name}: {exc}') from exc
-        err = check_value(name, values[name], table)
-        if err:
-            raise ConfigError(err)
-    return values
-
-
 def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
     """Error text if ``value`` is not one of the string choices of ``name`` or a bad vector."""
-    rng = table[name][2]
-    if isinstance(rng, tuple) and rng and isinstance(rng[0], str) and value not in rng:
-        return f'parameter {name} must be one of {", ".join(rng)}, got {value!r}'
+    choice = check_choice(table, name, value)
+    if choice:
+        return choice
     default = table[name][0]
     if isinstance(default, list):
         try:

@@ -48,6 +48,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from tissue_common.force import clamp_norm
 from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.params import declare_all
 from tissue_common.stamps import stamp_to_ns
 from tissue_common.throttle import EventThrottle
 from tissue_msgs.msg import SimMetrics
@@ -57,8 +58,7 @@ from .cloud import POINT_DTYPE, make_cloud, pack_points
 from .core.errors import ConfigError, ModelError, SimError
 from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, warmup
 from .mapping import DeviceMapping, anchor_point, check_position
-from .params import (SIM_PARAMS, build_config, build_material, build_model, check_value,
-                     declare_all)
+from .params import SIM_PARAMS, build_config, build_material, build_model, check_value
 from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 
 EXIT_OK, EXIT_INPUT = 0, 1
@@ -105,7 +105,7 @@ class SimNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('sim_node', **kwargs)
-        self.p = declare_all(self, SIM_PARAMS)
+        self.p = declare_all(self, SIM_PARAMS, ConfigError, check_value)
         p = self.p
         log = self.get_logger()
         self._log_throttle = EventThrottle()

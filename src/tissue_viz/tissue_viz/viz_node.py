@@ -20,8 +20,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped, WrenchStamped
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
 from rclpy.experimental import EventsExecutor
@@ -31,6 +30,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.params import declare_all
 from tissue_common.stamps import stamp_to_ns
 from tissue_msgs.msg import SimMetrics
 from visualization_msgs.msg import Marker, MarkerArray
@@ -47,69 +47,62 @@ _RATE_DEFAULTS = {'metrics': (900.0, 1100.0), 'particles': (25.0, 35.0),
                   'pose': (900.0, 1100.0), 'force': (900.0, 1100.0)}
 
 
-def _f(lo: float, hi: float) -> dict:
-    return {'floating_point_range': [FloatingPointRange(from_value=lo, to_value=hi, step=0.0)]}
-
-
-def _i(lo: int, hi: int) -> dict:
-    return {'integer_range': [IntegerRange(from_value=lo, to_value=hi, step=1)]}
-
-
-# name: (default, description, range kwargs, read_only) -- the one place parameters are declared.
+# name: (default, description, (low, high) or None, read_only) -- the one place parameters are
+# declared (the format of tissue_common.params).
 PARAMETERS: dict[str, tuple] = {
-    'window': (5.0, 'sliding window of the rolling statistics [s]', _f(0.1, 600.0), True),
+    'window': (5.0, 'sliding window of the rolling statistics [s]', (0.1, 600.0), True),
     'haptic_rate': (1000.0, 'haptic loop rate [Hz]; a step longer than 1/haptic_rate misses '
-                    'its deadline', _f(1.0, 10000.0), False),
-    'diagnostics_rate': (1.0, 'rate of /diagnostics [Hz]', _f(0.1, 50.0), True),
+                    'its deadline', (1.0, 10000.0), False),
+    'diagnostics_rate': (1.0, 'rate of /diagnostics [Hz]', (0.1, 50.0), True),
     'summary_period': (5.0, 'period of the one-line summary in the log [s], 0 = off',
-                       _f(0.0, 3600.0), True),
-    'marker_rate': (30.0, 'rate of viz/markers [Hz], 0 = off', _f(0.0, 120.0), True),
+                       (0.0, 3600.0), True),
+    'marker_rate': (30.0, 'rate of viz/markers [Hz], 0 = off', (0.0, 120.0), True),
     'latency_timeout': (0.5, 'a pose without a force reply after this long counts as missed [s]',
-                        _f(0.001, 60.0), True),
+                        (0.001, 60.0), True),
     'max_report_rows': (200000, 'rows kept per report table; longer runs are evenly thinned',
-                        _i(100, 10000000), True),
+                        (100, 10000000), True),
     'metrics_reliable': (True, 'subscribe tissue/metrics reliable (the contract) instead of best '
-                         'effort', {}, True),
+                         'effort', None, True),
     'stale_timeout': (2.0, 'a topic silent for longer than this is "no data" (ERROR) [s]',
-                      _f(0.01, 3600.0), False),
+                      (0.01, 3600.0), False),
     'rate_tolerance': (0.1, 'relative tolerance on min/max rates (as diagnostic_updater)',
-                       _f(0.0, 0.99), False),
-    'step_p99_warn': (0.0008, 'step wall time p99 above this is WARN [s]', _f(1e-6, 10.0), False),
-    'step_p99_error': (0.001, 'step wall time p99 above this is ERROR [s]', _f(1e-6, 10.0), False),
+                       (0.0, 0.99), False),
+    'step_p99_warn': (0.0008, 'step wall time p99 above this is WARN [s]', (1e-6, 10.0), False),
+    'step_p99_error': (0.001, 'step wall time p99 above this is ERROR [s]', (1e-6, 10.0), False),
     'deadline_miss_warn_pct': (1.0, 'deadline misses above this share are WARN [%]',
-                               _f(0.001, 100.0), False),
+                               (0.001, 100.0), False),
     'deadline_miss_error_pct': (5.0, 'deadline misses above this share are ERROR [%]',
-                                _f(0.001, 100.0), False),
+                                (0.001, 100.0), False),
     'latency_p50_warn': (0.001, 'pose->force latency median above this is WARN [s]',
-                         _f(1e-6, 10.0), False),
-    'latency_p99_warn': (0.003, 'pose->force latency p99 above this is WARN [s]', _f(1e-6, 10.0),
+                         (1e-6, 10.0), False),
+    'latency_p99_warn': (0.003, 'pose->force latency p99 above this is WARN [s]', (1e-6, 10.0),
                          False),
     'latency_p99_error': (0.010, 'pose->force latency p99 above this is ERROR [s]',
-                          _f(1e-6, 10.0), False),
+                          (1e-6, 10.0), False),
     'reply_loss_warn_pct': (1.0, 'poses without a force reply above this share are WARN [%]',
-                            _f(0.001, 100.0), False),
+                            (0.001, 100.0), False),
     'reply_loss_error_pct': (10.0, 'poses without a force reply above this share are ERROR [%]',
-                             _f(0.001, 100.0), False),
-    'force_limit': (3.3, 'device force limit [N]; reaching it is WARN', _f(0.01, 100.0), False),
-    'report_dir': ('', 'report folder; empty = ./reports/<timestamp> for each report', {}, False),
-    'report_on_shutdown': (True, 'write the report when the node shuts down', {}, False),
-    'report_title': ('SPH soft-tissue simulation run', 'title of the report', {}, False),
+                             (0.001, 100.0), False),
+    'force_limit': (3.3, 'device force limit [N]; reaching it is WARN', (0.01, 100.0), False),
+    'report_dir': ('', 'report folder; empty = ./reports/<timestamp> for each report', None, False),
+    'report_on_shutdown': (True, 'write the report when the node shuts down', None, False),
+    'report_title': ('SPH soft-tissue simulation run', 'title of the report', None, False),
     'contact_threshold': (0.01, 'force that counts as first contact in the report [N]',
-                          _f(0.0, 100.0), False),
+                          (0.0, 100.0), False),
     'tool_in_tissue_frame': (False, 'draw the simulated tool and its force in the tissue frame, as '
                              'tissue/metrics reports them (else the stylus tip and the device '
-                             'force in the pose frame, omni_base)', {}, False),
+                             'force in the pose frame, omni_base)', None, False),
     'tool_radius': (0.003, 'radius of the stylus tip marker in the pose frame [m] (in the tissue '
-                           'frame the simulated tool has its own)', _f(1e-5, 1.0), False),
-    'force_arrow_scale': (0.02, 'force arrow length per newton [m/N]', _f(0.0, 10.0), False),
+                           'frame the simulated tool has its own)', (1e-5, 1.0), False),
+    'force_arrow_scale': (0.02, 'force arrow length per newton [m/N]', (0.0, 10.0), False),
 }
 for _topic, (_lo, _hi) in _RATE_DEFAULTS.items():
     PARAMETERS[f'{_topic}_min_rate'] = (_lo, f'lowest expected rate of {_topic} [Hz]',
-                                        _f(0.0, 100000.0), False)
+                                        (0.0, 100000.0), False)
     PARAMETERS[f'{_topic}_max_rate'] = (_hi, f'highest expected rate of {_topic} [Hz]',
-                                        _f(0.0, 100000.0), False)
+                                        (0.0, 100000.0), False)
     PARAMETERS[f'{_topic}_required'] = (True, f'a missing {_topic} topic is ERROR (else OK)',
-                                        {}, False)
+                                        None, False)
 
 # Exit codes (documented in the package README).
 EXIT_OK = 0
@@ -136,10 +129,7 @@ class VizNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('viz_node', **kwargs)
-        for name, (default, description, ranges, read_only) in PARAMETERS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(
-                description=description, read_only=read_only, **ranges))
-        self.p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        self.p = declare_all(self, PARAMETERS, VizConfigError)
         # Cross-parameter checks (min <= max, warn <= error): fail at start with a clear message.
         self.targets = targets_from(self.p)
         self.add_on_set_parameters_callback(self._on_set_parameters)
