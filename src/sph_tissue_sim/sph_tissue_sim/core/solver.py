@@ -641,10 +641,11 @@ class Solver:
                 contact = deepest
         if tool_on:
             # candidates: every particle the tool can reach anywhere on its way through the frame
-            ends = np.concatenate([seg0, seg1])
-            cand_centre = 0.25 * (ends[0] + ends[1]) + 0.25 * (ends[2] + ends[3])
-            cand_radius = (float(np.sqrt(((ends - cand_centre) ** 2).sum(axis=1)).max()) + reach
-                           + self.disc_max + margin)
+            # (scalar maths: numpy's per-call overhead on 4 points is a few per cent of a local step)
+            ends = seg0.tolist() + seg1.tolist()
+            c = [0.25 * (ends[0][a] + ends[1][a]) + 0.25 * (ends[2][a] + ends[3][a]) for a in range(3)]
+            cand_centre = np.array(c)
+            cand_radius = (max(math.dist(e, c) for e in ends) + reach + self.disc_max + margin)
         else:
             contact = -1
             cand_centre = self.centre

@@ -25,4 +25,5 @@ class Sphere(SweptSphere):
         self.radius = float(radius)
 
     def segment(self, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-        return np.stack([position, position]).astype(np.float64)
+        p = position.tolist()
+        return np.array((p, p))
