@@ -37,7 +37,8 @@ import numpy as np
 try:
     from sph_tissue_sim.core.errors import ConfigError, SimError
 except ImportError:                                  # run from a source checkout without env.sh
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / 'sph_tissue_sim'))
+    for pkg in ('sph_tissue_sim', 'tissue_common'):
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'src' / pkg))
     from sph_tissue_sim.core.errors import ConfigError, SimError
 from sph_tissue_sim.core.liver import REFERENCE_LENGTH, make_liver
 from sph_tissue_sim.core.material import liver_default

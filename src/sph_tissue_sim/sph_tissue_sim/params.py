@@ -94,9 +94,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                   'many particles are stressed; 0 = never. Only on cores the sim '
                                   'has to itself: a busy core stalls every parallel sub-step',
                                (0, 10_000_000), False, 'solver'),
-    'max_tool_speed': (1.0, '[m/s] the simulated tool follows the device at most this fast (a pose '
-                            'jump of centimetres in one frame would tear the tissue apart); a hand on '
-                            'the stylus stays well below 1 m/s', (0.01, 10.0), False, None),
+    'max_tool_speed': (1.0, '[m/s] the simulated tool (its tip, and a shaft\'s far end) follows the '
+                            'device at most this fast (a pose jump of centimetres in one frame would '
+                            'tear the tissue apart); a hand on the stylus stays well below 1 m/s',
+                       (0.01, 10.0), False, None),
     # -- force ------------------------------------------------------------------------------------
     'force_limit': (HARD_FORCE_LIMIT, f'[N] norm clamp of the force sent to the device (Omni peak '
                                       f'{HARD_FORCE_LIMIT} N, continuous 0.88 N)',

@@ -57,3 +57,23 @@ def test_cell_grid_ball_query_matches_brute_force():
         got = set(grid.query(np.array(centre), radius, pts).tolist())
         expected = set(np.flatnonzero(np.linalg.norm(pts - np.array(centre), axis=1) <= radius))
         assert got == expected
+
+
+def test_kernels_are_compiled_for_the_portable_cpu_level_where_the_host_has_it():
+    """The lockstep goldens are bit-identical across hosts only if every host compiles the same
+    code: the core picks x86-64-v3 instead of the host's own CPU (sph_tissue_sim/core/__init__.py)."""
+    import os
+    import platform
+
+    from llvmlite import binding as ll
+
+    import sph_tissue_sim.core as core
+    from sph_tissue_sim.core.kernel import kernel_w
+
+    features = ll.get_host_cpu_features()
+    if (os.environ.get('NUMBA_CPU_NAME') or platform.machine().lower() not in ('x86_64', 'amd64')
+            or not all(features.get(name) for name in core.PORTABLE_FEATURES)):
+        pytest.skip('this host compiles for itself (no x86-64-v3, or NUMBA_CPU_NAME set)')
+    kernel_w(0.1, 1.0)
+    _, cpu, cpu_features = kernel_w.targetctx.codegen().magic_tuple()
+    assert (cpu, cpu_features) == (core.PORTABLE_CPU, '')

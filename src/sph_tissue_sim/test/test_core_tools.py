@@ -71,7 +71,7 @@ def test_a_bad_tool_rotation_is_invalid_input_and_changes_nothing():
     model = make_block(6, 6, 4, spacing=0.0075, fix='bottom')
     solver = Solver(model, liver_default(), SolverConfig(tool_shape='capsule', tool_length=0.05))
     x0 = solver.positions.copy()
-    for bad in (np.full((3, 3), math.nan), np.eye(2), 'up'):
+    for bad in (np.full((3, 3), math.nan), np.eye(2), 'up', 2.0 * np.eye(3), np.diag([1.0, 1.0, -1.0])):
         with pytest.raises(InvalidInput):
             solver.step(model.positions.mean(axis=0), 1e-3, bad)
     assert np.array_equal(solver.positions, x0)
@@ -105,3 +105,43 @@ def test_the_shaft_of_a_tilted_capsule_pressed_into_the_liver_pushes_back_normal
     assert abs(f_cap @ axis) < 0.05 * norm                    # normal to the shaft
     assert f_cap[0] / f_cap[2] == pytest.approx(math.tan(tilt), rel=0.25)
     assert not np.any(f_sph)                                  # the tip alone touches nothing
+
+
+def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
+    """One particle under the far end of a shaft that swings down about its tip: the contact force
+    is k d - c (v_i - v_tool(c)) . n with v_tool the velocity of the touching point (the far end's
+    here), not the tip's (zero)."""
+    from sph_tissue_sim.core.contact import contact_forces, surface_discs
+
+    X = np.array([[0.1, 0.0, -0.004]])              # 4 mm below the far end of a 100 mm shaft
+    offsets, indices = np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int32)
+    surf = surface_discs(X, offsets, indices, 0.01, 1e-6, 0.005, 0.0)
+    seg = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    reach, k, c, inv_mass = 0.005, 300.0, 0.5, 10.0
+    for far_end_velocity, tip_velocity in ((-0.2, 0.0), (0.0, 0.0), (0.0, -0.2)):
+        seg_vel = np.array([[0.0, 0.0, tip_velocity], [0.0, 0.0, far_end_velocity]])
+        acc, react = np.zeros((1, 3)), np.zeros(3)
+        overlap = contact_forces(X.copy(), np.zeros((1, 3)), np.zeros(1, dtype=np.bool_), acc,
+                                 inv_mass, np.zeros(1, dtype=np.int32), 1, seg, seg_vel, reach, k, c,
+                                 react, surf)
+        # normal n = (0, 0, -1) at t = 1: relative normal velocity -(0 - v_far) . ... = v_far
+        expected = k * 0.001 - c * (0.0 - far_end_velocity) * -1.0
+        assert overlap == pytest.approx(0.001)
+        assert react == pytest.approx([0.0, 0.0, expected], abs=1e-12)
+
+
+def test_a_fast_twist_moves_the_far_end_of_the_shaft_at_most_max_tool_speed():
+    model = make_block(6, 6, 4, spacing=0.0075, fix='bottom')
+    solver = Solver(model, liver_default(), SolverConfig(tool_shape='capsule', tool_length=0.1,
+                                                         max_tool_speed=1.0))
+    tip = model.positions.mean(axis=0) + [0.0, 0.0, 0.1]     # well above the block
+    solver.step(tip, 1e-3, rotation_y(0.0))                  # shaft straight up
+    res = solver.step(tip, 1e-3, rotation_y(math.pi / 2))    # asked to swing 90 degrees at once
+    seg = res.tool_segment
+    assert np.linalg.norm(seg[1] - [*tip[:2], tip[2] + 0.1]) <= 1e-3 * 1.0 + 1e-12
+    assert np.linalg.norm(seg[1] - seg[0]) == pytest.approx(0.1)      # the shaft keeps its length
+    assert res.tool_lag > 0.1
+    for _ in range(400):                                     # and gets there at that speed
+        res = solver.step(tip, 1e-3, rotation_y(math.pi / 2))
+    assert res.tool_segment[1] == pytest.approx(tip + [0.1, 0.0, 0.0], abs=1e-9)
+    assert res.tool_lag == 0.0

@@ -13,6 +13,9 @@ from pathlib import Path
 
 #: the x86-64 level the kernels are compiled for on hosts that have it (AVX2 + FMA)
 PORTABLE_CPU = 'x86-64-v3'
+#: what that level needs of the host, as LLVM names the CPU features
+PORTABLE_FEATURES = ('avx', 'avx2', 'fma', 'bmi', 'bmi2', 'lzcnt', 'movbe', 'f16c', 'popcnt',
+                     'sse4.2')
 
 
 def _use_portable_codegen() -> None:
@@ -22,8 +25,9 @@ def _use_portable_codegen() -> None:
     sums differently on, say, an AVX-512 host than on an AVX2 one: the forces then differ in their
     last bits (~5e-15 N) from host to host, and the lockstep goldens (bit-identical by design) hold
     only on the CPU model that made them. One fixed target makes the code, and so the forces, the
-    same on every x86-64 host with AVX2 and FMA (measured on an AVX-512 host: no slower). Hosts
-    without them, other architectures, and an explicit ``NUMBA_CPU_NAME`` keep numba's choice.
+    same on every x86-64 host with the level's features (AVX2, FMA, BMI, ...; measured on an
+    AVX-512 host: no slower). Hosts without them, other architectures, and an explicit
+    ``NUMBA_CPU_NAME`` keep numba's choice.
     Must run before the first kernel is compiled in the process.
     """
     if os.environ.get('NUMBA_CPU_NAME') or platform.machine().lower() not in ('x86_64', 'amd64'):
@@ -35,7 +39,7 @@ def _use_portable_codegen() -> None:
         features = ll.get_host_cpu_features()
     except RuntimeError:  # no feature list on this host: keep numba's default
         return
-    if features.get('avx2') and features.get('fma'):
+    if all(features.get(name) for name in PORTABLE_FEATURES):
         config.CPU_NAME = PORTABLE_CPU
         config.CPU_FEATURES = ''   # the level's own feature set, not the host's
 

@@ -94,8 +94,9 @@ class SolverConfig:
             for a descheduled thread: local p99 went from 0.5 to 4.4 ms with one busy process
             and the median to 32 ms with two. Enable it only where the simulator has cores of its
             own.
-        max_tool_speed: the simulated tool follows the requested tool position at most this fast
-            [m/s]: a frame moves it by at most ``max_tool_speed * dt`` towards the request (a
+        max_tool_speed: the simulated tool follows the requested tool pose at most this fast
+            [m/s]: a frame moves its tip, and the far end of a shaft, by at most about
+            ``max_tool_speed * dt`` towards the request (a
             tracking glitch or a pose jump of centimetres in one frame would otherwise drive the
             tool through the tissue in one frame and tear the particle lattice apart). A hand on a
             haptic stylus moves well below 1 m/s (the bundled sessions: up to 0.18 m/s).
@@ -488,7 +489,7 @@ class Solver:
 
     @staticmethod
     def _check_rotation(tool_rot) -> np.ndarray:
-        """The tool's orientation as a finite 3x3 matrix (identity for None)."""
+        """The tool's orientation as a 3x3 rotation matrix (identity for None)."""
         if tool_rot is None:
             return NO_ROTATION
         try:
@@ -497,7 +498,24 @@ class Solver:
             raise InvalidInput(f'tool rotation must be a 3x3 matrix, got {tool_rot!r}') from exc
         if not np.all(np.isfinite(rot)):
             raise InvalidInput(f'tool rotation is not finite: {rot.tolist()}')
+        # a stretched or skewed matrix would deform the tool: only a rotation (to rounding)
+        if not (np.abs(rot.T @ rot - NO_ROTATION).max() < 1e-6 and np.linalg.det(rot) > 0.0):
+            raise InvalidInput(f'tool rotation is not a rotation matrix: {rot.tolist()}')
         return rot
+
+    def _limit_sweep(self, seg: np.ndarray, max_travel: float) -> float:
+        """Move the far end of a shaft (``seg[1]``, in place) at most ``max_travel`` [m] from where
+        it was, keeping the shaft's length: a fast twist of a long tool would otherwise sweep its
+        far end through the tissue in one frame. Returns the distance left to the request [m]."""
+        prev = self.seg_prev[1]
+        far, lag = self._limit_travel(prev, seg[1], max_travel)
+        if lag > 0.0:
+            length = math.dist(seg[1].tolist(), seg[0].tolist())
+            d = far - seg[0]
+            n = math.sqrt(float(d @ d))
+            if n > 0.0:
+                seg[1] = seg[0] + d * (length / n)
+        return lag
 
     def step(self, tool_pos, dt: float, tool_rot=None) -> StepResult:
         """Advance the tissue by ``dt`` seconds with the tool's tip at ``tool_pos`` (tissue frame, m)
@@ -519,6 +537,8 @@ class Solver:
             if self.tool_prev is not None:
                 tool, tool_lag = self._limit_travel(self.tool_prev, tool, cfg.max_tool_speed * dt)
             seg1 = self.tool.segment(tool, rot)
+            if self.seg_prev is not None and self.tool.oriented:
+                tool_lag = max(tool_lag, self._limit_sweep(seg1, cfg.max_tool_speed * dt))
             seg0 = self.seg_prev if self.seg_prev is not None else seg1
         else:
             seg0 = seg1 = np.stack([self.centre, self.centre])
