@@ -1,4 +1,4 @@
-"""Suite-wide pytest hooks (the fixtures live in test/conftest.py)."""
+"""Suite-wide pytest hooks (the ROS fixtures are the plugin tissue_testing.fixtures, see pytest.ini)."""
 
 import pytest
 

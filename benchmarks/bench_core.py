@@ -735,7 +735,7 @@ def plot(rows: list[dict], path: Path) -> None:
 def numba_cache_warm() -> bool:
     import sph_tissue_sim.core as core
     cache = Path(core.__file__).resolve().parent / '__pycache__'
-    return any(cache.glob('integrate.run_frame*.nbi'))
+    return any(cache.glob('frame.run_frame*.nbi'))
 
 
 def main(argv: list[str] | None = None) -> int:

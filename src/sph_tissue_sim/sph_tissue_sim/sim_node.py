@@ -358,7 +358,8 @@ class SimNode(Node):
             if res is None:
                 force_dev = np.zeros(3)
             else:
-                force_dev, _ = clamp_norm(self.mapping.force_to_device(res.force),
+                # clamped once, as sent (force_scale may enlarge the solver's reaction)
+                force_dev, _ = clamp_norm(self.mapping.force_to_device(res.force_raw),
                                           self.p['force_limit'])
                 self._wall[self.counts['steps'] % STEP_TIME_HISTORY] = res.wall_time
                 self.counts['steps'] += 1

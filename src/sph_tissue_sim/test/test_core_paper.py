@@ -275,3 +275,37 @@ def test_current_neighbour_search_matches_brute_force_and_grows_its_buffers():
         assert np.allclose(dw[off[row]:off[row + 1]], kernel_dwdr_array(r[i, got], h) / r[i, got])
     x[3, 0] = np.nan
     assert not current_neighbours(x, rows, n, rows, n, h, np.empty((n, 3)), off, idx, dw, w)[0]
+
+
+def test_a_frame_that_outgrows_the_pair_buffers_grows_them_and_resumes_bit_for_bit():
+    """The search answers STATUS_FULL before anything moves; the frame resumes at that sub-step."""
+    model = make_block(6, 6, 4, spacing=0.0075)
+    runs = []
+    for starve in (False, True):
+        solver = Solver(model, LIVER, SolverConfig(scheme='paper', mode='global'))
+        press(solver, 0.001, frames=20)
+        scheme = solver.scheme
+        if starve:
+            scheme.nb_idx, scheme.nb_dw, scheme.nb_w = (np.empty(8, dtype=np.int32), np.empty(8),
+                                                        np.empty(8))
+        res = solver.step(solver.tool_prev - np.array([0.0, 0.0, 1e-4]), 1e-3)
+        runs.append((res.force_raw.copy(), solver.positions.copy(), len(scheme.nb_idx)))
+    assert runs[1][2] > 8                                     # grown
+    assert np.array_equal(runs[0][0], runs[1][0]) and np.array_equal(runs[0][1], runs[1][1])
+
+
+@pytest.mark.parametrize('scheme', ['paper', 'tlsph', 'mass_spring'])
+def test_transmission_layers_follow_the_touched_particles_velocity_in_every_scheme(scheme):
+    """v_layer = w(i) * (overlap-weighted mean velocity of the touched particles), paper eq. 21 by velocity."""
+    solver = Solver(make_block(8, 8, 5, spacing=0.0075), LIVER,
+                    SolverConfig(scheme=scheme, mode='local', n_layers=2))
+    press(solver, 0.002, frames=30)
+    sets = solver._last_sets
+    assert sets.n_layer > 0 and sets.n_touch > 0
+    touch = sets.touch[:sets.n_touch]
+    w = sets.touch_w[:sets.n_touch]
+    vc = (w[:, None] * solver.velocities[touch]).sum(axis=0) / w.sum()
+    layer = sets.layer[:sets.n_layer]
+    expected = sets.layer_w[:sets.n_layer, None] * vc
+    assert np.abs(vc).max() > 0.0
+    assert np.allclose(solver.velocities[layer], expected, rtol=1e-9, atol=1e-15)

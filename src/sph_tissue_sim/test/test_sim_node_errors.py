@@ -4,21 +4,14 @@ a fuzz of random poses and stamps."""
 
 from __future__ import annotations
 
-import importlib.util
 
 import numpy as np
 import pytest
 
-from tissue_testing import harness
 from sim_probe import BLOCK, T0_NS, press_path
 
 pytestmark = pytest.mark.ros
 
-_spec = importlib.util.spec_from_file_location('sph_sim_err_shared_conftest',
-                                               harness.REPO_ROOT / 'test' / 'conftest.py')
-_shared = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_shared)
-ros_domain = _shared.ros_domain
 
 LIMIT = 0.5
 

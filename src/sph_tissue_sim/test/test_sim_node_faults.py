@@ -3,7 +3,6 @@ into the liver, and the services while poses stream into slow steps."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import re
 import threading
@@ -12,18 +11,11 @@ import time
 import numpy as np
 import pytest
 
-from tissue_testing import harness
 from sim_probe import (T0_NS, SimProbe, call_reset, finite_and_bounded, force_of, press_path,
                        set_parameters, sim)
 
 pytestmark = pytest.mark.ros
 
-_spec = importlib.util.spec_from_file_location('sph_sim_faults_shared_conftest',
-                                               harness.REPO_ROOT / 'test' / 'conftest.py')
-_shared = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_shared)
-ros_domain = _shared.ros_domain
-rclpy_node = _shared.rclpy_node
 
 FORCE_LIMIT = 3.3
 LIVER = {'model': 'liver', 'n_particles': 3670}

@@ -6,7 +6,6 @@ between tests); lockstep and bad start-up parameters get their own processes.
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import os
 import re
@@ -22,13 +21,6 @@ from sim_probe import (N_BLOCK, START_TIMEOUT, T0_NS, SimProbe, call_reset, fini
 
 pytestmark = pytest.mark.ros
 
-# the shared fixtures (ros_domain, rclpy_node) live in test/conftest.py, outside this folder
-_spec = importlib.util.spec_from_file_location('sph_sim_shared_conftest',
-                                               harness.REPO_ROOT / 'test' / 'conftest.py')
-_shared = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_shared)
-ros_domain = _shared.ros_domain
-rclpy_node = _shared.rclpy_node
 
 FORCE_LIMIT = 3.3
 

@@ -48,7 +48,7 @@ def _invalidate_stale_numba_cache() -> None:
     """Drop numba's on-disk cache of this package when any core source file changed.
 
     numba keys a cached function on its own file only, so a kernel inlined from another module
-    (e.g. tlsph.py into integrate.py) would otherwise keep running its old code after an edit.
+    (e.g. tlsph.py into frame.py) would otherwise keep running its old code after an edit.
     """
     here = Path(__file__).resolve().parent
     cache = here / '__pycache__'

@@ -115,7 +115,7 @@ def contact_vector(i, x, seg, surf):
     return u0, u1, u2, s0, s1, s2, tseg
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def contact_vector_py(i, x, seg, surf):
     """:func:`contact_vector` callable from Python (``(u0, u1, u2, s0, s1, s2, t)``)."""
     return contact_vector(i, x, seg, surf)
@@ -216,7 +216,7 @@ def surface_discs(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: fl
             np.ascontiguousarray(Minv), np.ascontiguousarray(N), np.ascontiguousarray(disc))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def deepest_contact(x, cand, n_cand, seg, reach, surf):
     """Collision detection (paper sec. 4.4): the candidate with the largest overlap, or -1.
 

@@ -26,11 +26,24 @@ import numpy as np
 from numba import njit
 
 from .contact import contact_vector, segment_distance2
-from .neighbours import query_ball
+from .neighbours import append_once, query_ball
+from .state import Sets
 
 
-@njit(cache=True)
-def local_prepare(X, x, fixed, offsets, indices,
+@njit(cache=True, inline='always')
+def _enter_area(j, reg, region, in_area, in_active, active_list, n_active):
+    """Particle ``j`` is in the area this frame (region ``reg``) and active; returns the active count."""
+    region[j] = reg
+    in_area[j] = 1
+    if in_active[j] == 0:
+        in_active[j] = 1
+        active_list[n_active] = j
+        n_active += 1
+    return n_active
+
+
+@njit(cache=True, nogil=True)
+def local_prepare(X, fixed, offsets, indices,
                   origin, cell, dims, cell_start, cell_particles,
                   in_active, active_list, n_active, region, in_area, stamp, stamp_val,
                   contact_idx, centre, Dr, layer_dr, n_layers,
@@ -67,12 +80,7 @@ def local_prepare(X, x, fixed, offsets, indices,
                 if layer > n_layers:
                     continue
                 reg = 1 + layer
-            region[j] = reg
-            in_area[j] = 1
-            if in_active[j] == 0:
-                in_active[j] = 1
-                active_list[n_active] = j
-                n_active += 1
+            n_active = _enter_area(j, reg, region, in_area, in_active, active_list, n_active)
     # 2. particles the tool may touch this frame: solved fully; fixed ones only feel the contact
     n_cand = 0
     nq = query_ball(cand_centre, cand_radius, X, origin, cell, dims, cell_start, cell_particles, tmp)
@@ -83,12 +91,7 @@ def local_prepare(X, x, fixed, offsets, indices,
             cand_list[n_cand] = j
             n_cand += 1
             continue
-        region[j] = 1
-        in_area[j] = 1
-        if in_active[j] == 0:
-            in_active[j] = 1
-            active_list[n_active] = j
-            n_active += 1
+        n_active = _enter_area(j, 1, region, in_area, in_active, active_list, n_active)
     # 3. split the active set: full SPH (interaction + relaxing) and kinematic layers
     n_sph = 0
     n_lp = 0
@@ -116,20 +119,13 @@ def local_prepare(X, x, fixed, offsets, indices,
     n_stress = 0
     for t in range(n_sph):
         i = sph_list[t]
-        if stamp[i] != stamp_val:
-            stamp[i] = stamp_val
-            stress_list[n_stress] = i
-            n_stress += 1
+        n_stress = append_once(i, stamp, stamp_val, stress_list, n_stress)
         for k in range(offsets[i], offsets[i + 1]):
-            j = indices[k]
-            if stamp[j] != stamp_val:
-                stamp[j] = stamp_val
-                stress_list[n_stress] = j
-                n_stress += 1
+            n_stress = append_once(indices[k], stamp, stamp_val, stress_list, n_stress)
     return n_active, n_sph, n_lp, n_stress, n_cand, n_interaction, n_relaxing
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def local_release(X, x, v, in_active, active_list, n_active, region, in_area, disp_tol, vel_tol):
     """Drop relaxed particles outside the area from the active set; returns the new count.
 
@@ -202,7 +198,7 @@ def boussinesq(d, load, G, nu, out):
         out[i, 0] = u0; out[i, 1] = u1; out[i, 2] = u2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def far_field_shell(X, x, fixed, stress_list, n_stress, sph_list, n_sph, layer_list, n_lp,
                     mark, ff_list, n_ff, centre, load, G, nu, buf_d, buf_u):
     """Move the still particles that solved ones read (the stress shell) with the tissue around.
@@ -248,7 +244,7 @@ def far_field_shell(X, x, fixed, stress_list, n_stress, sph_list, n_sph, layer_l
     return m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def active_stats(x, X, v, idx, n, mass):
     """Max displacement [m] and kinetic energy [J] over ``idx[:n]``."""
     md2 = 0.0
@@ -263,7 +259,7 @@ def active_stats(x, X, v, idx, n, mass):
     return math.sqrt(md2), ke
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def detect_local(X, x, active_list, n_active, origin, cell, dims, cell_start, cell_particles,
                  seg, reach, margin, tmp, surf, touch_idx, touch_w, centre):
     """Deepest-overlap particle of the tool segment ``seg`` (2, 3) in local mode, O(active + cells
@@ -322,31 +318,167 @@ def detect_local(X, x, active_list, n_active, origin, cell, dims, cell_start, ce
     return best, n_touch
 
 
-@njit(cache=True)
-def save_state(x, v, lists_a, na, lists_b, nb, buf_x, buf_v):
-    """Copy positions/velocities of ``lists_a[:na]`` and ``lists_b[:nb]`` into buffers."""
-    for t in range(na):
-        i = lists_a[t]
-        for a in range(3):
-            buf_x[t, a] = x[i, a]
-            buf_v[t, a] = v[i, a]
-    for t in range(nb):
-        i = lists_b[t]
-        for a in range(3):
-            buf_x[na + t, a] = x[i, a]
-            buf_v[na + t, a] = v[i, a]
+@njit(cache=True, nogil=True)
+def copy_rows(x, v, a, na, b, nb, buf_x, buf_v, save):
+    """Copy positions and velocities of ``a[:na]`` then ``b[:nb]`` into the buffers (``save``) or
+    back from them."""
+    for t in range(na + nb):
+        i = a[t] if t < na else b[t - na]
+        for c in range(3):
+            if save:
+                buf_x[t, c] = x[i, c]
+                buf_v[t, c] = v[i, c]
+            else:
+                x[i, c] = buf_x[t, c]
+                v[i, c] = buf_v[t, c]
 
 
-@njit(cache=True)
-def restore_state(x, v, lists_a, na, lists_b, nb, buf_x, buf_v):
-    """Inverse of :func:`save_state`."""
-    for t in range(na):
-        i = lists_a[t]
-        for a in range(3):
-            x[i, a] = buf_x[t, a]
-            v[i, a] = buf_v[t, a]
-    for t in range(nb):
-        i = lists_b[t]
-        for a in range(3):
-            x[i, a] = buf_x[na + t, a]
-            v[i, a] = buf_v[na + t, a]
+class LocalArea:
+    """The moving particle sets of one model: the local interaction area, its transmission layers,
+    the particles still relaxing, the tool's candidates and the optional far-field shell.
+
+    ``Solver`` asks it, once per frame, for the :class:`~.state.Sets` to solve
+    (:meth:`global_sets` or :meth:`detect` then :meth:`prepare`), and to :meth:`save`,
+    :meth:`restore` and :meth:`release` around the frame. Everything costs O(area + active).
+
+    Args:
+        X: (N, 3) reference positions; fixed: (N,) boundary mask.
+        offsets, indices: reference neighbours within 2h (CSR); grid: the reference cell grid.
+        h: smoothing length [m]; n_layers: transmission layers; surf: contact surface
+            (:func:`~.contact.surface_discs`).
+    """
+
+    def __init__(self, X: np.ndarray, fixed: np.ndarray, offsets: np.ndarray, indices: np.ndarray,
+                 grid, h: float, n_layers: int, surf: tuple) -> None:
+        n = len(X)
+        self.X, self.fixed, self.offsets, self.indices = X, fixed, offsets, indices
+        self.grid, self.h, self.n_layers, self.surf = grid, h, n_layers, surf
+        self.disc = surf[-1]
+        self.disc_max = float(self.disc.max()) if n else 0.0
+        self.free = np.flatnonzero(~fixed).astype(np.int32)
+        self.all = np.arange(n, dtype=np.int32)
+        self.region = np.zeros(n, dtype=np.int8)
+        self.in_active = np.zeros(n, dtype=np.int8)
+        self.in_area = np.zeros(n, dtype=np.int8)
+        self.stamp = np.zeros(n, dtype=np.int64)
+        self.stamp_val = 0
+        self.active = np.zeros(n, dtype=np.int32)
+        self.n_active = 0
+        self.sph = np.zeros(n, dtype=np.int32)
+        self.layer = np.zeros(n, dtype=np.int32)
+        self.layer_w = np.zeros(n)
+        self.stress = np.zeros(n, dtype=np.int32)
+        self.cand = np.zeros(2 * n, dtype=np.int32)
+        self.tmp = np.zeros(n, dtype=np.int32)
+        self.touch = np.zeros(256, dtype=np.int32)
+        self.touch_w = np.zeros(256)
+        self.n_touch = 0
+        self.centre = np.zeros(3)
+        self.layer_counts = np.zeros(max(n_layers, 1), dtype=np.int64)
+        self.buf_x = np.zeros((n, 3))
+        self.buf_v = np.zeros((n, 3))
+        # far-field shell (far_field > 0): allocated on first use
+        self.ff_list = np.zeros(0, dtype=np.int32)
+        self.n_ff = 0
+        self.ff_mark = np.zeros(0, dtype=np.int8)
+        self.ff_buf = np.zeros((0, 3))
+        self.ff_load = np.zeros(3)
+
+    def reset(self, global_mode: bool) -> None:
+        """No active particle; in global mode every free particle is in the interaction area."""
+        self.region[:] = 0
+        self.in_active[:] = 0
+        self.in_area[:] = 0
+        self.n_active = 0
+        self.n_ff = 0
+        self.n_touch = 0
+        if global_mode:
+            self.region[self.free] = 1
+
+    def global_sets(self, contact: int) -> Sets:
+        """Every free particle solved, every particle stressed and a candidate, no layer."""
+        n = len(self.all)
+        return Sets(self.all, n, self.free, len(self.free), self.layer, self.layer_w, 0,
+                    self.all, n, self.touch, self.touch_w, 0, contact)
+
+    def detect(self, x: np.ndarray, seg: np.ndarray, reach: float, margin: float) -> int:
+        """The deepest touched particle of the tool's segment (or -1); records the touched ones
+        and centres the area on their overlap-weighted centroid (:func:`detect_local`)."""
+        g = self.grid
+        deepest, self.n_touch = detect_local(
+            self.X, x, self.active, self.n_active, g.origin, g.cell, g.dims, g.cell_start,
+            g.cell_particles, seg, reach, margin, self.tmp, self.surf, self.touch, self.touch_w,
+            self.centre)
+        return deepest
+
+    def prepare(self, seg0: np.ndarray | None, seg1: np.ndarray | None, reach: float, margin: float,
+                contact: int, Dr: float, on_contact: bool) -> tuple[Sets, int, int]:
+        """The sets of a local frame; returns ``(sets, n_interaction, n_relaxing)``.
+
+        ``Dr`` [m] is the area's radius: from the contact particle (``on_contact``, the paper's
+        sec. 4.2) or from the edge of the touched patch (surface discs included, so a load spread
+        over several particles is inside). The candidates are every particle the tool can reach
+        anywhere on its way through the frame (``seg0`` to ``seg1``; None: no tool).
+        """
+        if seg0 is not None:
+            # scalar maths: numpy's per-call overhead on 4 points is a few per cent of a local step
+            ends = seg0.tolist() + seg1.tolist()
+            c = [0.25 * (ends[0][a] + ends[1][a]) + 0.25 * (ends[2][a] + ends[3][a]) for a in range(3)]
+            cand_centre = np.array(c)
+            cand_radius = max(math.dist(e, c) for e in ends) + reach + self.disc_max + margin
+        else:
+            cand_centre = self.centre
+            cand_radius = -1.0
+        if on_contact:
+            if contact >= 0:
+                self.centre[:] = self.X[contact]
+        elif self.n_touch > 0:
+            ti = self.touch[:self.n_touch]
+            d = self.X[ti] - self.centre
+            Dr += float((np.sqrt((d * d).sum(axis=1)) + self.disc[ti]).max())
+        self.stamp_val += 1
+        g = self.grid
+        (self.n_active, n_sph, n_lp, n_stress, n_cand, n_inter, n_relax) = local_prepare(
+            self.X, self.fixed, self.offsets, self.indices,
+            g.origin, g.cell, g.dims, g.cell_start, g.cell_particles,
+            self.in_active, self.active, self.n_active, self.region, self.in_area,
+            self.stamp, self.stamp_val, contact, self.centre, Dr, 0.5 * self.h, self.n_layers,
+            cand_centre, cand_radius, self.sph, self.layer, self.layer_w, self.stress,
+            self.cand, self.tmp, self.layer_counts)
+        sets = Sets(self.stress, n_stress, self.sph, n_sph, self.layer, self.layer_w, n_lp,
+                    self.cand, n_cand, self.touch, self.touch_w, self.n_touch, contact)
+        return sets, n_inter, n_relax
+
+    def far_field(self, x: np.ndarray, sets: Sets, react: np.ndarray, factor: float, G: float,
+                  nu: float) -> None:
+        """Place the stress shell at the half-space response to the load ``-factor * react``
+        (:func:`far_field_shell`); returns the shell to rest once ``factor`` is 0."""
+        if factor <= 0.0 and self.n_ff == 0:
+            return
+        np.multiply(react, -factor, out=self.ff_load)
+        n = len(self.X)
+        if len(self.ff_list) != n:
+            self.ff_list = np.zeros(n, dtype=np.int32)
+            self.ff_mark = np.zeros(n, dtype=np.int8)
+            self.ff_buf = np.zeros((n, 3))
+        self.n_ff = far_field_shell(
+            self.X, x, self.fixed, sets.stress, sets.n_stress, sets.sph, sets.n_sph, sets.layer,
+            sets.n_layer, self.ff_mark, self.ff_list, self.n_ff, self.centre, self.ff_load, G, nu,
+            self.buf_x, self.ff_buf)
+
+    def save(self, x: np.ndarray, v: np.ndarray, sets: Sets) -> None:
+        """Keep the state of the particles a frame on ``sets`` moves."""
+        copy_rows(x, v, sets.sph, sets.n_sph, sets.layer, sets.n_layer, self.buf_x, self.buf_v, True)
+
+    def restore(self, x: np.ndarray, v: np.ndarray, sets: Sets) -> None:
+        """Undo a frame on ``sets`` (after :meth:`save`)."""
+        copy_rows(x, v, sets.sph, sets.n_sph, sets.layer, sets.n_layer, self.buf_x, self.buf_v, False)
+
+    def release(self, x: np.ndarray, v: np.ndarray, disp_tol: float, vel_tol: float) -> None:
+        """Drop relaxed particles outside the area from the active set (:func:`local_release`)."""
+        self.n_active = local_release(self.X, x, v, self.in_active, self.active, self.n_active,
+                                      self.region, self.in_area, disp_tol, vel_tol)
+
+    def stats(self, x: np.ndarray, v: np.ndarray, mass: float) -> tuple[float, float]:
+        """Max displacement [m] and kinetic energy [J] of the active particles."""
+        return active_stats(x, self.X, v, self.active, self.n_active, mass)

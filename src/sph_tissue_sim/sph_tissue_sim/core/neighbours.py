@@ -119,14 +119,17 @@ def query_ball(centre: np.ndarray, radius: float, points: np.ndarray, origin: np
 
 
 @njit(cache=True)
-def _count_neighbours(points, radius, origin, cell, dims, cell_start, cell_particles, counts):
+def _neighbour_pass(points, radius, origin, cell, dims, cell_start, cell_particles, offsets, indices,
+                    fill):
+    """Count every point's neighbours into ``offsets[i + 1]`` (``fill`` False), or write them to
+    ``indices[offsets[i]:offsets[i + 1]]`` (``fill`` True, after the counts were summed)."""
     n = points.shape[0]
     r2 = radius * radius
     for i in range(n):
         cx = _cell_of(points[i, 0], origin[0], cell, dims[0])
         cy = _cell_of(points[i, 1], origin[1], cell, dims[1])
         cz = _cell_of(points[i, 2], origin[2], cell, dims[2])
-        m = 0
+        m = offsets[i] if fill else 0
         for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
             for ay in range(max(cy - 1, 0), min(cy + 2, dims[1])):
                 for az in range(max(cz - 1, 0), min(cz + 2, dims[2])):
@@ -139,33 +142,11 @@ def _count_neighbours(points, radius, origin, cell, dims, cell_start, cell_parti
                         d1 = points[j, 1] - points[i, 1]
                         d2 = points[j, 2] - points[i, 2]
                         if d0 * d0 + d1 * d1 + d2 * d2 < r2:
+                            if fill:
+                                indices[m] = j
                             m += 1
-        counts[i] = m
-
-
-@njit(cache=True)
-def _fill_neighbours(points, radius, origin, cell, dims, cell_start, cell_particles, offsets, indices):
-    n = points.shape[0]
-    r2 = radius * radius
-    for i in range(n):
-        cx = _cell_of(points[i, 0], origin[0], cell, dims[0])
-        cy = _cell_of(points[i, 1], origin[1], cell, dims[1])
-        cz = _cell_of(points[i, 2], origin[2], cell, dims[2])
-        m = offsets[i]
-        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
-            for ay in range(max(cy - 1, 0), min(cy + 2, dims[1])):
-                for az in range(max(cz - 1, 0), min(cz + 2, dims[2])):
-                    c = (ax * dims[1] + ay) * dims[2] + az
-                    for k in range(cell_start[c], cell_start[c + 1]):
-                        j = cell_particles[k]
-                        if j == i:
-                            continue
-                        d0 = points[j, 0] - points[i, 0]
-                        d1 = points[j, 1] - points[i, 1]
-                        d2 = points[j, 2] - points[i, 2]
-                        if d0 * d0 + d1 * d1 + d2 * d2 < r2:
-                            indices[m] = j
-                            m += 1
+        if not fill:
+            offsets[i + 1] = m
 
 
 @njit(cache=True)
@@ -174,13 +155,15 @@ def neighbour_lists(points: np.ndarray, radius: float, origin: np.ndarray, cell:
     """CSR neighbour lists of all points within ``radius`` (< ``cell``), self excluded."""
     cell_start, cell_particles = bin_points(points, origin, cell, dims)
     n = points.shape[0]
-    counts = np.zeros(n, dtype=np.int64)
-    _count_neighbours(points, radius, origin, cell, dims, cell_start, cell_particles, counts)
     offsets = np.zeros(n + 1, dtype=np.int64)
+    indices = np.empty(0, dtype=np.int32)
+    _neighbour_pass(points, radius, origin, cell, dims, cell_start, cell_particles, offsets, indices,
+                    False)
     for i in range(n):
-        offsets[i + 1] = offsets[i] + counts[i]
+        offsets[i + 1] += offsets[i]
     indices = np.empty(offsets[n], dtype=np.int32)
-    _fill_neighbours(points, radius, origin, cell, dims, cell_start, cell_particles, offsets, indices)
+    _neighbour_pass(points, radius, origin, cell, dims, cell_start, cell_particles, offsets, indices,
+                    True)
     return offsets, indices
 
 
@@ -189,3 +172,14 @@ def find_neighbours(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.n
     points = np.ascontiguousarray(points, dtype=np.float64)
     origin, dims = grid_geometry(points, radius)
     return neighbour_lists(points, float(radius), origin, float(radius), dims)
+
+
+@njit(cache=True, inline='always')
+def append_once(j, stamp, stamp_val, out, n):
+    """Append ``j`` to ``out[:n]`` unless it is stamped ``stamp_val`` already (then it is listed);
+    returns the new count. One stamp array and a fresh value per set make a set O(its size)."""
+    if stamp[j] != stamp_val:
+        stamp[j] = stamp_val
+        out[n] = j
+        n += 1
+    return n

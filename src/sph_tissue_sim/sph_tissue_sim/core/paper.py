@@ -32,40 +32,46 @@ Every sub-step works in the CURRENT configuration ``x`` (displacement ``u = x - 
 
    ``SolverConfig.paper_momentum`` selects 14 or 12 (:func:`momentum_one` explains the difference).
 
-6. symplectic Euler (eq. 22): ``v <- v + dt a``, ``x <- x + dt v``.
+6. symplectic Euler (eq. 22): ``v <- v + dt a``, ``x <- x + dt v`` (the frame loop, :mod:`.frame`).
 
 Naming follows PySPH: ``XIJ = x_i - x_j``, ``WIJ = W(|XIJ|, h)``, ``DWIJ = grad_i WIJ =
 dW/dr XIJ / |XIJ|``. There is no hourglass control and no kernel correction: the scheme shows the
 zero-energy modes, tensile instability and surface density deficiency of plain SPH, as the paper
-reports for large steps. A blow-up is caught every sub-step (speed limit, non-finite positions)
-and reported to the solver, which restores the state.
+reports for large steps. A torn body (a solved particle without neighbours) or non-finite
+positions stop the frame at the next sub-step's search, a speed above the limit is caught after
+the frame (:func:`~.integrate.frame_state_ok`), and the solver restores the state.
 
-Local mode (sec. 4): the solver's :func:`~.local_area.local_prepare` sets are used unchanged. The
+Local mode (sec. 4): the frame's sets (:class:`~.local_area.LocalArea`) are used unchanged. The
 rows that get density, strain and stress are the fully solved particles and their reference
 neighbours; the grid is built over the current positions of those, one more ring of reference
 neighbours and every active particle (the paper too searches only inside the area). Particles
-outside the rows keep their last density and stress.
+outside the rows keep their last density and stress. The transmission layers follow the contact
+by velocity as in every scheme (:func:`~.integrate.move_layers` says why).
 
 Measured behaviour (block of liver, G = 1.8 kPa, nu = 0.45, 3 Pa s, spacing 5-7.5 mm, h = 1.3
 spacings): the instability does not depend on the time step (halving the CFL number changes
 nothing). With eq. 14 a free surface perturbed by 0.2 mm grows until the body tears (about 0.5 s);
 eq. 12 damps the same perturbation. A 2-3 mm global press stays bounded for ~0.1-0.2 s and gives
-a reaction 2-3 times below tlsph (no hourglass stiffness against a point load). In local mode the
-kinematic transmission layers (a = w(i) a_c, no restoring force) around a small interaction area
-drive it unstable within ~0.1-0.2 s of pressing; with ``n_layers = 0`` the same press stays
-bounded. Blow-ups end in :class:`~.errors.SimError` with the state restored, never NaN.
+a reaction 2-3 times below tlsph (no hourglass stiffness against a point load). In local mode
+(8 x 8 x 5 block, 7.5 mm spacing, pressed 3 mm over 0.1 s and held to 1 s) the press stays bounded
+with 2 layers (0.127 N) and without (0.138 N); the paper's acceleration-following layers, used
+here before, gave 0.079 N. Blow-ups end in :class:`~.errors.SimError` with the state restored,
+never NaN.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
+from numba.extending import overload
 
-from .contact import contact_forces
 from .kernel import kernel_dwdr, kernel_w
-from .neighbours import _cell_of, bin_points
+from .material import Material
+from .neighbours import _cell_of, append_once, bin_points
+from .protocols import STATUS_BROKEN, STATUS_FULL, STATUS_OK, internal_forces, is_state
 
 _MAX_CELLS = 50_000_000   # a larger current-configuration grid means the body flew apart
 
@@ -115,16 +121,16 @@ def _fill_pairs(x, search, rows, n_rows, h, pos, origin, dims, cell_start, cell_
 
 
 @njit(cache=True)
-def current_neighbours(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx, nb_dw, nb_w):
+def search_pairs(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx, nb_dw, nb_w):
     """CSR neighbours (within 2h, current positions) of ``rows[:n_rows]`` among ``search[:n_search]``.
 
     Row ``r`` (particle ``rows[r]``) has pairs ``nb_off[r]:nb_off[r + 1]`` with neighbour
     ``nb_idx[k]``, ``nb_dw[k] = dW/dr(RIJ) / RIJ`` (so ``DWIJ = nb_dw[k] * XIJ``) and
-    ``nb_w[k] = WIJ``. The pair buffers are replaced by larger ones when full (hence returned).
-    ``pos`` (>= n_search, 3) is scratch.
+    ``nb_w[k] = WIJ``. ``pos`` (>= n_search, 3) is scratch.
 
-    Returns ``(ok, nb_idx, nb_dw, nb_w)``; ``ok`` is False for non-finite positions or a grid too
-    large to allocate (particles flung apart), in which case the lists are not valid.
+    Returns :data:`~.protocols.STATUS_OK`, :data:`~.protocols.STATUS_FULL` (the pair buffers are
+    too small) or :data:`~.protocols.STATUS_BROKEN` (non-finite positions or a grid too large to
+    allocate: particles flung apart); the lists are valid only with OK.
     """
     support = 2.0 * h
     lo0 = math.inf; lo1 = math.inf; lo2 = math.inf
@@ -133,7 +139,7 @@ def current_neighbours(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx
         j = search[p]
         a = x[j, 0]; b = x[j, 1]; c = x[j, 2]
         if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
-            return False, nb_idx, nb_dw, nb_w
+            return STATUS_BROKEN
         pos[p, 0] = a; pos[p, 1] = b; pos[p, 2] = c
         lo0 = min(lo0, a); lo1 = min(lo1, b); lo2 = min(lo2, c)
         hi0 = max(hi0, a); hi1 = max(hi1, b); hi2 = max(hi2, c)
@@ -141,7 +147,7 @@ def current_neighbours(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx
         nb_off[0] = 0
         for r in range(n_rows):
             nb_off[r + 1] = 0
-        return True, nb_idx, nb_dw, nb_w
+        return STATUS_OK
     origin = np.empty(3)
     origin[0] = lo0 - support; origin[1] = lo1 - support; origin[2] = lo2 - support
     dims = np.empty(3, dtype=np.int64)
@@ -149,22 +155,32 @@ def current_neighbours(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx
     ext1 = (hi1 + support - origin[1]) / support
     ext2 = (hi2 + support - origin[2]) / support
     if ext0 * ext1 * ext2 > _MAX_CELLS:
-        return False, nb_idx, nb_dw, nb_w
+        return STATUS_BROKEN
     dims[0] = max(1, int(math.ceil(ext0)))
     dims[1] = max(1, int(math.ceil(ext1)))
     dims[2] = max(1, int(math.ceil(ext2)))
     cell_start, cell_particles = bin_points(pos[:n_search], origin, support, dims)
+    m = _fill_pairs(x, search, rows, n_rows, h, pos, origin, dims, cell_start, cell_particles,
+                    nb_off, nb_idx, nb_dw, nb_w)
+    return STATUS_OK if m >= 0 else STATUS_FULL
+
+
+def grown(nb_idx: np.ndarray, nb_dw: np.ndarray, nb_w: np.ndarray):
+    """Larger pair buffers (compression packs more pairs than the reference had)."""
+    cap = 2 * nb_idx.shape[0] + 1024
+    return np.empty(cap, dtype=nb_idx.dtype), np.empty(cap), np.empty(cap)
+
+
+def current_neighbours(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx, nb_dw, nb_w):
+    """:func:`search_pairs`, growing the pair buffers until they fit.
+
+    Returns ``(ok, nb_idx, nb_dw, nb_w)`` (the buffers may be new ones).
+    """
     while True:
-        m = _fill_pairs(x, search, rows, n_rows, h, pos, origin, dims, cell_start, cell_particles,
-                        nb_off, nb_idx, nb_dw, nb_w)
-        if m >= 0:
-            break
-        # out of pair capacity (rare: compression packs particles): grow and redo
-        cap = 2 * nb_idx.shape[0] + 1024
-        nb_idx = np.empty(cap, dtype=nb_idx.dtype)
-        nb_dw = np.empty(cap)
-        nb_w = np.empty(cap)
-    return True, nb_idx, nb_dw, nb_w
+        status = search_pairs(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx, nb_dw, nb_w)
+        if status != STATUS_FULL:
+            return status == STATUS_OK, nb_idx, nb_dw, nb_w
+        nb_idx, nb_dw, nb_w = grown(nb_idx, nb_dw, nb_w)
 
 
 # ---------------------------------------------------------------------------- density, strain, stress
@@ -235,8 +251,8 @@ MOMENTUM_EQ12 = 12
 
 
 @njit(cache=True, fastmath=True)
-def momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form, out):
-    """Internal acceleration of ``i = rows[r]`` into ``out`` (3,).
+def momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form):
+    """Internal acceleration ``(a0, a1, a2)`` of ``i = rows[r]``.
 
     ``form == 14`` (eq. 14, the paper's final form)::
 
@@ -277,107 +293,66 @@ def momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form, out):
         a0 += t0 * g0 + t3 * g1 + t4 * g2
         a1 += t3 * g0 + t1 * g1 + t5 * g2
         a2 += t4 * g0 + t5 * g1 + t2 * g2
-    out[0] = a0
-    out[1] = a1
-    out[2] = a2
+    return a0, a1, a2
 
 
-# ---------------------------------------------------------------------------- frame loop
-@njit(cache=True, nogil=True)
-def paper_frame(X, x, v, acc, fixed, mass, h, G, K, eta_s, eta_v, form,
-                rows, n_rows, search, n_search, n_sph,
-                layer_list, layer_w, n_lp, cand, n_cand, contact_idx,
-                seg0, seg1, tool_on, reach, k_c, c_c,
-                n_sub, dt, frame_dt, v_limit, react, ext_idx, ext_force, n_ext,
-                rho, eps, epsd, sig, pos, nb_off, nb_idx, nb_dw, nb_w, surf, abort):
-    """Advance ``n_sub`` sub-steps of the paper scheme.
+# ---------------------------------------------------------------------------- the scheme's forces
+class Paper(NamedTuple):
+    """The scheme's state for the frame loop (one per frame: the row and search sets change)."""
 
-    ``rows[:n_sph]`` are the fully solved (free) particles, ``rows[:n_rows]`` get density, strain
-    and stress, ``search[:n_search]`` (a superset of rows) are binned for the neighbour search.
-    Layers, contact and external loads are handled exactly as in :func:`~.integrate.run_frame`.
+    h: float               # [m] smoothing length
+    G: float               # [Pa] shear modulus
+    K: float               # [Pa] bulk modulus
+    eta_s: float           # [Pa s] shear viscosity
+    eta_v: float           # [Pa s] bulk viscosity
+    form: int              # momentum equation, 14 or 12 (:func:`momentum_one`)
+    rows: np.ndarray       # rows[:n_sph] are sets.sph; rows[:n_rows] get density, strain, stress
+    n_rows: int
+    search: np.ndarray     # search[:n_search] (a superset of rows) are binned for the search
+    n_search: int
+    rho: np.ndarray        # (N,) density
+    eps: np.ndarray        # (N, 6) strain
+    epsd: np.ndarray       # (N, 6) strain rate
+    sig: np.ndarray        # (N, 6) stress
+    pos: np.ndarray        # (N, 3) scratch
+    nb_off: np.ndarray     # pair lists of the current configuration (:func:`search_pairs`)
+    nb_idx: np.ndarray
+    nb_dw: np.ndarray
+    nb_w: np.ndarray
 
-    Returns ``(last overlap [m], ok, nb_idx, nb_dw, nb_w)`` (the pair buffers may have grown).
-    ``ok`` is False as soon as a speed exceeds ``v_limit``, a position is non-finite or a solved
-    particle has lost every neighbour (the body tore apart); the caller restores the state.
-    ``form`` selects the momentum equation (14 or 12, see :func:`momentum_one`). ``react``
-    receives the mean reaction on the tool [N]. The frame stops before the next sub-step once
-    another thread sets ``abort[0]`` (the GIL is released while it runs).
-    """
-    react[0] = 0.0; react[1] = 0.0; react[2] = 0.0
-    seg = np.empty((2, 3))
-    seg_vel = np.empty((2, 3))
-    rsum = np.zeros(3)
-    fbuf = np.empty(3)
-    inv_mass = 1.0 / mass
-    vl2 = v_limit * v_limit
-    for e in range(2):
-        for a in range(3):
-            seg_vel[e, a] = (seg1[e, a] - seg0[e, a]) / frame_dt
-    overlap = 0.0
-    for s in range(n_sub):
-        if abort[0] != 0:
-            break
-        frac = (s + 1.0) / n_sub
-        for e in range(2):
-            for a in range(3):
-                seg[e, a] = seg0[e, a] + frac * (seg1[e, a] - seg0[e, a])
-        ok, nb_idx, nb_dw, nb_w = current_neighbours(x, search, n_search, rows, n_rows, h, pos,
-                                                     nb_off, nb_idx, nb_dw, nb_w)
-        if not ok:
-            return overlap, False, nb_idx, nb_dw, nb_w
-        for r in range(n_sph):
-            if nb_off[r + 1] == nb_off[r]:
-                # a solved particle with no neighbour left: the body has torn apart
-                return overlap, False, nb_idx, nb_dw, nb_w
-        summation_density(rows, n_rows, nb_off, nb_w, mass, h, rho)
-        strain_stress(rows, n_rows, X, x, v, nb_off, nb_idx, nb_dw, mass, rho,
-                      G, K, eta_s, eta_v, eps, epsd, sig)
-        for r in range(n_sph):
-            i = rows[r]
-            momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form, fbuf)
-            acc[i, 0] = fbuf[0]
-            acc[i, 1] = fbuf[1]
-            acc[i, 2] = fbuf[2]
-        for t in range(n_ext):
-            i = ext_idx[t]
-            if not fixed[i]:
-                for a in range(3):
-                    acc[i, a] += ext_force[t, a] * inv_mass
-        if tool_on:
-            rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
-            overlap = contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, seg, seg_vel, reach,
-                                     k_c, c_c, rsum, surf)
-            react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
-        # transmission layers follow the contact particle's acceleration (eqs. 20-21)
-        if n_lp > 0:
-            ac0 = 0.0; ac1 = 0.0; ac2 = 0.0
-            if contact_idx >= 0 and not fixed[contact_idx]:
-                ac0 = acc[contact_idx, 0]; ac1 = acc[contact_idx, 1]; ac2 = acc[contact_idx, 2]
-            for t in range(n_lp):
-                i = layer_list[t]
-                w = layer_w[t]
-                acc[i, 0] = w * ac0
-                acc[i, 1] = w * ac1
-                acc[i, 2] = w * ac2
-        # symplectic Euler (eq. 22), with the blow-up check of every sub-step
-        bad = False
-        for t in range(n_sph + n_lp):
-            i = rows[t] if t < n_sph else layer_list[t - n_sph]
-            for a in range(3):
-                v[i, a] += dt * acc[i, a]
-                x[i, a] += dt * v[i, a]
-            s2 = v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2]
-            if not (s2 <= vl2):
-                bad = True
-        if bad or not (math.isfinite(react[0]) and math.isfinite(react[1]) and math.isfinite(react[2])):
-            return overlap, False, nb_idx, nb_dw, nb_w
-    for a in range(3):
-        react[a] /= max(n_sub, 1)
-    return overlap, True, nb_idx, nb_dw, nb_w
+
+@overload(internal_forces)
+def _paper_forces(scheme, body, motion, sets):
+    if not is_state(scheme, Paper):
+        return None
+
+    def impl(scheme, body, motion, sets):
+        p = scheme
+        x = motion.x
+        status = search_pairs(x, p.search, p.n_search, p.rows, p.n_rows, p.h, p.pos, p.nb_off,
+                              p.nb_idx, p.nb_dw, p.nb_w)
+        if status != STATUS_OK:
+            return status
+        for r in range(sets.n_sph):
+            if p.nb_off[r + 1] == p.nb_off[r]:
+                return STATUS_BROKEN   # a solved particle with no neighbour left: the body tore apart
+        summation_density(p.rows, p.n_rows, p.nb_off, p.nb_w, body.mass, p.h, p.rho)
+        strain_stress(p.rows, p.n_rows, body.X, x, motion.v, p.nb_off, p.nb_idx, p.nb_dw, body.mass,
+                      p.rho, p.G, p.K, p.eta_s, p.eta_v, p.eps, p.epsd, p.sig)
+        acc = motion.acc
+        for r in range(sets.n_sph):
+            i = p.rows[r]
+            a0, a1, a2 = momentum_one(r, p.rows, x, p.nb_off, p.nb_idx, p.nb_dw, body.mass, p.rho,
+                                      p.sig, p.form)
+            acc[i, 0] = a0
+            acc[i, 1] = a1
+            acc[i, 2] = a2
+        return STATUS_OK
+    return impl
 
 
 # ---------------------------------------------------------------------------- local-mode sets
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def local_rows(offsets, indices, sph, n_sph, stress, n_stress, active, n_active,
                stamp, stamp_val, rows, search):
     """Rows (``sph`` first, then the rest of ``stress``) and the search set for a local frame.
@@ -387,38 +362,21 @@ def local_rows(offsets, indices, sph, n_sph, stress, n_stress, active, n_active,
     """
     n_rows = 0
     for t in range(n_sph):
-        i = sph[t]
-        stamp[i] = stamp_val
-        rows[n_rows] = i
-        n_rows += 1
+        n_rows = append_once(sph[t], stamp, stamp_val, rows, n_rows)
     for t in range(n_stress):
-        i = stress[t]
-        if stamp[i] != stamp_val:
-            stamp[i] = stamp_val
-            rows[n_rows] = i
-            n_rows += 1
-    n_search = 0
-    for t in range(n_rows):
-        search[n_search] = rows[t]
-        n_search += 1
+        n_rows = append_once(stress[t], stamp, stamp_val, rows, n_rows)
+    search[:n_rows] = rows[:n_rows]
+    n_search = n_rows
     for t in range(n_rows):
         i = rows[t]
         for k in range(offsets[i], offsets[i + 1]):
-            j = indices[k]
-            if stamp[j] != stamp_val:
-                stamp[j] = stamp_val
-                search[n_search] = j
-                n_search += 1
+            n_search = append_once(indices[k], stamp, stamp_val, search, n_search)
     for t in range(n_active):
-        j = active[t]
-        if stamp[j] != stamp_val:
-            stamp[j] = stamp_val
-            search[n_search] = j
-            n_search += 1
+        n_search = append_once(active[t], stamp, stamp_val, search, n_search)
     return n_rows, n_search
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def von_mises_rows(sig, rows, n_rows, out):
     """Von Mises stress ``sqrt(3/2 s:s)`` (s = dev sigma) of ``rows[:n_rows]`` into ``out``."""
     for r in range(n_rows):
@@ -462,24 +420,28 @@ def paper_fields(X: np.ndarray, x: np.ndarray, v: np.ndarray, fixed: np.ndarray,
     summation_density(rows, n, nb_off, nb_w, mass, h, rho)
     strain_stress(rows, n, X, x, v, nb_off, nb_idx, nb_dw, mass, rho, material.G, material.K,
                   material.eta_shear, material.eta_bulk, eps, epsd, sig)
-    out = np.empty(3)
     for r in range(int((~fixed).sum())):
-        momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form, out)
-        acc[rows[r]] = out
+        acc[rows[r]] = momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form)
     return dict(rho=rho, eps=eps, epsd=epsd, sig=sig, acc=acc)
 
 
-# ---------------------------------------------------------------------------- solver glue
+# ---------------------------------------------------------------------------- the scheme object
 class PaperScheme:
-    """State and buffers of the ``paper`` scheme for one :class:`~.solver.Solver`.
+    """The paper's scheme for one model (:class:`~.protocols.FrameScheme`): densities, strains,
+    stresses and the current-configuration pair lists, and the rows of each frame.
 
-    The solver keeps positions, velocities, sub-stepping, the local-area bookkeeping and the
-    contact parameters; this object runs the frame loop on the index sets the solver prepared.
+    Args:
+        X: (N, 3) reference positions [m]; x: the solver's live positions; fixed: (N,) boundary mask.
+        offsets, indices: reference neighbours (CSR), for the local rows and the first pair capacity.
+        h: smoothing length [m]; form: momentum equation (14 or 12).
     """
 
-    def __init__(self, solver) -> None:
-        self.solver = solver
-        n = solver.n
+    name = 'paper'
+
+    def __init__(self, X: np.ndarray, x: np.ndarray, fixed: np.ndarray, offsets: np.ndarray, indices: np.ndarray,
+                 h: float, form: int) -> None:
+        n = len(X)
+        self.X, self.x, self.offsets, self.indices, self.h, self.form = X, x, offsets, indices, h, form
         self.rho = np.empty(n)
         self.eps = np.zeros((n, 6))
         self.epsd = np.zeros((n, 6))
@@ -490,16 +452,29 @@ class PaperScheme:
         self.stamp = np.zeros(n, dtype=np.int64)
         self.stamp_val = 0
         self.nb_off = np.zeros(n + 1, dtype=np.int64)
-        cap = len(solver.indices) + len(solver.indices) // 4 + 1024   # grows if compression packs more
+        cap = len(indices) + len(indices) // 4 + 1024   # grows if compression packs more
         self.nb_idx = np.empty(cap, dtype=np.int32)
         self.nb_dw = np.empty(cap)
         self.nb_w = np.empty(cap)
-        self.global_rows = np.concatenate([solver.free_idx, np.flatnonzero(solver.fixed)]).astype(np.int32)
+        free = np.flatnonzero(~fixed).astype(np.int32)
+        self.n_free = len(free)
+        self.global_rows = np.concatenate([free, np.flatnonzero(fixed)]).astype(np.int32)
         self.n_rows_last = 0
-        self.reset()
+        self._rows_last = self.global_rows
+        self.material: Material | None = None
+        self.mass = 0.0
+        self._frame: tuple = ()
+
+    def set_material(self, material: Material, mass: float) -> None:
+        self.material = material
+        self.mass = mass
+        self._refresh_density()
+
+    def wave_speed(self, material: Material, mass: float) -> float:
+        return material.wave_speed
 
     def reset(self) -> None:
-        """Reference state: zero strain and stress, summation density of every particle."""
+        """Reference state (call after the positions are reset): zero strain and stress."""
         self.eps[:] = 0.0
         self.epsd[:] = 0.0
         self.sig[:] = 0.0
@@ -507,51 +482,45 @@ class PaperScheme:
         self._refresh_density()
 
     def _refresh_density(self) -> None:
-        """Summation density of every particle at the current positions (particles outside a local
-        frame's rows keep this value); redone when the particle mass changes (new material)."""
-        s = self.solver
-        n = s.n
+        """Summation density of every particle at the current positions (particles outside a
+        local frame's rows keep this value); redone when the particle mass changes."""
+        n = len(self.X)
         ok, self.nb_idx, self.nb_dw, self.nb_w = current_neighbours(
-            s.x, self.global_rows, n, self.global_rows, n, s.h, self.pos, self.nb_off,
+            self.x, self.global_rows, n, self.global_rows, n, self.h, self.pos, self.nb_off,
             self.nb_idx, self.nb_dw, self.nb_w)
         if ok:
-            summation_density(self.global_rows, n, self.nb_off, self.nb_w, s.mass, s.h, self.rho)
-        else:
-            self.rho[:] = s.material.rho
-        self._mass = s.mass
+            summation_density(self.global_rows, n, self.nb_off, self.nb_w, self.mass, self.h, self.rho)
+        elif self.material is not None:
+            self.rho[:] = self.material.rho
 
-    def run(self, lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt) -> tuple[float, bool]:
-        """One frame on the solver's index sets (same tuple as the tlsph path); returns ``(overlap, ok)``."""
-        s = self.solver
-        m = s.material
-        (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
-        if s.mass != self._mass:
-            self._refresh_density()
-        if s.config.mode == 'global':
-            rows, n_rows = self.global_rows, s.n
-            search, n_search = self.global_rows, s.n
-            n_sph = len(s.free_idx)
+    def state(self, sets, active: np.ndarray, n_active: int) -> Paper:
+        """This frame's state: every particle as rows in global mode (``sets.sph`` is every free
+        one), else the solved particles, their stress set and the search set around them."""
+        if sets.n_sph == self.n_free and sets.n_stress == len(self.X):
+            rows, n_rows = self.global_rows, len(self.X)
+            search, n_search = self.global_rows, len(self.X)
         else:
             self.stamp_val += 1
-            n_rows, n_search = local_rows(s.offsets, s.indices, sph, n_sph, stress, n_stress,
-                                          s.active_list, s.n_active, self.stamp, self.stamp_val,
+            n_rows, n_search = local_rows(self.offsets, self.indices, sets.sph, sets.n_sph, sets.stress,
+                                          sets.n_stress, active, n_active, self.stamp, self.stamp_val,
                                           self.rows, self.search)
             rows, search = self.rows, self.search
-        overlap, ok, self.nb_idx, self.nb_dw, self.nb_w = paper_frame(
-            s.X, s.x, s.v, s.acc, s.fixed, s.mass, s.h, m.G, m.K, m.eta_shear, m.eta_bulk,
-            s.config.paper_momentum, rows, n_rows, search, n_search, n_sph,
-            layer, layer_w, n_lp, cand, n_cand, contact,
-            seg0, seg1, tool_on, reach, s.config.contact_stiffness, s.contact_damping,
-            n_sub, sub_dt, dt, s.config.velocity_limit, s.react, s.ext_idx, s.ext_force, len(s.ext_idx),
-            self.rho, self.eps, self.epsd, self.sig, self.pos, self.nb_off,
-            self.nb_idx, self.nb_dw, self.nb_w, s.contact_surf, s.abort)
-        self._vm_rows = rows
-        self.n_rows_last = n_rows if ok else 0
-        return overlap, ok
+        self._frame = (rows, n_rows)
+        m = self.material
+        return Paper(self.h, m.G, m.K, m.eta_shear, m.eta_bulk, self.form, rows, n_rows, search,
+                     n_search, self.rho, self.eps, self.epsd, self.sig, self.pos, self.nb_off,
+                     self.nb_idx, self.nb_dw, self.nb_w)
 
-    def von_mises(self) -> np.ndarray:
-        """(N,) von Mises stress [Pa] of the last frame's stress rows (0 elsewhere)."""
-        out = np.zeros(self.solver.n)
+    def grow(self, state: Paper) -> Paper:
+        """The same state with larger pair buffers (:data:`~.protocols.STATUS_FULL`)."""
+        self.nb_idx, self.nb_dw, self.nb_w = grown(self.nb_idx, self.nb_dw, self.nb_w)
+        return state._replace(nb_idx=self.nb_idx, nb_dw=self.nb_dw, nb_w=self.nb_w)
+
+    def frame_done(self, ok: bool) -> None:
+        self._rows_last, n_rows = self._frame
+        self.n_rows_last = n_rows if ok else 0
+
+    def von_mises(self, x: np.ndarray, sets, out: np.ndarray) -> None:
+        """Von Mises stress of the last frame's stress rows (0 elsewhere)."""
         if self.n_rows_last > 0:
-            von_mises_rows(self.sig, self._vm_rows, self.n_rows_last, out)
-        return out
+            von_mises_rows(self.sig, self._rows_last, self.n_rows_last, out)

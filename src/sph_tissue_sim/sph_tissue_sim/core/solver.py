@@ -22,18 +22,20 @@ import numba
 import numpy as np
 from tissue_common.force import clamp_norm
 
+from . import frame
 from .contact import contact_vector_py, deepest_contact, surface_discs
 from .errors import ConfigError, ModelError, SimError
-from .integrate import (SCHEME_MASS_SPRING, SCHEME_TLSPH, frame_state_ok, run_frame, substep_bounds,
-                        substeps_for)
+from .integrate import SymplecticEuler, frame_state_ok, substep_bounds, substeps_for
 from .kernel import SUPPORT
-from .local_area import (active_stats, detect_local, far_field_shell, local_prepare, local_release,
-                         restore_state, save_state)
+from .local_area import LocalArea, active_stats
 from .material import Material
 from .models import TissueModel
 from .neighbours import CellGrid, find_neighbours
 from .paper import PaperScheme
-from .tlsph import pair_gradients, reference_pairs, tlsph_von_mises
+from .protocols import STATUS_OK
+from .springs import MassSpringScheme
+from .state import Body, Loads, Motion, Sets, ToolPath
+from .tlsph import TlsphScheme
 from .tools import NO_ROTATION, TOOLS, make_tool
 
 SCHEMES = ('paper', 'tlsph', 'mass_spring')
@@ -46,6 +48,24 @@ class InvalidInput(SimError, ValueError):
 
 class StepInterrupted(SimError):
     """:meth:`Solver.interrupt` stopped the step; the state is as before it."""
+
+
+#: (lowest, highest, kind) of every numeric :class:`SolverConfig` field; kind ``open``: lowest
+#: excluded, ``int``: an integer, ``closed``: both included
+CONFIG_RANGES = {
+    'h_ratio': (0.2, 4.0, 'closed'), 'k1_gain': (0.0, math.inf, 'closed'),
+    'k1_min': (0.0, math.inf, 'open'), 'k1_max': (0.0, math.inf, 'open'),
+    'n_layers': (0, 8, 'int'), 'tool_radius': (0.0, math.inf, 'open'),
+    'tool_length': (0.0, math.inf, 'closed'), 'contact_stiffness': (0.0, math.inf, 'open'),
+    'contact_damping_ratio': (0.0, math.inf, 'closed'), 'force_limit': (0.0, math.inf, 'open'),
+    'cfl': (0.0, 1.0, 'open'), 'max_substeps': (1, 100000, 'int'),
+    'relax_disp_tol': (0.0, math.inf, 'open'), 'relax_vel_tol': (0.0, math.inf, 'open'),
+    'hourglass': (0.0, math.inf, 'closed'), 'velocity_limit': (0.0, math.inf, 'open'),
+    'max_tool_distance': (0.0, math.inf, 'open'), 'spring_radius': (0.0, math.inf, 'open'),
+    'contact_particle_radius': (0.0, math.inf, 'open'), 'contact_disc': (0.0, 0.5, 'closed'),
+    'paper_momentum': (12, 14, 'int'), 'parallel_min_particles': (0, math.inf, 'int'),
+    'far_field': (0.0, 2.0, 'closed'), 'max_tool_speed': (0.0, math.inf, 'open'),
+}
 
 
 @dataclass
@@ -139,50 +159,28 @@ class SolverConfig:
     max_tool_speed: float = 1.0
 
     def validate(self) -> 'SolverConfig':
-        """Check ranges; raises :class:`ConfigError` naming the bad field. Returns self."""
-        if self.scheme not in SCHEMES:
-            raise ConfigError(f'scheme must be one of {SCHEMES}, got {self.scheme!r}')
-        if self.mode not in MODES:
-            raise ConfigError(f'mode must be one of {MODES}, got {self.mode!r}')
-        if self.tool_shape not in TOOLS:
-            raise ConfigError(f'tool_shape must be one of {tuple(TOOLS)}, got {self.tool_shape!r}')
-        for f in fields(self):
-            val = getattr(self, f.name)
-            if f.name in ('scheme', 'mode', 'tool_shape'):
-                continue
+        """Check ranges (:data:`CONFIG_RANGES`); raises :class:`ConfigError` naming the bad field.
+        Returns self, with the integer fields as ``int``."""
+        for name, choices in (('scheme', SCHEMES), ('mode', MODES), ('tool_shape', tuple(TOOLS))):
+            if getattr(self, name) not in choices:
+                raise ConfigError(f'{name} must be one of {choices}, got {getattr(self, name)!r}')
+        for name, (lo, hi, kind) in CONFIG_RANGES.items():
+            val = getattr(self, name)
             if not isinstance(val, (int, float)) or isinstance(val, bool) or not math.isfinite(val):
-                raise ConfigError(f'{f.name} must be a finite number, got {val!r}')
-        positive = ('h_ratio', 'k1_min', 'k1_max', 'tool_radius', 'contact_stiffness', 'force_limit',
-                    'cfl', 'relax_disp_tol', 'relax_vel_tol', 'velocity_limit', 'max_tool_distance',
-                    'spring_radius', 'contact_particle_radius', 'max_tool_speed')
-        for name in positive:
-            if getattr(self, name) <= 0.0:
-                raise ConfigError(f'{name} must be > 0, got {getattr(self, name)}')
-        for name in ('k1_gain', 'contact_damping_ratio', 'hourglass', 'tool_length'):
-            if getattr(self, name) < 0.0:
-                raise ConfigError(f'{name} must be >= 0, got {getattr(self, name)}')
-        if not 0.2 <= self.h_ratio <= 4.0:
-            raise ConfigError(f'h_ratio must be in [0.2, 4] particle spacings, got {self.h_ratio}')
+                raise ConfigError(f'{name} must be a finite number, got {val!r}')
+            if kind == 'int' and int(val) != val:
+                raise ConfigError(f'{name} must be an integer, got {val}')
+            if val < lo or (kind == 'open' and val == lo) or val > hi:
+                sign = '>' if kind == 'open' else '>='
+                span = (f'{sign} {lo:g}' if hi == math.inf else
+                        f'in {"(" if kind == "open" else "["}{lo:g}, {hi:g}]')
+                raise ConfigError(f'{name} must be {span}, got {val}')
+            if kind == 'int':
+                setattr(self, name, int(val))
         if self.k1_min > self.k1_max:
             raise ConfigError(f'k1_min ({self.k1_min}) must be <= k1_max ({self.k1_max})')
-        if int(self.n_layers) != self.n_layers or not 0 <= self.n_layers <= 8:
-            raise ConfigError(f'n_layers must be an integer in [0, 8], got {self.n_layers}')
-        if int(self.max_substeps) != self.max_substeps or not 1 <= self.max_substeps <= 100000:
-            raise ConfigError(f'max_substeps must be an integer in [1, 100000], got {self.max_substeps}')
-        if self.cfl > 1.0:
-            raise ConfigError(f'cfl must be <= 1, got {self.cfl}')
-        if not 0.0 <= self.contact_disc <= 0.5:
-            raise ConfigError(f'contact_disc must be in [0, 0.5] spacings, got {self.contact_disc}')
-        if not 0.0 <= self.far_field <= 2.0:
-            raise ConfigError(f'far_field must be in [0, 2], got {self.far_field}')
         if self.paper_momentum not in (12, 14):
             raise ConfigError(f'paper_momentum must be 12 or 14 (paper eq. 12 or 14), got {self.paper_momentum}')
-        if int(self.parallel_min_particles) != self.parallel_min_particles or self.parallel_min_particles < 0:
-            raise ConfigError(f'parallel_min_particles must be an integer >= 0, got {self.parallel_min_particles}')
-        self.parallel_min_particles = int(self.parallel_min_particles)
-        self.paper_momentum = int(self.paper_momentum)
-        self.n_layers = int(self.n_layers)
-        self.max_substeps = int(self.max_substeps)
         return self
 
     @property
@@ -237,98 +235,56 @@ class Solver:
             raise ModelError('the model has no particles')
         if not isinstance(material, Material):
             raise ConfigError(f'material must be a Material, got {type(material).__name__}')
-        self.config = (config or SolverConfig()).validate()
+        self.config = cfg = (config or SolverConfig()).validate()
         self.model = model
         self.n = model.n_particles
-        self.h = self.config.h_ratio * model.spacing
+        self.h = cfg.h_ratio * model.spacing
         self.volume = model.particle_volume
         self.X = np.ascontiguousarray(model.positions, dtype=np.float64)
         self.fixed = np.ascontiguousarray(model.fixed, dtype=np.bool_)
         self.free_idx = np.flatnonzero(~self.fixed).astype(np.int32)
         self.all_idx = np.arange(self.n, dtype=np.int32)
         self.centre = self.X.mean(axis=0)
-        cfg = self.config
         self.tool = make_tool(cfg.tool_shape, cfg.tool_radius, cfg.tool_length)
         self.contact_reach = self.tool.radius + cfg.contact_particle_radius * model.spacing
         self.extent = float(np.linalg.norm(self.X.max(axis=0) - self.X.min(axis=0)))
-        self._setup_neighbours()
-        self._alloc()
-        pm = self.config.parallel_min_particles
-        self.par_min = pm if pm > 0 and numba.get_num_threads() > 1 else self.n + 1
-        self.material = material
-        self.set_material(material)
-        if self.config.scheme == 'paper':
-            self._paper = PaperScheme(self)
-        self.reset()
-
-    # ------------------------------------------------------------------ set-up
-    def _setup_neighbours(self) -> None:
         support = SUPPORT * self.h
         self.grid = CellGrid(self.X, support)
         self.offsets, self.indices = find_neighbours(self.X, support)
-        counts = np.diff(self.offsets)
-        if counts.max() == 0:
+        if np.diff(self.offsets).max() == 0:
             raise ConfigError(f'smoothing length h = {self.h:.3g} m is too small: no particle has a '
-                              f'neighbour within 2h (spacing {self.model.spacing:.3g} m)')
-        self.dw, self.w0, self.Linv = reference_pairs(self.X, self.offsets, self.indices, self.h,
-                                                      self.volume)
-        self.gv = pair_gradients(self.X, self.offsets, self.indices, self.dw, self.volume)
+                              f'neighbour within 2h (spacing {model.spacing:.3g} m)')
         self.contact_surf = surface_discs(self.X, self.offsets, self.indices, self.h, self.volume,
-                                          self.model.spacing, self.config.contact_disc)
-        self.contact_disc = self.contact_surf[-1]
-        self.disc_max = float(self.contact_disc.max()) if self.n else 0.0
-        # mass-spring: springs to reference neighbours within spring_radius spacings
-        s = self.model.spacing
-        self.s_offsets, self.s_indices = find_neighbours(self.X, self.config.spring_radius * s * 1.0001)
-        rows = np.repeat(np.arange(self.n), np.diff(self.s_offsets))
-        self.s_rest = np.linalg.norm(self.X[self.s_indices] - self.X[rows], axis=1)
-
-    def _alloc(self) -> None:
-        n = self.n
+                                          model.spacing, cfg.contact_disc)
         self.x = self.X.copy()
-        self.v = np.zeros((n, 3))
-        self.acc = np.zeros((n, 3))
-        self.F = np.zeros((n, 3, 3))
-        self.F[:] = np.eye(3)
-        self.Fd = np.zeros((n, 3, 3))
-        self.A = np.zeros((n, 3, 3))
-        self.H = np.zeros((n, 3, 3))
-        self.region_arr = np.zeros(n, dtype=np.int8)
-        self.in_active = np.zeros(n, dtype=np.int8)
-        self.in_area = np.zeros(n, dtype=np.int8)
-        self.stamp = np.zeros(n, dtype=np.int64)
-        self.stamp_val = 0
-        self.active_list = np.zeros(n, dtype=np.int32)
-        self.sph_list = np.zeros(n, dtype=np.int32)
-        self.layer_list = np.zeros(n, dtype=np.int32)
-        self.layer_w = np.zeros(n)
-        self.stress_list = np.zeros(n, dtype=np.int32)
-        self.cand_list = np.zeros(2 * n, dtype=np.int32)
-        self.tmp = np.zeros(n, dtype=np.int32)
-        self.buf_x = np.zeros((n, 3))
-        self.buf_v = np.zeros((n, 3))
-        self.touch_idx = np.zeros(256, dtype=np.int32)
-        self.touch_w = np.zeros(256)
-        self.n_touch = 0
-        self.area_centre = np.zeros(3)
+        self.v = np.zeros((self.n, 3))
+        self.acc = np.zeros((self.n, 3))
+        self.motion = Motion(self.x, self.v, self.acc)
         self.react = np.zeros(3)
-        self.fbuf = np.zeros(3)
-        self.layer_counts = np.zeros(max(self.config.n_layers, 1), dtype=np.int64)
-        self.n_stress_last = 0
-        self.ext_idx = np.zeros(0, dtype=np.int32)
-        self.ext_force = np.zeros((0, 3))
-        # far-field shell (local mode, far_field > 0): allocated on first use
-        self.ff_list = np.zeros(0, dtype=np.int32)
-        self.n_ff = 0
-        self.ff_mark = np.zeros(0, dtype=np.int8)
-        self.ff_buf = np.zeros((0, 3))
-        self.ff_load = np.zeros(3)
         self.abort = np.zeros(1, dtype=np.int8)   # set by interrupt() from another thread
+        self.loads = Loads(np.zeros(0, dtype=np.int32), np.zeros((0, 3)), 0)
+        pm = cfg.parallel_min_particles
+        self.par_min = pm if pm > 0 and numba.get_num_threads() > 1 else self.n + 1
+        self.scheme = self._make_scheme()
+        self.area = LocalArea(self.X, self.fixed, self.offsets, self.indices, self.grid, self.h,
+                              cfg.n_layers, self.contact_surf)
+        self.set_material(material)
+        self.reset()
+
+    def _make_scheme(self):
+        cfg = self.config
+        if cfg.scheme == 'paper':
+            return PaperScheme(self.X, self.x, self.fixed, self.offsets, self.indices, self.h,
+                               cfg.paper_momentum)
+        if cfg.scheme == 'mass_spring':
+            return MassSpringScheme(self.X, self.model.spacing, cfg.spring_radius)
+        return TlsphScheme(self.X, self.offsets, self.indices, self.h, self.volume, cfg.hourglass,
+                           self.par_min)
 
     def interrupt(self) -> None:
         """Make the step running in another thread stop before its next sub-step (it then raises
         :class:`StepInterrupted` with the state restored), and every later step until
-        :meth:`clear_interrupt`. Safe to call from any thread: the frame loops run without the GIL.
+        :meth:`clear_interrupt`. Safe to call from any thread: the frame loop runs without the GIL.
         """
         self.abort[0] = 1
 
@@ -352,8 +308,7 @@ class Solver:
             raise ConfigError('external force index out of range')
         if not np.all(np.isfinite(f)):
             raise ConfigError('external forces must be finite')
-        self.ext_idx = idx
-        self.ext_force = f
+        self.loads = Loads(idx, f, len(idx))
 
     def set_material(self, material: Material) -> None:
         """Change the material (takes effect at the next step; sub-step bounds are recomputed)."""
@@ -363,23 +318,10 @@ class Solver:
         cfg = self.config
         self.mass = material.rho * self.volume
         self.inv_mass = 1.0 / self.mass
+        self.body = Body(self.X, self.fixed, self.mass, self.inv_mass)
         self.contact_damping = cfg.contact_damping_ratio * 2.0 * math.sqrt(cfg.contact_stiffness * self.mass)
-        s = self.model.spacing
-        # mass-spring stiffness calibrated on a cubic lattice (face + edge springs, k_d = k_f / 2):
-        # E = 1.8 k_f / s; other lengths scale as (s / L0)^2
-        self.s_k = material.E * s / 1.8 * (s / np.maximum(self.s_rest, 1e-12)) ** 2
-        vol2 = self.volume ** 2
-        self.hg_k = cfg.hourglass * material.E * vol2
-        # the hourglass dashpot uses the viscous analogue of E (9 eta_b eta_s / (3 eta_b + eta_s)),
-        # so hourglass bonds creep with the material's own retardation time (eta_longitudinal
-        # would give them (K + 4G/3)/E times that and slow the creep of non-linear fields)
-        eta_s, eta_b = material.eta_shear, material.eta_bulk
-        eta_e = 9.0 * eta_b * eta_s / (3.0 * eta_b + eta_s) if eta_b + eta_s > 0.0 else 0.0
-        self.hg_c = cfg.hourglass * eta_e * vol2
-        c = material.wave_speed
-        if cfg.scheme == 'mass_spring':
-            kmax = float(np.max(np.add.reduceat(self.s_k, self.s_offsets[:-1]))) if len(self.s_k) else 0.0
-            c = max(c, math.sqrt(max(kmax, 1e-30) / self.mass) * s)
+        self.scheme.set_material(material, self.mass)
+        c = self.scheme.wave_speed(material, self.mass)
         self.dt_bounds = substep_bounds(self.h, c, material.rho, material.eta_longitudinal,
                                         self.mass, cfg.contact_stiffness, cfg.cfl)
         if cfg.contact_damping_ratio > 0.0:
@@ -394,25 +336,14 @@ class Solver:
         self.x[:] = self.X
         self.v[:] = 0.0
         self.acc[:] = 0.0
-        self.F[:] = np.eye(3)
-        self.Fd[:] = 0.0
-        self.A[:] = 0.0
-        self.H[:] = 0.0
-        self.region_arr[:] = 0
-        self.in_active[:] = 0
-        self.in_area[:] = 0
-        self.n_active = 0
-        self.n_ff = 0
+        self.area.reset(self.config.mode == 'global')
+        self.scheme.reset()
         self.sim_time = 0.0
         self.f_prev = 0.0
         self.tool_prev: np.ndarray | None = None     # the tip position [m] of the previous frame
         self.seg_prev: np.ndarray | None = None      # and the tool's segment (2, 3)
         self.last_result: StepResult | None = None
-        self.n_stress_last = 0
-        if self.config.mode == 'global':
-            self.region_arr[self.free_idx] = 1
-        if hasattr(self, '_paper'):
-            self._paper.reset()
+        self._last_sets: Sets | None = None           # the sets of the last finished frame
 
     # ------------------------------------------------------------------ state
     @property
@@ -428,7 +359,17 @@ class Solver:
     @property
     def region(self) -> np.ndarray:
         """(N,) int8: 0 still, 1 interaction (full solve), 1 + i transmission layer i."""
-        return self.region_arr
+        return self.area.region
+
+    @property
+    def n_active(self) -> int:
+        """Particles moving outside the reference state (local mode; 0 in global mode)."""
+        return self.area.n_active
+
+    @property
+    def n_stress_last(self) -> int:
+        """Particles that got a stress state in the last finished frame."""
+        return self._last_sets.n_stress if self._last_sets is not None else 0
 
     @property
     def n_particles(self) -> int:
@@ -443,24 +384,11 @@ class Solver:
         return np.linalg.norm(self.x - self.X, axis=1)
 
     def von_mises(self) -> np.ndarray:
-        """(N,) von Mises stress [Pa] of the last computed stress state (0 where none was computed)."""
+        """(N,) von Mises stress [Pa] of the last computed stress state (0 where none was computed;
+        the mass-spring scheme gives E times the largest spring strain)."""
         out = np.zeros(self.n)
-        m = self.material
-        if self.config.scheme == 'tlsph':
-            if self.config.mode == 'global':
-                idx, n = self.all_idx, self.n
-            else:
-                idx, n = self.stress_list, self.n_stress_last
-            tlsph_von_mises(self.F, self.Fd, m.G, m.K, m.eta_shear, m.eta_bulk, idx, n, out)
-        elif self.config.scheme == 'paper' and hasattr(self, '_paper'):
-            out[:] = self._paper.von_mises()
-        else:
-            # mass-spring: a strain measure from the neighbour displacement field times E
-            d = self.x - self.X
-            rows = np.repeat(np.arange(self.n), np.diff(self.s_offsets))
-            strain = np.abs(np.linalg.norm(self.x[self.s_indices] - self.x[rows], axis=1) / self.s_rest - 1.0)
-            out[:] = m.E * np.maximum.reduceat(strain, self.s_offsets[:-1]) if len(strain) else 0.0
-            del d
+        if self._last_sets is not None:
+            self.scheme.von_mises(self.x, self._last_sets, out)
         return out
 
     # ------------------------------------------------------------------ stepping
@@ -542,11 +470,12 @@ class Solver:
             seg0 = self.seg_prev if self.seg_prev is not None else seg1
         else:
             seg0 = seg1 = np.stack([self.centre, self.centre])
-        reach = self.contact_reach
+        path = ToolPath(seg0, seg1, tool_on, self.contact_reach, cfg.contact_stiffness,
+                        self.contact_damping, self.contact_surf)
         if cfg.mode == 'global':
-            res = self._global_step(seg0, seg1, tool_on, reach, n_sub, sub_dt, dt)
+            res = self._global_step(path, n_sub, sub_dt, dt)
         else:
-            res = self._local_step(seg0, seg1, tool_on, reach, n_sub, sub_dt, dt)
+            res = self._local_step(path, n_sub, sub_dt, dt)
         force_raw = self.react.copy()
         force, clamped = clamp_norm(force_raw, cfg.force_limit)
         f0, f1, f2 = force.tolist()
@@ -587,136 +516,67 @@ class Solver:
                 return prev
         return -1
 
-    def _scheme_arrays(self):
-        if self.config.scheme == 'mass_spring':
-            return SCHEME_MASS_SPRING, self.s_offsets, self.s_indices, self.s_k, self.s_rest
-        return SCHEME_TLSPH, self.offsets, self.indices, self.dw, self.w0
+    def _frame(self, sets: Sets, path: ToolPath, n_sub: int, sub_dt: float, dt: float, mode: str) -> float:
+        """One frame on ``sets`` (:func:`~.frame.run`); returns the last overlap [m].
 
-    def _run(self, lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt):
-        """One frame on the index sets ``lists``; returns ``(overlap, ok)``.
-
-        ``ok`` is False when the frame left a non-finite or too fast particle or a non-finite
-        reaction (checked outside the fast-math kernels, see :func:`~.integrate.frame_state_ok`).
+        On a blow-up (non-finite or too fast, checked outside the fast-math kernels with
+        :func:`~.integrate.frame_state_ok`), a torn body or an interrupt the moved particles go
+        back to their state before the frame and :class:`SimError` is raised.
         """
-        (stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand) = lists
-        if self.config.scheme == 'paper':
-            overlap, ok = self._paper.run(lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt)
-        else:
-            m = self.material
-            sid, off, idx, dw, w0 = self._scheme_arrays()
-            overlap = run_frame(
-                sid, self.X, self.x, self.v, self.acc, self.fixed, self.inv_mass, self.volume,
-                off, idx, dw, w0, self.Linv, self.F, self.Fd, self.A, self.H, self.gv,
-                m.G, m.K, m.eta_shear, m.eta_bulk, self.hg_k, self.hg_c, m.retardation_time,
-                stress, n_stress, sph, n_sph, layer, layer_w, n_lp, cand, n_cand, contact,
-                seg0, seg1, tool_on, reach, self.config.contact_stiffness, self.contact_damping,
-                n_sub, sub_dt, dt, self.react, self.fbuf,
-                self.ext_idx, self.ext_force, len(self.ext_idx), self.contact_surf,
-                self.touch_idx, self.touch_w, self.n_touch, self.par_min, self.abort)
-            ok = True
-        ok = ok and frame_state_ok(self.x, self.v, sph, n_sph, layer, n_lp, self.config.velocity_limit,
-                                   self.react)
-        return overlap, ok and self.abort[0] == 0
-
-    def _frame_error(self, mode: str) -> SimError:
-        """The error of a frame that did not finish (its state was restored by the caller)."""
-        if self.abort[0] != 0:
-            return StepInterrupted(f'{self.config.scheme} {mode} step interrupted; state restored')
-        return SimError(f'{self.config.scheme} {mode} step went unstable (non-finite or speed > '
-                        f'{self.config.velocity_limit} m/s); state restored')
-
-    def _global_step(self, seg0, seg1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
-        contact = self._sticky_contact(seg1, reach) if tool_on else -1
-        if tool_on and contact < 0:
-            contact = deepest_contact(self.x, self.all_idx, self.n, seg1, reach, self.contact_surf)
-        self.buf_x[:] = self.x
-        self.buf_v[:] = self.v
-        lists = (self.all_idx, self.n, self.free_idx, len(self.free_idx), self.layer_list, self.layer_w, 0,
-                 self.all_idx, self.n)
-        overlap, ok = self._run(lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt)
+        self.area.save(self.x, self.v, sets)
+        status, overlap = frame.run(self.scheme, SymplecticEuler(sub_dt), self.body, self.motion, sets,
+                                    path, self.loads, n_sub, dt, self.react, self.abort,
+                                    self.area.active, self.area.n_active)
+        ok = (status == STATUS_OK and self.abort[0] == 0
+              and frame_state_ok(self.x, self.v, sets.sph, sets.n_sph, sets.layer, sets.n_layer,
+                                 self.config.velocity_limit, self.react))
+        self.scheme.frame_done(ok)
         if not ok:
-            self.x[:] = self.buf_x
-            self.v[:] = self.buf_v
+            self.area.restore(self.x, self.v, sets)
             self.react[:] = 0.0
-            raise self._frame_error('global')
-        md, ke = active_stats(self.x, self.X, self.v, self.free_idx, len(self.free_idx), self.mass)
-        self.n_stress_last = self.n
-        return dict(contact_index=int(contact), penetration=float(max(overlap, 0.0)),
-                    n_interaction=len(self.free_idx), n_layer=np.zeros(self.config.n_layers, dtype=np.int64),
-                    n_relaxing=0, max_displacement=float(md), kinetic_energy=float(ke), k1=0.0,
-                    n_active=len(self.free_idx))
+            if self.abort[0] != 0:
+                raise StepInterrupted(f'{self.config.scheme} {mode} step interrupted; state restored')
+            raise SimError(f'{self.config.scheme} {mode} step went unstable (non-finite, torn apart or '
+                           f'speed > {self.config.velocity_limit} m/s); state restored')
+        self._last_sets = sets
+        return overlap
 
-    def _local_step(self, seg0, seg1, tool_on, reach, n_sub, sub_dt, dt) -> dict:
+    def _global_step(self, path: ToolPath, n_sub: int, sub_dt: float, dt: float) -> dict:
+        contact = -1
+        if path.on:
+            contact = self._sticky_contact(path.seg1, path.reach)
+            if contact < 0:
+                contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, path.reach,
+                                          self.contact_surf)
+        sets = self.area.global_sets(contact)
+        overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'global')
+        md, ke = active_stats(self.x, self.X, self.v, sets.sph, sets.n_sph, self.mass)
+        return dict(contact_index=int(contact), penetration=float(max(overlap, 0.0)),
+                    n_interaction=sets.n_sph, n_layer=np.zeros(self.config.n_layers, dtype=np.int64),
+                    n_relaxing=0, max_displacement=float(md), kinetic_energy=float(ke), k1=0.0,
+                    n_active=sets.n_sph)
+
+    def _local_step(self, path: ToolPath, n_sub: int, sub_dt: float, dt: float) -> dict:
         cfg = self.config
-        g = self.grid
+        area = self.area
         margin = cfg.relax_disp_tol
-        self.n_touch = 0
-        if tool_on:
-            deepest, self.n_touch = detect_local(
-                self.X, self.x, self.active_list, self.n_active, g.origin, g.cell, g.dims,
-                g.cell_start, g.cell_particles, seg1, reach, margin, self.tmp, self.contact_surf,
-                self.touch_idx, self.touch_w, self.area_centre)
-            contact = self._sticky_contact(seg1, reach)
+        area.n_touch = 0
+        contact = -1
+        if path.on:
+            deepest = area.detect(self.x, path.seg1, path.reach, margin)
+            contact = self._sticky_contact(path.seg1, path.reach)
             if contact < 0:
                 contact = deepest
-        if tool_on:
-            # candidates: every particle the tool can reach anywhere on its way through the frame
-            # (scalar maths: numpy's per-call overhead on 4 points is a few per cent of a local step)
-            ends = seg0.tolist() + seg1.tolist()
-            c = [0.25 * (ends[0][a] + ends[1][a]) + 0.25 * (ends[2][a] + ends[3][a]) for a in range(3)]
-            cand_centre = np.array(c)
-            cand_radius = (max(math.dist(e, c) for e in ends) + reach + self.disc_max + margin)
-        else:
-            contact = -1
-            cand_centre = self.centre
-            cand_radius = -1.0
         k1 = min(max(cfg.k1_gain * self.f_prev, cfg.k1_min), cfg.k1_max)
-        Dr = k1 * self.h
-        if cfg.scheme == 'paper':
-            # the paper's area: around the contact particle (sec. 4.2), Dr from that point
-            if contact >= 0:
-                self.area_centre[:] = self.X[contact]
-        elif self.n_touch > 0:
-            # around the overlap-weighted centroid of the touched particles (moves continuously
-            # when the deepest particle changes), with Dr measured from the edge of the touched
-            # patch (surface discs included) so a load spread over several particles is inside
-            ti = self.touch_idx[:self.n_touch]
-            d = self.X[ti] - self.area_centre
-            Dr += float((np.sqrt((d * d).sum(axis=1)) + self.contact_disc[ti]).max())
-        self.stamp_val += 1
-        (self.n_active, n_sph, n_lp, n_stress, n_cand, n_inter, n_relax) = local_prepare(
-            self.X, self.x, self.fixed, self.offsets, self.indices,
-            g.origin, g.cell, g.dims, g.cell_start, g.cell_particles,
-            self.in_active, self.active_list, self.n_active, self.region_arr, self.in_area,
-            self.stamp, self.stamp_val, contact, self.area_centre, Dr, 0.5 * self.h, cfg.n_layers,
-            cand_centre, cand_radius, self.sph_list, self.layer_list, self.layer_w, self.stress_list,
-            self.cand_list, self.tmp, self.layer_counts)
-        if cfg.far_field > 0.0 or self.n_ff:
-            # the load on the tissue is the reaction on the tool reversed (previous frame's, as k1)
-            np.multiply(self.react, -cfg.far_field, out=self.ff_load)
-            if len(self.ff_list) != self.n:
-                self.ff_list = np.zeros(self.n, dtype=np.int32)
-                self.ff_mark = np.zeros(self.n, dtype=np.int8)
-                self.ff_buf = np.zeros((self.n, 3))
-            self.n_ff = far_field_shell(
-                self.X, self.x, self.fixed, self.stress_list, n_stress, self.sph_list, n_sph,
-                self.layer_list, n_lp, self.ff_mark, self.ff_list, self.n_ff, self.area_centre,
-                self.ff_load, self.material.G, self.material.nu, self.buf_x, self.ff_buf)
-        save_state(self.x, self.v, self.sph_list, n_sph, self.layer_list, n_lp, self.buf_x, self.buf_v)
-        lists = (self.stress_list, n_stress, self.sph_list, n_sph, self.layer_list, self.layer_w, n_lp,
-                 self.cand_list, n_cand)
-        overlap, ok = self._run(lists, seg0, seg1, tool_on, reach, contact, n_sub, sub_dt, dt)
-        if not ok:
-            restore_state(self.x, self.v, self.sph_list, n_sph, self.layer_list, n_lp, self.buf_x, self.buf_v)
-            self.react[:] = 0.0
-            raise self._frame_error('local')
-        self.n_stress_last = n_stress
-        n_active_frame = self.n_active
-        md, ke = active_stats(self.x, self.X, self.v, self.active_list, self.n_active, self.mass)
-        self.n_active = local_release(self.X, self.x, self.v, self.in_active, self.active_list, self.n_active,
-                                      self.region_arr, self.in_area, cfg.relax_disp_tol, cfg.relax_vel_tol)
+        sets, n_inter, n_relax = area.prepare(path.seg0 if path.on else None, path.seg1, path.reach,
+                                              margin, contact, k1 * self.h, cfg.scheme == 'paper')
+        area.far_field(self.x, sets, self.react, cfg.far_field, self.material.G, self.material.nu)
+        overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
+        n_active_frame = area.n_active
+        md, ke = area.stats(self.x, self.v, self.mass)
+        area.release(self.x, self.v, cfg.relax_disp_tol, cfg.relax_vel_tol)
         return dict(contact_index=int(contact), penetration=float(max(overlap, 0.0)),
-                    n_interaction=int(n_inter), n_layer=self.layer_counts[:cfg.n_layers].copy(),
+                    n_interaction=int(n_inter), n_layer=area.layer_counts[:cfg.n_layers].copy(),
                     n_relaxing=int(n_relax), max_displacement=float(md), kinetic_energy=float(ke),
                     k1=float(k1), n_active=int(n_active_frame))
 

@@ -36,11 +36,38 @@ Normalising by R0^2 instead of |x_ij|^2 would save a division but stiffens compr
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
+from numba.extending import overload
 
 from .kernel import kernel_dwdr, kernel_w
+from .material import Material
+from .protocols import STATUS_OK, FixedStateScheme, internal_forces, is_state
+
+
+class Tlsph(NamedTuple):
+    """The scheme's state for the frame loop: reference pairs, per-particle tensors, material."""
+
+    offsets: np.ndarray    # (N + 1,) CSR of reference neighbours
+    indices: np.ndarray
+    dw: np.ndarray         # (nnz,) dW/dr(R0) / R0
+    gv: np.ndarray         # (nnz, 3) V_j DWIJ0 (:func:`pair_gradients`)
+    w0: np.ndarray         # (nnz,) hourglass pair weights
+    Linv: np.ndarray       # (N, 3, 3) inverse shape matrices
+    F: np.ndarray          # (N, 3, 3) deformation gradient
+    Fd: np.ndarray         # (N, 3, 3) its rate
+    A: np.ndarray          # (N, 3, 3) V^2 P L^-T
+    H: np.ndarray          # (N, 3, 3) hourglass map
+    volume: float          # [m^3] particle volume
+    G: float               # [Pa] shear modulus
+    K: float               # [Pa] bulk modulus
+    eta_s: float           # [Pa s] shear viscosity
+    eta_v: float           # [Pa s] bulk viscosity
+    hg_k: float            # hourglass stiffness
+    hg_c: float            # hourglass damping
+    par_min: int           # stressed particles from which a sub-step runs on the thread pool
 
 
 def reference_pairs(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float,
@@ -305,7 +332,7 @@ def _det3(a):
             + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def tlsph_von_mises(F, Fd, G, K, eta_s, eta_v, idx, n, out):
     """Von Mises stress [Pa] of the Cauchy stress ``sigma = F S F^T / J`` for ``idx[:n]`` into ``out``."""
     S = np.empty((3, 3))
@@ -346,3 +373,80 @@ def tlsph_von_mises(F, Fd, G, K, eta_s, eta_v, idx, n, out):
         d2 = sig[2, 2] - tr
         out[i] = math.sqrt(1.5 * (d0 * d0 + d1 * d1 + d2 * d2
                                   + 2.0 * (sig[0, 1] ** 2 + sig[0, 2] ** 2 + sig[1, 2] ** 2)))
+
+
+@overload(internal_forces)
+def _tlsph_forces(scheme, body, motion, sets):
+    if not is_state(scheme, Tlsph):
+        return None
+
+    def impl(scheme, body, motion, sets):
+        s = scheme
+        if sets.n_stress >= s.par_min:
+            tlsph_pass_parallel(sets.stress, sets.n_stress, sets.sph, sets.n_sph, body.X, motion.x,
+                                motion.v, motion.acc, body.inv_mass, s.volume, s.offsets, s.indices,
+                                s.dw, s.gv, s.w0, s.Linv, s.F, s.Fd, s.A, s.H, s.G, s.K, s.eta_s,
+                                s.eta_v, s.hg_k, s.hg_c)
+        else:
+            tlsph_pass(sets.stress, sets.n_stress, sets.sph, sets.n_sph, body.X, motion.x,
+                       motion.v, motion.acc, body.inv_mass, s.volume, s.offsets, s.indices,
+                       s.dw, s.gv, s.w0, s.Linv, s.F, s.Fd, s.A, s.H, s.G, s.K, s.eta_s,
+                       s.eta_v, s.hg_k, s.hg_c)
+        return STATUS_OK
+    return impl
+
+
+class TlsphScheme(FixedStateScheme):
+    """The total-Lagrangian scheme of one model (:class:`~.protocols.FrameScheme`).
+
+    Args:
+        X: (N, 3) reference positions [m]; offsets, indices: their neighbours within 2h (CSR).
+        h: smoothing length [m]; volume: particle volume [m^3].
+        hourglass: the hourglass coefficient alpha [-].
+        par_min: stressed particles from which a sub-step uses the thread pool.
+    """
+
+    name = 'tlsph'
+
+    def __init__(self, X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float,
+                 volume: float, hourglass: float, par_min: int) -> None:
+        n = len(X)
+        self.offsets, self.indices, self.volume = offsets, indices, volume
+        self.hourglass = hourglass
+        self.par_min = par_min
+        self.dw, self.w0, self.Linv = reference_pairs(X, offsets, indices, h, volume)
+        self.gv = pair_gradients(X, offsets, indices, self.dw, volume)
+        self.F = np.zeros((n, 3, 3))
+        self.Fd = np.zeros((n, 3, 3))
+        self.A = np.zeros((n, 3, 3))
+        self.H = np.zeros((n, 3, 3))
+        self._state: Tlsph | None = None
+        self.reset()
+
+    def set_material(self, material: Material, mass: float) -> None:
+        vol2 = self.volume ** 2
+        hg_k = self.hourglass * material.E * vol2
+        # the hourglass dashpot uses the viscous analogue of E (9 eta_b eta_s / (3 eta_b + eta_s)),
+        # so hourglass bonds creep with the material's own retardation time (eta_longitudinal
+        # would give them (K + 4G/3)/E times that and slow the creep of non-linear fields)
+        eta_s, eta_b = material.eta_shear, material.eta_bulk
+        eta_e = 9.0 * eta_b * eta_s / (3.0 * eta_b + eta_s) if eta_b + eta_s > 0.0 else 0.0
+        hg_c = self.hourglass * eta_e * vol2
+        self.material = material
+        self._state = Tlsph(self.offsets, self.indices, self.dw, self.gv, self.w0, self.Linv,
+                            self.F, self.Fd, self.A, self.H, self.volume, material.G, material.K,
+                            eta_s, eta_b, hg_k, hg_c, self.par_min)
+
+    def wave_speed(self, material: Material, mass: float) -> float:
+        return material.wave_speed
+
+    def reset(self) -> None:
+        self.F[:] = np.eye(3)
+        self.Fd[:] = 0.0
+        self.A[:] = 0.0
+        self.H[:] = 0.0
+
+    def von_mises(self, x: np.ndarray, sets, out: np.ndarray) -> None:
+        """Von Mises stress of the stress set of the last frame (``sets``)."""
+        m = self.material
+        tlsph_von_mises(self.F, self.Fd, m.G, m.K, m.eta_shear, m.eta_bulk, sets.stress, sets.n_stress, out)

@@ -1,4 +1,5 @@
-"""Fixtures for real-process ROS 2 tests (shared by every package's tests through pytest.ini)."""
+"""Fixtures for real-process ROS 2 tests: a pytest plugin every package's tests get through
+``pytest.ini`` (``-p tissue_testing.fixtures``), so no test folder needs a conftest of its own."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import os
 
 import pytest
 
-from tissue_testing import harness
+from . import harness
 
 
 @pytest.fixture(scope='module')

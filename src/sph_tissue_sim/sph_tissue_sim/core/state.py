@@ -1,0 +1,73 @@
+"""The named bundles the frame kernels read: one tuple per kind of state, not long argument lists.
+
+They are ``NamedTuple``s so numba passes them into ``@njit`` kernels as they are (fields keep their
+names there). Arrays in them are the solver's own, preallocated buffers: building a bundle copies
+nothing, and a kernel writing ``motion.x[i, 0]`` writes the solver's positions.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+
+class Body(NamedTuple):
+    """The reference configuration and the constants of every particle."""
+
+    X: np.ndarray          # (N, 3) reference positions [m]
+    fixed: np.ndarray      # (N,) bool: held at X (boundary)
+    mass: float            # [kg] of every particle
+    inv_mass: float        # [1/kg]
+
+
+class Motion(NamedTuple):
+    """The current state, advanced in place by the frame loop."""
+
+    x: np.ndarray          # (N, 3) positions [m]
+    v: np.ndarray          # (N, 3) velocities [m/s]
+    acc: np.ndarray        # (N, 3) accelerations of the last sub-step [m/s^2]
+
+
+class Sets(NamedTuple):
+    """The index sets of one frame (arrays with counts, so a local frame costs O(area)).
+
+    ``sph`` are integrated fully, ``stress`` (a superset) get a stress state, ``layer`` move
+    kinematically with weight ``layer_w`` (paper eqs. 20-21), ``cand`` may touch the tool.
+    The layers follow the ``touch_w``-weighted mean velocity of the touched particles
+    ``touch[:n_touch]``, or of the ``contact`` particle alone when none is listed.
+    """
+
+    stress: np.ndarray
+    n_stress: int
+    sph: np.ndarray
+    n_sph: int
+    layer: np.ndarray
+    layer_w: np.ndarray
+    n_layer: int
+    cand: np.ndarray
+    n_cand: int
+    touch: np.ndarray
+    touch_w: np.ndarray
+    n_touch: int
+    contact: int
+
+
+class ToolPath(NamedTuple):
+    """The tool across one frame and the contact law (see :mod:`.contact`)."""
+
+    seg0: np.ndarray       # (2, 3) the tool's segment at the start of the frame [m]
+    seg1: np.ndarray       # (2, 3) and at its end (both ends move linearly across the sub-steps)
+    on: bool               # False: no tool this frame (no contact forces)
+    reach: float           # [m] contact distance: tool radius + particle contact radius
+    stiffness: float       # [N/m] penalty stiffness per particle
+    damping: float         # [N s/m] contact dashpot per particle
+    surf: tuple            # contact surface geometry (:func:`~.contact.surface_discs`)
+
+
+class Loads(NamedTuple):
+    """Constant external forces: ``force[t]`` [N] on free particle ``idx[t]`` for ``t < n``."""
+
+    idx: np.ndarray
+    force: np.ndarray
+    n: int
