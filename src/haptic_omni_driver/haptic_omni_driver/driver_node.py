@@ -31,7 +31,8 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_until_stopped,
+                                      stop_on_signals)
 from tissue_common.params import check_choice, declare_all
 from tissue_common.stamps import set_stamp, stamp_to_ns
 from tissue_common.throttle import EventThrottle
@@ -438,26 +439,16 @@ def main(args=None) -> int:
     node = None
     code = EXIT_OK
     try:
-        try:
-            node = OmniDriver()
-        except ConfigError as exc:
-            rclpy.logging.get_logger('omni_driver').fatal(f'error: {exc}')
-            return EXIT_PARAMS
-        except DriverError as exc:
-            rclpy.logging.get_logger('omni_driver').fatal(f'error: {exc}')
-            return EXIT_INPUT
-        from rclpy.experimental import EventsExecutor
-
+        node, refused = build_node(OmniDriver, 'omni_driver', {ConfigError: ('error', EXIT_PARAMS),
+                                                               DriverError: ('error', EXIT_INPUT)})
+        if node is None:
+            return refused
         stop = stop_on_signals()
-        executor = EventsExecutor()
-        executor.add_node(node)
         try:
-            node.start()
+            spin_until_stopped(node, stop, node.finished, on_spinning=node.start)
         except DriverError as exc:
             node.get_logger().fatal(f'error: {exc}')
             return EXIT_INPUT
-        while rclpy.ok() and not stop.is_set() and not node.finished.is_set():
-            executor.spin_once(timeout_sec=0.1)
         code = node.exit_code
         if node.finished.is_set() and code == EXIT_OK:
             node.flush()

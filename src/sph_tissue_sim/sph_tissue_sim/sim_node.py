@@ -47,7 +47,8 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from tissue_common.force import clamp_norm
-from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_until_stopped,
+                                      stop_on_signals)
 from tissue_common.params import declare_all
 from tissue_common.stamps import stamp_to_ns
 from tissue_common.throttle import EventThrottle
@@ -549,13 +550,10 @@ def main(args=None) -> int:
     reexec = False
     try:
         try:
-            node = SimNode()
-        except ConfigError as exc:
-            rclpy.logging.get_logger('sim_node').fatal(f'invalid parameters: {exc}')
-            return EXIT_PARAMS
-        except (ModelError, SimError) as exc:
-            rclpy.logging.get_logger('sim_node').fatal(f'cannot build the tissue: {exc}')
-            return EXIT_INPUT
+            node, refused = build_node(SimNode, 'sim_node', {
+                ConfigError: ('invalid parameters', EXIT_PARAMS),
+                ModelError: ('cannot build the tissue', EXIT_INPUT),
+                SimError: ('cannot build the tissue', EXIT_INPUT)})
         except Reexec:
             reexec = True
             return EXIT_OK
@@ -564,19 +562,13 @@ def main(args=None) -> int:
                 rclpy.logging.get_logger('sim_node').info('interrupted during start-up')
                 return EXIT_OK
             raise
-        from rclpy.experimental import EventsExecutor
-
+        if node is None:
+            return refused
         stop = stop_on_signals()
         # the stepping thread's Python work between kernels holds the GIL; hand it to the executor
         # (poses, services) within a fraction of a 1 kHz frame instead of CPython's 5 ms
         sys.setswitchinterval(SWITCH_INTERVAL)
-        # The default SingleThreadedExecutor cannot keep up with 1 kHz poses here (DESIGN.md sec. 2).
-        executor = EventsExecutor()
-        executor.add_node(node)
-        node.start()
-        # spin_once in a loop (not spin()): EventsExecutor.spin() does not return on Ctrl-C here
-        while rclpy.ok() and not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
+        spin_until_stopped(node, stop, on_spinning=node.start)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

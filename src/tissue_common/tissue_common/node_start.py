@@ -3,7 +3,10 @@
 - :func:`init_rclpy`: ``rclpy.init`` raises ``RCLError`` (a traceback) for a ROS argument it cannot
   parse, e.g. ``--ros-args -p model:=`` (an override without a value); here that is one ``[FATAL]``
   line naming the argument, and ``main`` exits with :data:`EXIT_PARAMS`.
+- :func:`build_node`: a node whose construction refuses its parameters or inputs logs one
+  ``[FATAL]`` line and ``main`` exits with that refusal's code.
 - :func:`stop_on_signals`: Ctrl-C and SIGTERM set a flag instead of running rclpy's handlers.
+- :func:`spin_until_stopped`: the spin loop every node runs until that flag (or its own end).
 """
 
 from __future__ import annotations
@@ -67,3 +70,38 @@ def stop_on_signals() -> threading.Event:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     return stop
+
+
+def build_node(factory, executable: str, refusals: dict):
+    """``factory()``, or ``(None, code)`` after one ``[FATAL]`` line when it raises an exception
+    listed in ``refusals`` (exception class -> (what failed, exit code)); returns ``(node, None)``."""
+    import rclpy.logging
+
+    try:
+        return factory(), None
+    except tuple(refusals) as exc:
+        for cls, (what, code) in refusals.items():
+            if isinstance(exc, cls):
+                rclpy.logging.get_logger(executable).fatal(f'{what}: {exc}')
+                return None, code
+        raise
+
+
+def spin_until_stopped(node, stop: threading.Event, done: threading.Event | None = None,
+                       on_spinning=None) -> None:
+    """Spin ``node`` on an ``EventsExecutor`` until ``stop`` (:func:`stop_on_signals`) or ``done``
+    is set or rclpy shuts down; ``on_spinning()`` runs once the node is on the executor.
+
+    ``spin_once`` in a loop, not ``spin()``: ``EventsExecutor.spin()`` of these rclpy wheels does
+    not return on Ctrl-C (it busy-waits in C++); the default ``SingleThreadedExecutor`` cannot keep
+    up with 1 kHz poses.
+    """
+    import rclpy
+    from rclpy.experimental import EventsExecutor
+
+    executor = EventsExecutor()
+    executor.add_node(node)
+    if on_spinning is not None:
+        on_spinning()
+    while rclpy.ok() and not stop.is_set() and not (done is not None and done.is_set()):
+        executor.spin_once(timeout_sec=0.1)

@@ -23,13 +23,12 @@ from geometry_msgs.msg import Point, PoseStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException
-from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
-from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
+from tissue_common.node_start import EXIT_PARAMS, init_rclpy, spin_until_stopped, stop_on_signals
 from tissue_common.params import declare_all
 from tissue_common.stamps import stamp_to_ns
 from tissue_msgs.msg import SimMetrics
@@ -402,13 +401,7 @@ def main(args=None) -> None:
     code = EXIT_OK
     try:
         node = VizNode()
-        executor = EventsExecutor()
-        executor.add_node(node)
-        # EventsExecutor.spin() of this rclpy (7.1.x wheels) never runs a callback and does not
-        # return on Ctrl-C (it busy-waits in C++); spin_once in a loop runs timers and
-        # subscriptions and checks the stop flag at least every 0.1 s.
-        while rclpy.ok() and not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
+        spin_until_stopped(node, stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (VizConfigError, InvalidParameterValueException) as exc:
