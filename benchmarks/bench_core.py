@@ -30,7 +30,7 @@ import resource
 import subprocess
 import sys
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -375,8 +375,8 @@ def run_targets(st: Settings, models: Models, material, progress) -> list[dict]:
              Case('targets', 'local paper', 'paper', 'local', n, paper_s=PAPER_T3.get(n, (None,))[0]),
              Case('targets', 'global paper', 'paper', 'global', n, paper_s=PAPER_T2.get(n, (None,))[0]),
              Case('targets', 'global mass_spring', 'mass_spring', 'global', n, paper_s=PAPER_T1.get(n, (None,))[0]),
-             Case('targets', f'local tlsph big', 'tlsph', 'local', st.targets_local_big),
-             Case('targets', f'global tlsph 50k', 'tlsph', 'global', st.targets_global_big)]
+             Case('targets', 'local tlsph big', 'tlsph', 'local', st.targets_local_big),
+             Case('targets', 'global tlsph 50k', 'tlsph', 'global', st.targets_global_big)]
     if _numba_threads() > 1:
         # the same tlsph cases on numba's thread pool (SolverConfig.parallel_min_particles=1)
         cases += [Case('targets', f'{c.label} threads', c.scheme, c.mode, c.n_target, paper_s=c.paper_s,

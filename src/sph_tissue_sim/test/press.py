@@ -1,4 +1,4 @@
-"""Shared test motion: lower the tool onto the top centre of a block."""
+"""Shared test motions: lower the tool onto the top centre of a block, tilt a shaft, run free."""
 
 import numpy as np
 
@@ -40,3 +40,15 @@ def tilted_shaft_press(X: np.ndarray, tool, particle_radius: float, tilt: float,
     tip = tip - [0.0, 0.0, gap]                     # touching now
     tips = np.array([tip - [0.0, 0.0, depth * min(1.0, (k + 1) / ramp)] for k in range(frames)])
     return tips, rot, axis
+
+
+def momentum_drift(solver, velocities, frames: int = 200, dt: float = 1e-3) -> tuple[float, float]:
+    """Run ``solver`` free (no tool) from ``velocities``; returns (largest change of a linear
+    momentum component, the momentum scale sum |m v|) [kg m/s]."""
+    solver.velocities[:] = velocities
+    p0 = solver.velocities.sum(axis=0) * solver.mass
+    scale = float(np.abs(solver.velocities).sum() * solver.mass)
+    for _ in range(frames):
+        solver.step(None, dt)
+    p1 = solver.velocities.sum(axis=0) * solver.mass
+    return float(np.abs(p1 - p0).max()), scale

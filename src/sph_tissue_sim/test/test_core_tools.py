@@ -112,6 +112,7 @@ def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
     is k d - c (v_i - v_tool(c)) . n with v_tool the velocity of the touching point (the far end's
     here), not the tip's (zero)."""
     from sph_tissue_sim.core.contact import contact_forces, surface_discs
+    from sph_tissue_sim.core.state import Body, Motion, ToolPath
 
     X = np.array([[0.1, 0.0, -0.004]])              # 4 mm below the far end of a 100 mm shaft
     offsets, indices = np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int32)
@@ -120,10 +121,12 @@ def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
     reach, k, c, inv_mass = 0.005, 300.0, 0.5, 10.0
     for far_end_velocity, tip_velocity in ((-0.2, 0.0), (0.0, 0.0), (0.0, -0.2)):
         seg_vel = np.array([[0.0, 0.0, tip_velocity], [0.0, 0.0, far_end_velocity]])
-        acc, react = np.zeros((1, 3)), np.zeros(3)
-        overlap = contact_forces(X.copy(), np.zeros((1, 3)), np.zeros(1, dtype=np.bool_), acc,
-                                 inv_mass, np.zeros(1, dtype=np.int32), 1, seg, seg_vel, reach, k, c,
-                                 react, surf)
+        react = np.zeros(3)
+        body = Body(X, np.zeros(1, dtype=np.bool_), 1.0 / inv_mass, inv_mass)
+        motion = Motion(X.copy(), np.zeros((1, 3)), np.zeros((1, 3)))
+        tool = ToolPath(seg, seg, True, reach, k, c, surf)
+        overlap = contact_forces(body, motion, np.zeros(1, dtype=np.int32), 1, tool, seg, seg_vel,
+                                 react)
         # normal n = (0, 0, -1) at t = 1: relative normal velocity -(0 - v_far) . ... = v_far
         expected = k * 0.001 - c * (0.0 - far_end_velocity) * -1.0
         assert overlap == pytest.approx(0.001)

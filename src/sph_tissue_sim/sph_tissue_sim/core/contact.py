@@ -122,16 +122,19 @@ def contact_vector_py(i, x, seg, surf):
 
 
 @njit(cache=True, fastmath=True)
-def contact_forces(x, v, fixed, acc, inv_mass, cand, n_cand, seg, seg_vel, reach, k_c, c_c, react,
-                   surf):
-    """Add contact accelerations to ``acc`` for ``cand[:n_cand]``; accumulate the reaction in ``react``.
+def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
+    """Add contact accelerations to ``motion.acc`` for ``cand[:n_cand]``; accumulate the reaction
+    in ``react``.
 
-    ``seg`` (2, 3) is the tool's segment now and ``seg_vel`` (2, 3) the velocities of its ends [m/s].
-    ``surf = (X, offsets, indices, cw, Minv, N, disc)``: reference positions and neighbour CSR,
-    pair weights ``V_j W(R0_ij)``, inverse second moments, reference outward normals and the
+    ``seg`` (2, 3) is the tool's segment now and ``seg_vel`` (2, 3) the velocities of its ends [m/s];
+    ``tool`` (:class:`~.state.ToolPath`) gives the contact law: ``reach``, ``stiffness`` ``k_c``,
+    ``damping`` ``c_c`` and ``surf = (X, offsets, indices, cw, Minv, N, disc)``: reference
+    positions and neighbour CSR, pair weights ``V_j W(R0_ij)``, inverse second moments, reference outward normals and the
     surface-disc radius of each particle [m] (0 in the bulk), see :func:`surface_discs`.
     Returns the largest overlap [m] (0 without contact).
     """
+    x, v, acc, fixed, inv_mass = motion.x, motion.v, motion.acc, body.fixed, body.inv_mass
+    reach, k_c, c_c, surf = tool.reach, tool.stiffness, tool.damping, tool.surf
     disc = surf[6]
     best = 0.0
     for t in range(n_cand):

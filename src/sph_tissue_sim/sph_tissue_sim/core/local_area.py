@@ -27,7 +27,7 @@ from numba import njit
 
 from .contact import contact_vector, segment_distance2
 from .neighbours import append_once, query_ball
-from .state import Sets
+from .state import Area, Body, Grid, Sets, Topology
 
 
 @njit(cache=True, inline='always')
@@ -43,19 +43,24 @@ def _enter_area(j, reg, region, in_area, in_active, active_list, n_active):
 
 
 @njit(cache=True, nogil=True)
-def local_prepare(X, fixed, offsets, indices,
-                  origin, cell, dims, cell_start, cell_particles,
-                  in_active, active_list, n_active, region, in_area, stamp, stamp_val,
-                  contact_idx, centre, Dr, layer_dr, n_layers,
-                  cand_centre, cand_radius,
-                  sph_list, layer_list, layer_w, stress_list, cand_list, tmp, layer_counts):
-    """Build the index sets of one local frame.
+def local_prepare(body, topo, grid, area, n_active, stamp_val, contact_idx, Dr, layer_dr, n_layers,
+                  cand_centre, cand_radius):
+    """Build the index sets of one local frame in ``area`` (:class:`~.state.Area`).
 
-    The area is centred on ``centre`` (reference space; the overlap-weighted centroid of the
-    touched particles, so it moves continuously when the deepest particle changes).
+    The area is centred on ``area.centre`` (reference space; the overlap-weighted centroid of the
+    touched particles, so it moves continuously when the deepest particle changes), radius ``Dr``
+    [m], then ``n_layers`` layers of ``layer_dr`` [m]; the candidates are the particles within
+    ``cand_radius`` of ``cand_centre`` (none if negative).
     Returns ``(n_active, n_sph, n_lp, n_stress, n_cand, n_interaction, n_relaxing)``;
-    ``layer_counts[i-1]`` receives the particle count of layer i.
+    ``area.layer_counts[i-1]`` receives the particle count of layer i.
     """
+    X, fixed = body.X, body.fixed
+    offsets, indices = topo
+    region, in_area, in_active, active_list, stamp = (area.region, area.in_area, area.in_active,
+                                                      area.active, area.stamp)
+    sph_list, layer_list, layer_w, stress_list, cand_list, tmp = (area.sph, area.layer, area.layer_w,
+                                                                  area.stress, area.cand, area.tmp)
+    centre, layer_counts = area.centre, area.layer_counts
     for t in range(n_active):
         region[active_list[t]] = 0
     for l in range(layer_counts.shape[0]):
@@ -63,7 +68,7 @@ def local_prepare(X, fixed, offsets, indices,
     # 1. the interaction area and transmission layers around the contact particle
     if contact_idx >= 0:
         radius = Dr + n_layers * layer_dr
-        nq = query_ball(centre, radius, X, origin, cell, dims, cell_start, cell_particles, tmp)
+        nq = query_ball(centre, radius, X, grid, tmp)
         nq = min(nq, tmp.shape[0])
         for q in range(nq):
             j = tmp[q]
@@ -83,7 +88,7 @@ def local_prepare(X, fixed, offsets, indices,
             n_active = _enter_area(j, reg, region, in_area, in_active, active_list, n_active)
     # 2. particles the tool may touch this frame: solved fully; fixed ones only feel the contact
     n_cand = 0
-    nq = query_ball(cand_centre, cand_radius, X, origin, cell, dims, cell_start, cell_particles, tmp)
+    nq = query_ball(cand_centre, cand_radius, X, grid, tmp)
     nq = min(nq, tmp.shape[0])
     for q in range(nq):
         j = tmp[q]
@@ -126,11 +131,12 @@ def local_prepare(X, fixed, offsets, indices,
 
 
 @njit(cache=True, nogil=True)
-def local_release(X, x, v, in_active, active_list, n_active, region, in_area, disp_tol, vel_tol):
-    """Drop relaxed particles outside the area from the active set; returns the new count.
+def local_release(X, x, v, area, n_active, disp_tol, vel_tol):
+    """Drop relaxed particles outside the area from ``area.active[:n_active]``; returns the new count.
 
     A released particle stops (v = 0) where it is; its displacement is below ``disp_tol``.
     """
+    in_active, active_list, region, in_area = area.in_active, area.active, area.region, area.in_area
     d2tol = disp_tol * disp_tol
     v2tol = vel_tol * vel_tol
     m = 0
@@ -199,8 +205,7 @@ def boussinesq(d, load, G, nu, out):
 
 
 @njit(cache=True, nogil=True)
-def far_field_shell(X, x, fixed, stress_list, n_stress, sph_list, n_sph, layer_list, n_lp,
-                    mark, ff_list, n_ff, centre, load, G, nu, buf_d, buf_u):
+def far_field_shell(body, x, sets, mark, ff_list, n_ff, centre, load, G, nu, buf_d, buf_u):
     """Move the still particles that solved ones read (the stress shell) with the tissue around.
 
     The paper holds everything beyond the transmission layers still, which clamps the area at a
@@ -211,6 +216,9 @@ def far_field_shell(X, x, fixed, stress_list, n_stress, sph_list, n_sph, layer_l
     rest. ``mark`` (n,) int8 must be zero on entry and is zero on return. Returns the new shell
     count (``ff_list[:count]``).
     """
+    X, fixed = body.X, body.fixed
+    stress_list, n_stress, sph_list, n_sph = sets.stress, sets.n_stress, sets.sph, sets.n_sph
+    layer_list, n_lp = sets.layer, sets.n_layer
     for t in range(n_sph):
         mark[sph_list[t]] = 1
     for t in range(n_lp):
@@ -260,8 +268,7 @@ def active_stats(x, X, v, idx, n, mass):
 
 
 @njit(cache=True, nogil=True)
-def detect_local(X, x, active_list, n_active, origin, cell, dims, cell_start, cell_particles,
-                 seg, reach, margin, tmp, surf, touch_idx, touch_w, centre):
+def detect_local(X, x, grid, area, n_active, seg, reach, margin, surf):
     """Deepest-overlap particle of the tool segment ``seg`` (2, 3) in local mode, O(active + cells
     near the tool), or -1.
 
@@ -269,11 +276,13 @@ def detect_local(X, x, active_list, n_active, origin, cell, dims, cell_start, ce
     finds them; active ones (possibly far from home) are checked directly. The overlap is measured
     to the contact shape of :func:`~.contact.contact_forces` (``surf``).
 
-    Also returns the touched particles with their overlaps as weights (``touch_idx``,
-    ``touch_w``; count as second return value) and their overlap-weighted reference centroid in
-    ``centre``: the layers follow the weighted mean velocity of the touched particles and the area
-    is centred on that centroid, so neither jumps when the deepest particle changes.
+    Also returns the touched particles with their overlaps as weights (``area.touch``,
+    ``area.touch_w``; count as second return value) and their overlap-weighted reference centroid
+    in ``area.centre``: the layers follow the weighted mean velocity of the touched particles and
+    the area is centred on that centroid, so neither jumps when the deepest particle changes.
     """
+    active_list, tmp, touch_idx, touch_w, centre = (area.active, area.tmp, area.touch, area.touch_w,
+                                                    area.centre)
     best = -1
     best_d = 0.0
     n_touch = 0
@@ -285,8 +294,7 @@ def detect_local(X, x, active_list, n_active, origin, cell, dims, cell_start, ce
     for a in range(3):
         mid[a] = 0.5 * (seg[0, a] + seg[1, a])
         half2 += (0.5 * (seg[1, a] - seg[0, a])) ** 2
-    nq = query_ball(mid, math.sqrt(half2) + reach + margin + np.max(disc), X, origin, cell, dims,
-                    cell_start, cell_particles, tmp)
+    nq = query_ball(mid, math.sqrt(half2) + reach + margin + np.max(disc), X, grid, tmp)
     nq = min(nq, tmp.shape[0])
     for q in range(nq + n_active):
         j = tmp[q] if q < nq else active_list[q - nq]
@@ -343,15 +351,15 @@ class LocalArea:
 
     Args:
         X: (N, 3) reference positions; fixed: (N,) boundary mask.
-        offsets, indices: reference neighbours within 2h (CSR); grid: the reference cell grid.
+        topo: reference neighbours within 2h; grid: the reference cell grid.
         h: smoothing length [m]; n_layers: transmission layers; surf: contact surface
             (:func:`~.contact.surface_discs`).
     """
 
-    def __init__(self, X: np.ndarray, fixed: np.ndarray, offsets: np.ndarray, indices: np.ndarray,
-                 grid, h: float, n_layers: int, surf: tuple) -> None:
+    def __init__(self, X: np.ndarray, fixed: np.ndarray, topo: Topology, grid: Grid, h: float,
+                 n_layers: int, surf: tuple) -> None:
         n = len(X)
-        self.X, self.fixed, self.offsets, self.indices = X, fixed, offsets, indices
+        self.X, self.fixed, self.topo = X, fixed, topo
         self.grid, self.h, self.n_layers, self.surf = grid, h, n_layers, surf
         self.disc = surf[-1]
         self.disc_max = float(self.disc.max()) if n else 0.0
@@ -383,6 +391,9 @@ class LocalArea:
         self.ff_mark = np.zeros(0, dtype=np.int8)
         self.ff_buf = np.zeros((0, 3))
         self.ff_load = np.zeros(3)
+        self.bundle = Area(self.region, self.in_area, self.in_active, self.active, self.stamp, self.sph,
+                           self.layer, self.layer_w, self.stress, self.cand, self.tmp, self.touch,
+                           self.touch_w, self.centre, self.layer_counts)
 
     def reset(self, global_mode: bool) -> None:
         """No active particle; in global mode every free particle is in the interaction area."""
@@ -404,14 +415,11 @@ class LocalArea:
     def detect(self, x: np.ndarray, seg: np.ndarray, reach: float, margin: float) -> int:
         """The deepest touched particle of the tool's segment (or -1); records the touched ones
         and centres the area on their overlap-weighted centroid (:func:`detect_local`)."""
-        g = self.grid
-        deepest, self.n_touch = detect_local(
-            self.X, x, self.active, self.n_active, g.origin, g.cell, g.dims, g.cell_start,
-            g.cell_particles, seg, reach, margin, self.tmp, self.surf, self.touch, self.touch_w,
-            self.centre)
+        deepest, self.n_touch = detect_local(self.X, x, self.grid, self.bundle, self.n_active, seg,
+                                             reach, margin, self.surf)
         return deepest
 
-    def prepare(self, seg0: np.ndarray | None, seg1: np.ndarray | None, reach: float, margin: float,
+    def prepare(self, body: Body, seg0: np.ndarray | None, seg1: np.ndarray | None, reach: float, margin: float,
                 contact: int, Dr: float, on_contact: bool) -> tuple[Sets, int, int]:
         """The sets of a local frame; returns ``(sets, n_interaction, n_relaxing)``.
 
@@ -437,19 +445,14 @@ class LocalArea:
             d = self.X[ti] - self.centre
             Dr += float((np.sqrt((d * d).sum(axis=1)) + self.disc[ti]).max())
         self.stamp_val += 1
-        g = self.grid
         (self.n_active, n_sph, n_lp, n_stress, n_cand, n_inter, n_relax) = local_prepare(
-            self.X, self.fixed, self.offsets, self.indices,
-            g.origin, g.cell, g.dims, g.cell_start, g.cell_particles,
-            self.in_active, self.active, self.n_active, self.region, self.in_area,
-            self.stamp, self.stamp_val, contact, self.centre, Dr, 0.5 * self.h, self.n_layers,
-            cand_centre, cand_radius, self.sph, self.layer, self.layer_w, self.stress,
-            self.cand, self.tmp, self.layer_counts)
+            body, self.topo, self.grid, self.bundle, self.n_active, self.stamp_val, contact, Dr,
+            0.5 * self.h, self.n_layers, cand_centre, cand_radius)
         sets = Sets(self.stress, n_stress, self.sph, n_sph, self.layer, self.layer_w, n_lp,
                     self.cand, n_cand, self.touch, self.touch_w, self.n_touch, contact)
         return sets, n_inter, n_relax
 
-    def far_field(self, x: np.ndarray, sets: Sets, react: np.ndarray, factor: float, G: float,
+    def far_field(self, body: Body, x: np.ndarray, sets: Sets, react: np.ndarray, factor: float, G: float,
                   nu: float) -> None:
         """Place the stress shell at the half-space response to the load ``-factor * react``
         (:func:`far_field_shell`); returns the shell to rest once ``factor`` is 0."""
@@ -461,10 +464,8 @@ class LocalArea:
             self.ff_list = np.zeros(n, dtype=np.int32)
             self.ff_mark = np.zeros(n, dtype=np.int8)
             self.ff_buf = np.zeros((n, 3))
-        self.n_ff = far_field_shell(
-            self.X, x, self.fixed, sets.stress, sets.n_stress, sets.sph, sets.n_sph, sets.layer,
-            sets.n_layer, self.ff_mark, self.ff_list, self.n_ff, self.centre, self.ff_load, G, nu,
-            self.buf_x, self.ff_buf)
+        self.n_ff = far_field_shell(body, x, sets, self.ff_mark, self.ff_list, self.n_ff, self.centre,
+                                    self.ff_load, G, nu, self.buf_x, self.ff_buf)
 
     def save(self, x: np.ndarray, v: np.ndarray, sets: Sets) -> None:
         """Keep the state of the particles a frame on ``sets`` moves."""
@@ -476,8 +477,7 @@ class LocalArea:
 
     def release(self, x: np.ndarray, v: np.ndarray, disp_tol: float, vel_tol: float) -> None:
         """Drop relaxed particles outside the area from the active set (:func:`local_release`)."""
-        self.n_active = local_release(self.X, x, v, self.in_active, self.active, self.n_active,
-                                      self.region, self.in_area, disp_tol, vel_tol)
+        self.n_active = local_release(self.X, x, v, self.bundle, self.n_active, disp_tol, vel_tol)
 
     def stats(self, x: np.ndarray, v: np.ndarray, mass: float) -> tuple[float, float]:
         """Max displacement [m] and kinetic energy [J] of the active particles."""

@@ -14,6 +14,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .state import Grid
+
 
 class CellGrid:
     """A cell grid over a fixed point set (e.g. the reference configuration).
@@ -31,12 +33,12 @@ class CellGrid:
         self.cell = float(cell)
         self.origin, self.dims = grid_geometry(points, self.cell)
         self.cell_start, self.cell_particles = bin_points(points, self.origin, self.cell, self.dims)
+        self.bundle = Grid(self.origin, self.cell, self.dims, self.cell_start, self.cell_particles)
 
     def query(self, centre: np.ndarray, radius: float, points: np.ndarray) -> np.ndarray:
         """Indices of ``points`` within ``radius`` of ``centre`` (any radius; scans the covering cells)."""
         out = np.empty(len(points), dtype=np.int32)
-        n = query_ball(np.asarray(centre, dtype=np.float64), radius, points, self.origin, self.cell,
-                       self.dims, self.cell_start, self.cell_particles, out)
+        n = query_ball(np.asarray(centre, dtype=np.float64), radius, points, self.bundle, out)
         return out[:n].copy()
 
 
@@ -87,13 +89,13 @@ def bin_points(points: np.ndarray, origin: np.ndarray, cell: float,
 
 
 @njit(cache=True)
-def query_ball(centre: np.ndarray, radius: float, points: np.ndarray, origin: np.ndarray, cell: float,
-               dims: np.ndarray, cell_start: np.ndarray, cell_particles: np.ndarray,
-               out: np.ndarray) -> int:
-    """Write indices of points within ``radius`` of ``centre`` into ``out``; return how many.
+def query_ball(centre: np.ndarray, radius: float, points: np.ndarray, grid: Grid, out: np.ndarray) -> int:
+    """Write indices of ``points`` (binned in ``grid``) within ``radius`` of ``centre`` into
+    ``out``; return how many (possibly more than ``out`` holds: only those fit are written).
 
     Cost is proportional to the cells covering the ball, independent of the number of points.
     """
+    origin, cell, dims, cell_start, cell_particles = grid
     r2 = radius * radius
     lo0 = _cell_of(centre[0] - radius, origin[0], cell, dims[0])
     hi0 = _cell_of(centre[0] + radius, origin[0], cell, dims[0])

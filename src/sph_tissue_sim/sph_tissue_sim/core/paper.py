@@ -196,8 +196,7 @@ def summation_density(rows, n_rows, nb_off, nb_w, mass, h, rho):
 
 
 @njit(cache=True, fastmath=True)
-def strain_stress(rows, n_rows, X, x, v, nb_off, nb_idx, nb_dw, mass, rho,
-                  G, K, eta_s, eta_v, eps, epsd, sig):
+def strain_stress(p, X, x, v, mass):
     """Strain, strain rate (difference form of eq. 16) and Kelvin-Voigt stress (eqs. 1-3).
 
     For ``i = rows[r]``, with ``V_j = m / rho_j`` and ``DWIJ = nb_dw[k] * (x_i - x_j)``::
@@ -207,8 +206,11 @@ def strain_stress(rows, n_rows, X, x, v, nb_off, nb_idx, nb_dw, mass, rho,
         eps_i = sym(grad u_i),  deps_i/dt = sym(grad v_i)
         sigma_i = 2 G dev(eps) + K tr(eps) I + 2 eta_s dev(deps/dt) + eta_v tr(deps/dt) I
 
-    Components are stored as (xx, yy, zz, xy, xz, yz) rows of ``eps``, ``epsd``, ``sig`` (N, 6).
+    for the rows of ``p`` (a :class:`Paper`). Components are stored as (xx, yy, zz, xy, xz, yz)
+    rows of ``p.eps``, ``p.epsd``, ``p.sig`` (N, 6).
     """
+    rows, n_rows, nb_off, nb_idx, nb_dw, rho = p.rows, p.n_rows, p.nb_off, p.nb_idx, p.nb_dw, p.rho
+    G, K, eta_s, eta_v, eps, epsd, sig = p.G, p.K, p.eta_s, p.eta_v, p.eps, p.epsd, p.sig
     for r in range(n_rows):
         i = rows[r]
         xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
@@ -251,8 +253,8 @@ MOMENTUM_EQ12 = 12
 
 
 @njit(cache=True, fastmath=True)
-def momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form):
-    """Internal acceleration ``(a0, a1, a2)`` of ``i = rows[r]``.
+def momentum_one(r, p, x, mass):
+    """Internal acceleration ``(a0, a1, a2)`` of ``i = p.rows[r]`` (``p`` a :class:`Paper`).
 
     ``form == 14`` (eq. 14, the paper's final form)::
 
@@ -269,6 +271,7 @@ def momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form):
     eq. 14 has a non-symmetric stiffness, whose growing modes make a free block at rest with a
     tiny perturbation fly apart at any time step (see the tests).
     """
+    rows, nb_off, nb_idx, nb_dw, rho, sig, form = p.rows, p.nb_off, p.nb_idx, p.nb_dw, p.rho, p.sig, p.form
     i = rows[r]
     if form == MOMENTUM_EQ12:
         ri2 = 1.0 / rho[i]
@@ -337,13 +340,11 @@ def _paper_forces(scheme, body, motion, sets):
             if p.nb_off[r + 1] == p.nb_off[r]:
                 return STATUS_BROKEN   # a solved particle with no neighbour left: the body tore apart
         summation_density(p.rows, p.n_rows, p.nb_off, p.nb_w, body.mass, p.h, p.rho)
-        strain_stress(p.rows, p.n_rows, body.X, x, motion.v, p.nb_off, p.nb_idx, p.nb_dw, body.mass,
-                      p.rho, p.G, p.K, p.eta_s, p.eta_v, p.eps, p.epsd, p.sig)
+        strain_stress(p, body.X, x, motion.v, body.mass)
         acc = motion.acc
         for r in range(sets.n_sph):
             i = p.rows[r]
-            a0, a1, a2 = momentum_one(r, p.rows, x, p.nb_off, p.nb_idx, p.nb_dw, body.mass, p.rho,
-                                      p.sig, p.form)
+            a0, a1, a2 = momentum_one(r, p, x, body.mass)
             acc[i, 0] = a0
             acc[i, 1] = a1
             acc[i, 2] = a2
@@ -412,17 +413,15 @@ def paper_fields(X: np.ndarray, x: np.ndarray, v: np.ndarray, fixed: np.ndarray,
                                                  np.empty(64 * n))
     if not ok:
         raise ValueError('positions are non-finite or too far apart for a cell grid')
-    rho = np.empty(n)
-    eps = np.zeros((n, 6))
-    epsd = np.zeros((n, 6))
-    sig = np.zeros((n, 6))
+    p = Paper(h, material.G, material.K, material.eta_shear, material.eta_bulk, form, rows, n, rows, n,
+              np.empty(n), np.zeros((n, 6)), np.zeros((n, 6)), np.zeros((n, 6)), np.empty((n, 3)),
+              nb_off, nb_idx, nb_dw, nb_w)
     acc = np.zeros((n, 3))
-    summation_density(rows, n, nb_off, nb_w, mass, h, rho)
-    strain_stress(rows, n, X, x, v, nb_off, nb_idx, nb_dw, mass, rho, material.G, material.K,
-                  material.eta_shear, material.eta_bulk, eps, epsd, sig)
+    summation_density(rows, n, nb_off, nb_w, mass, h, p.rho)
+    strain_stress(p, X, x, v, mass)
     for r in range(int((~fixed).sum())):
-        acc[rows[r]] = momentum_one(r, rows, x, nb_off, nb_idx, nb_dw, mass, rho, sig, form)
-    return dict(rho=rho, eps=eps, epsd=epsd, sig=sig, acc=acc)
+        acc[rows[r]] = momentum_one(r, p, x, mass)
+    return dict(rho=p.rho, eps=p.eps, epsd=p.epsd, sig=p.sig, acc=acc)
 
 
 # ---------------------------------------------------------------------------- the scheme object

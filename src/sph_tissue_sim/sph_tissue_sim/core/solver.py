@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -34,7 +34,7 @@ from .neighbours import CellGrid, find_neighbours
 from .paper import PaperScheme
 from .protocols import STATUS_OK
 from .springs import MassSpringScheme
-from .state import Body, Loads, Motion, Sets, ToolPath
+from .state import Body, Loads, Motion, Sets, ToolPath, Topology
 from .tlsph import TlsphScheme
 from .tools import NO_ROTATION, TOOLS, make_tool
 
@@ -266,8 +266,8 @@ class Solver:
         pm = cfg.parallel_min_particles
         self.par_min = pm if pm > 0 and numba.get_num_threads() > 1 else self.n + 1
         self.scheme = self._make_scheme()
-        self.area = LocalArea(self.X, self.fixed, self.offsets, self.indices, self.grid, self.h,
-                              cfg.n_layers, self.contact_surf)
+        self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
+                              self.h, cfg.n_layers, self.contact_surf)
         self.set_material(material)
         self.reset()
 
@@ -568,9 +568,9 @@ class Solver:
             if contact < 0:
                 contact = deepest
         k1 = min(max(cfg.k1_gain * self.f_prev, cfg.k1_min), cfg.k1_max)
-        sets, n_inter, n_relax = area.prepare(path.seg0 if path.on else None, path.seg1, path.reach,
+        sets, n_inter, n_relax = area.prepare(self.body, path.seg0 if path.on else None, path.seg1, path.reach,
                                               margin, contact, k1 * self.h, cfg.scheme == 'paper')
-        area.far_field(self.x, sets, self.react, cfg.far_field, self.material.G, self.material.nu)
+        area.far_field(self.body, self.x, sets, self.react, cfg.far_field, self.material.G, self.material.nu)
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
         n_active_frame = area.n_active
         md, ke = area.stats(self.x, self.v, self.mass)

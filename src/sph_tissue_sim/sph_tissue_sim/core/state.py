@@ -21,6 +21,43 @@ class Body(NamedTuple):
     inv_mass: float        # [1/kg]
 
 
+class Topology(NamedTuple):
+    """Reference neighbours within 2h (CSR): particle ``i``'s are ``indices[offsets[i]:offsets[i + 1]]``."""
+
+    offsets: np.ndarray
+    indices: np.ndarray
+
+
+class Grid(NamedTuple):
+    """A cell grid over the reference positions (:class:`~.neighbours.CellGrid`)."""
+
+    origin: np.ndarray         # (3,) lower corner [m]
+    cell: float                # [m] cell size
+    dims: np.ndarray           # (3,) cells per axis
+    cell_start: np.ndarray     # (ncells + 1,) CSR offsets
+    cell_particles: np.ndarray  # (N,) particles bucketed by cell
+
+
+class Area(NamedTuple):
+    """The local area's marks and index buffers (all length N; :class:`~.local_area.LocalArea`)."""
+
+    region: np.ndarray     # int8: 0 still, 1 solved, 1 + i layer i
+    in_area: np.ndarray    # int8: inside the area (or a candidate) this frame
+    in_active: np.ndarray  # int8: listed in ``active``
+    active: np.ndarray     # particles moving (area, layers, still relaxing)
+    stamp: np.ndarray      # int64 set membership marks (:func:`~.neighbours.append_once`)
+    sph: np.ndarray        # the frame's sets (see :class:`Sets`)
+    layer: np.ndarray
+    layer_w: np.ndarray
+    stress: np.ndarray
+    cand: np.ndarray       # (2N,)
+    tmp: np.ndarray        # scratch for grid queries
+    touch: np.ndarray      # touched particles and their overlaps (fixed capacity)
+    touch_w: np.ndarray
+    centre: np.ndarray     # (3,) the area's centre in reference space [m]
+    layer_counts: np.ndarray  # particles per layer of the last frame
+
+
 class Motion(NamedTuple):
     """The current state, advanced in place by the frame loop."""
 

@@ -137,10 +137,12 @@ def pair_gradients(X, offsets, indices, dw, volume):
 
 
 @njit(cache=True, fastmath=True)
-def tlsph_stress_one(i, gv, x, v, offsets, indices, Linv, volume, G, K, eta_s, eta_v, F, Fd, A,
-                     hg_k, hg_c, H):
+def tlsph_stress_one(i, s, x, v):
     """F_i, dF_i/dt, ``A_i = V^2 P_i L_i^-T`` and the hourglass map ``H_i = hg_k F_i + hg_c dF_i/dt``
-    for particle ``i`` (writes rows of F, Fd, A, H)."""
+    for particle ``i`` (writes rows of ``s.F``, ``s.Fd``, ``s.A``, ``s.H``; ``s`` a :class:`Tlsph`)."""
+    gv, offsets, indices, Linv, volume = s.gv, s.offsets, s.indices, s.Linv, s.volume
+    G, K, eta_s, eta_v, hg_k, hg_c = s.G, s.K, s.eta_s, s.eta_v, s.hg_k, s.hg_c
+    F, Fd, A, H = s.F, s.Fd, s.A, s.H
     a00 = 0.0; a01 = 0.0; a02 = 0.0; a10 = 0.0; a11 = 0.0; a12 = 0.0; a20 = 0.0; a21 = 0.0; a22 = 0.0
     b00 = 0.0; b01 = 0.0; b02 = 0.0; b10 = 0.0; b11 = 0.0; b12 = 0.0; b20 = 0.0; b21 = 0.0; b22 = 0.0
     xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
@@ -168,20 +170,14 @@ def tlsph_stress_one(i, gv, x, v, offsets, indices, Linv, volume, G, K, eta_s, e
         Fdm[0, c] = b00 * l0 + b01 * l1 + b02 * l2
         Fdm[1, c] = b10 * l0 + b11 * l1 + b12 * l2
         Fdm[2, c] = b20 * l0 + b21 * l1 + b22 * l2
-    # Green-Lagrange strain E = (F^T F - I)/2 and its rate (Fd^T F + F^T Fd)/2, as scalars
-    # (no temporaries: this runs for every particle every sub-step)
+    # rate of the Green-Lagrange strain, dE/dt = (Fd^T F + F^T Fd)/2, as scalars (no temporaries:
+    # this runs for every particle every sub-step; the elastic part below needs F alone)
     f00 = Fm[0, 0]; f01 = Fm[0, 1]; f02 = Fm[0, 2]
     f10 = Fm[1, 0]; f11 = Fm[1, 1]; f12 = Fm[1, 2]
     f20 = Fm[2, 0]; f21 = Fm[2, 1]; f22 = Fm[2, 2]
     h00 = Fdm[0, 0]; h01 = Fdm[0, 1]; h02 = Fdm[0, 2]
     h10 = Fdm[1, 0]; h11 = Fdm[1, 1]; h12 = Fdm[1, 2]
     h20 = Fdm[2, 0]; h21 = Fdm[2, 1]; h22 = Fdm[2, 2]
-    e00 = 0.5 * (f00 * f00 + f10 * f10 + f20 * f20 - 1.0)
-    e11 = 0.5 * (f01 * f01 + f11 * f11 + f21 * f21 - 1.0)
-    e22 = 0.5 * (f02 * f02 + f12 * f12 + f22 * f22 - 1.0)
-    e01 = 0.5 * (f00 * f01 + f10 * f11 + f20 * f21)
-    e02 = 0.5 * (f00 * f02 + f10 * f12 + f20 * f22)
-    e12 = 0.5 * (f01 * f02 + f11 * f12 + f21 * f22)
     r00 = h00 * f00 + h10 * f10 + h20 * f20
     r11 = h01 * f01 + h11 * f11 + h21 * f21
     r22 = h02 * f02 + h12 * f12 + h22 * f22
@@ -232,11 +228,11 @@ def tlsph_stress_one(i, gv, x, v, offsets, indices, Linv, volume, G, K, eta_s, e
 
 
 @njit(cache=True, fastmath=True)
-def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c):
+def tlsph_force_one(i, s, X, x, v):
     """Internal force ``(f0, f1, f2)`` [N] on particle ``i`` (gather over its reference neighbours).
 
-    ``hgw[k] = W(R0) / R0^2`` per pair; ``hg_k`` [Pa m^6] = alpha E V^2 and ``hg_c`` [Pa s m^6] =
-    alpha eta V^2 scale the hourglass bonds: with ``X'_k = X_j - X_i``, ``x'_k = x_j - x_i``,
+    From ``s`` (a :class:`Tlsph`): ``hgw[k] = s.w0[k] = W(R0) / R0^2`` per pair; ``hg_k``
+    [Pa m^6] = alpha E V^2 and ``hg_c`` [Pa s m^6] = alpha eta V^2 scale the hourglass bonds: with ``X'_k = X_j - X_i``, ``x'_k = x_j - x_i``,
     ``H = hg_k F + hg_c dF/dt`` (from :func:`tlsph_stress_one`) and the bond error
     ``e_k = (H_i + H_j)/2 X'_k - (hg_k x'_k + hg_c v'_k)``
 
@@ -246,6 +242,7 @@ def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c):
     bond error projected on the current bond, as in Ganzenmueller 2015), zero for rigid motions
     and linear fields, and antisymmetric in i, j.
     """
+    offsets, indices, dw, hgw, H, A, hg_k, hg_c = s.offsets, s.indices, s.dw, s.w0, s.H, s.A, s.hg_k, s.hg_c
     Xi0 = X[i, 0]; Xi1 = X[i, 1]; Xi2 = X[i, 2]
     xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
     vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
@@ -282,37 +279,36 @@ def tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c):
 
 
 @njit(cache=True)
-def tlsph_pass(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
-               offsets, indices, dw, gv, hgw, Linv, F, Fd, A, H, G, K, eta_s, eta_v, hg_k, hg_c):
-    """One sub-step of TLSPH internal forces: stresses of ``stress_list[:n_stress]``, then
-    ``acc = f / m`` of ``sph_list[:n_sph]`` (serial: no thread-pool wake-up on small sets)."""
-    for t in range(n_stress):
-        tlsph_stress_one(stress_list[t], gv, x, v, offsets, indices, Linv, volume,
-                         G, K, eta_s, eta_v, F, Fd, A, hg_k, hg_c, H)
-    for t in range(n_sph):
-        i = sph_list[t]
-        f0, f1, f2 = tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c)
+def tlsph_pass(s, body, motion, sets):
+    """One sub-step of TLSPH internal forces (``s`` a :class:`Tlsph`): stresses of
+    ``sets.stress``, then ``acc = f / m`` of ``sets.sph`` (serial: no thread-pool wake-up on small sets)."""
+    X, x, v, acc, inv_mass = body.X, motion.x, motion.v, motion.acc, body.inv_mass
+    for t in range(sets.n_stress):
+        tlsph_stress_one(sets.stress[t], s, x, v)
+    for t in range(sets.n_sph):
+        i = sets.sph[t]
+        f0, f1, f2 = tlsph_force_one(i, s, X, x, v)
         acc[i, 0] = f0 * inv_mass
         acc[i, 1] = f1 * inv_mass
         acc[i, 2] = f2 * inv_mass
 
 
 @njit(cache=True, parallel=True)
-def tlsph_pass_parallel(stress_list, n_stress, sph_list, n_sph, X, x, v, acc, inv_mass, volume,
-                        offsets, indices, dw, gv, hgw, Linv, F, Fd, A, H, G, K, eta_s, eta_v,
-                        hg_k, hg_c):
+def tlsph_pass_parallel(s, body, motion, sets):
     """:func:`tlsph_pass` over numba's thread pool (``prange``).
 
     Both loops are gathers (a particle writes only its own rows of F, Fd, A, H and acc) and each
     particle's sums run in the same order as in the serial pass, so the result is bit-identical
-    to :func:`tlsph_pass` for any thread count.
+    to :func:`tlsph_pass` for any thread count. (Its own function: numba compiles ``prange`` per
+    function, and a serial pass must not wake the thread pool.)
     """
-    for t in prange(n_stress):
-        tlsph_stress_one(stress_list[t], gv, x, v, offsets, indices, Linv, volume,
-                         G, K, eta_s, eta_v, F, Fd, A, hg_k, hg_c, H)
-    for t in prange(n_sph):
-        i = sph_list[t]
-        f0, f1, f2 = tlsph_force_one(i, X, x, v, offsets, indices, dw, hgw, H, A, hg_k, hg_c)
+    X, x, v, acc, inv_mass = body.X, motion.x, motion.v, motion.acc, body.inv_mass
+    stress, sph = sets.stress, sets.sph
+    for t in prange(sets.n_stress):
+        tlsph_stress_one(stress[t], s, x, v)
+    for t in prange(sets.n_sph):
+        i = sph[t]
+        f0, f1, f2 = tlsph_force_one(i, s, X, x, v)
         acc[i, 0] = f0 * inv_mass
         acc[i, 1] = f1 * inv_mass
         acc[i, 2] = f2 * inv_mass
@@ -381,17 +377,10 @@ def _tlsph_forces(scheme, body, motion, sets):
         return None
 
     def impl(scheme, body, motion, sets):
-        s = scheme
-        if sets.n_stress >= s.par_min:
-            tlsph_pass_parallel(sets.stress, sets.n_stress, sets.sph, sets.n_sph, body.X, motion.x,
-                                motion.v, motion.acc, body.inv_mass, s.volume, s.offsets, s.indices,
-                                s.dw, s.gv, s.w0, s.Linv, s.F, s.Fd, s.A, s.H, s.G, s.K, s.eta_s,
-                                s.eta_v, s.hg_k, s.hg_c)
+        if sets.n_stress >= scheme.par_min:
+            tlsph_pass_parallel(scheme, body, motion, sets)
         else:
-            tlsph_pass(sets.stress, sets.n_stress, sets.sph, sets.n_sph, body.X, motion.x,
-                       motion.v, motion.acc, body.inv_mass, s.volume, s.offsets, s.indices,
-                       s.dw, s.gv, s.w0, s.Linv, s.F, s.Fd, s.A, s.H, s.G, s.K, s.eta_s,
-                       s.eta_v, s.hg_k, s.hg_c)
+            tlsph_pass(scheme, body, motion, sets)
         return STATUS_OK
     return impl
 
