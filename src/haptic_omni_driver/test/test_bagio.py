@@ -1,7 +1,6 @@
 """Pure tests of rosbag2 MCAP bag reading/writing and replay bag validation."""
 
 import json
-import os
 import time
 from pathlib import Path
 

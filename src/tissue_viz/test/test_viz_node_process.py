@@ -206,22 +206,33 @@ def test_sigint_writes_a_report_whose_summary_matches_what_was_sent(rclpy_node, 
         assert 0.02 < np.mean(rgb.sum(axis=2) < 750) < 0.8, name   # drawn on, not blank
 
 
-def test_write_report_service_writes_a_folder_while_running(rclpy_node, tmp_path):
+def _ask_for_a_report(rclpy_node):
+    """Call ``viz/write_report``; its answer."""
     from std_srvs.srv import Trigger
 
+    client = rclpy_node.create_client(Trigger, 'viz/write_report')
+    assert client.wait_for_service(timeout_sec=10)
+    future = client.call_async(Trigger.Request())
+    assert rclpy_node.spin_until(future.done, 10)
+    return future.result()
+
+
+def _stream_then_ask_for_a_report(rclpy_node, viz, n_poses: int):
+    """Wait for ``viz``, stream ``n_poses`` poses at 200 Hz, then :func:`_ask_for_a_report`."""
+    viz.wait_for_output(r'ready:', timeout=30)
+    probe = Probe(rclpy_node)
+    harness.wait_for_matching(rclpy_node, probe.pub)
+    probe.run(200.0, lambda: probe.sent >= n_poses, 20)
+    return _ask_for_a_report(rclpy_node)
+
+
+def test_write_report_service_writes_a_folder_while_running(rclpy_node, tmp_path):
     report = tmp_path / 'on_request'
     params = dict(FAST, report_dir=str(report))
     with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
-        viz.wait_for_output(r'ready:', timeout=30)
-        probe = Probe(rclpy_node)
-        harness.wait_for_matching(rclpy_node, probe.pub)
-        probe.run(200.0, lambda: probe.sent >= 100, 20)
-        client = rclpy_node.create_client(Trigger, 'viz/write_report')
-        assert client.wait_for_service(timeout_sec=10)
-        future = client.call_async(Trigger.Request())
-        assert rclpy_node.spin_until(future.done, 10)
-        assert future.result().success, future.result().message
-        assert str(report) in future.result().message
+        answer = _stream_then_ask_for_a_report(rclpy_node, viz, 100)
+        assert answer.success, answer.message
+        assert str(report) in answer.message
         assert rclpy_node.spin_until(lambda: (report / 'summary.json').is_file(), 30), viz.output()
         assert viz.alive()
     summary = json.loads((report / 'summary.json').read_text())
@@ -498,18 +509,13 @@ def _assert_report_counts(report, expected: dict, steps: int) -> None:
 
 def test_absurd_metrics_neither_cost_the_report_on_request_nor_the_one_at_shutdown(rclpy_node,
                                                                                   tmp_path):
-    from std_srvs.srv import Trigger
-
     report = tmp_path / 'report'
     params = dict(FAST, report_on_shutdown=True, report_dir=str(report))
     with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
         viz.wait_for_output(r'ready:', timeout=30)
         expected, steps = _publish_normal_and_absurd_input(rclpy_node, viz)
-        client = rclpy_node.create_client(Trigger, 'viz/write_report')
-        assert client.wait_for_service(timeout_sec=10)
-        future = client.call_async(Trigger.Request())
-        assert rclpy_node.spin_until(future.done, 10)
-        assert future.result().success, future.result().message
+        answer = _ask_for_a_report(rclpy_node)
+        assert answer.success, answer.message
         assert rclpy_node.spin_until(lambda: (report / 'summary.json').is_file(), 60), viz.output()
         _assert_report_counts(report, expected, steps)
         assert viz.alive()
@@ -526,21 +532,11 @@ def test_absurd_metrics_neither_cost_the_report_on_request_nor_the_one_at_shutdo
 
 def test_an_unwritable_report_folder_is_refused_by_the_service_and_exits_3_at_shutdown(
         rclpy_node, tmp_path):
-    from std_srvs.srv import Trigger
-
     blocker = tmp_path / 'a_file'
     blocker.write_text('a file where the report folder should go')
     params = dict(FAST, report_on_shutdown=True, report_dir=str(blocker / 'report'))
     with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
-        viz.wait_for_output(r'ready:', timeout=30)
-        probe = Probe(rclpy_node)
-        harness.wait_for_matching(rclpy_node, probe.pub)
-        probe.run(200.0, lambda: probe.sent >= 50, 20)
-        client = rclpy_node.create_client(Trigger, 'viz/write_report')
-        assert client.wait_for_service(timeout_sec=10)
-        future = client.call_async(Trigger.Request())
-        assert rclpy_node.spin_until(future.done, 10)
-        answer = future.result()
+        answer = _stream_then_ask_for_a_report(rclpy_node, viz, 50)
         assert not answer.success
         assert 'cannot create report folder' in answer.message and 'a_file' in answer.message
         assert viz.alive()

@@ -218,6 +218,13 @@ def plot_force_vs_time(data: ReportData, path: Path) -> None:
     _save(plt, fig, path)
 
 
+def _time_scatter(fig, ax, x, y, t, title: str) -> None:
+    """Points coloured by time, with a colour bar."""
+    sc = ax.scatter(x, y, c=t, s=4, cmap='viridis')
+    fig.colorbar(sc, ax=ax, label='time [s]')
+    ax.set_title(title)
+
+
 def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
     plt, fig, ax = _figure()
     t, vec, pos, _, dropped = _plottable_forces(data)
@@ -227,9 +234,8 @@ def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
         mag = np.linalg.norm(vec, axis=1)
         sel = np.flatnonzero(ok)
         sel = sel[_thin(len(sel), mag[sel])]
-        sc = ax.scatter(disp[sel] * 1e3, mag[sel], c=t[sel], s=4, cmap='viridis')
-        fig.colorbar(sc, ax=ax, label='time [s]')
-        ax.set_title('Force against tool displacement (from first contact, along the press)')
+        _time_scatter(fig, ax, disp[sel] * 1e3, mag[sel], t[sel],
+                      'Force against tool displacement (from first contact, along the press)')
     else:
         # Without matched tool positions fall back to the penetration reported by the simulator.
         m = data.table('metrics')
@@ -243,9 +249,8 @@ def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
             mag = np.linalg.norm(vec[sel], axis=1)
             keep = _thin(len(sel), mag)
             sel, mag = sel[keep], mag[keep]
-            sc = ax.scatter(m['penetration'][sel] * 1e3, mag, c=m['t'][sel], s=4, cmap='viridis')
-            fig.colorbar(sc, ax=ax, label='time [s]')
-            ax.set_title('Force against tool penetration (tissue/metrics)')
+            _time_scatter(fig, ax, m['penetration'][sel] * 1e3, mag, m['t'][sel],
+                          'Force against tool penetration (tissue/metrics)')
         else:
             _no_data(ax, 'contact')
             ax.set_title('Force against tool displacement')
