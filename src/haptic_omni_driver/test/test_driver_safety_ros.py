@@ -6,7 +6,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -103,28 +102,17 @@ def test_commands_before_the_first_pose_are_rejected_by_default(rclpy_node):
 
 
 # -- force-rate limit ----------------------------------------------------------------------------
-class Sender:
+class Sender(harness.Ticker):
     """Publishes one force command about every millisecond from its own thread; records send times."""
 
     def __init__(self, pub, force):
+        super().__init__()
         self.pub, self.force = pub, force
         self.times: list[float] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.pub.publish(wrench(self.force, time.time_ns()))
-            self.times.append(time.monotonic())
-            time.sleep(0.001)
-
-    def __enter__(self) -> 'Sender':
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join(5)
+    def tick(self) -> None:
+        self.pub.publish(wrench(self.force, time.time_ns()))
+        self.times.append(time.monotonic())
 
     def max_gap(self, t0: float, t1: float) -> float:
         """Longest interval without a send within [t0, t1]."""

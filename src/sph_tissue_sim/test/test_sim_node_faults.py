@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import math
 import re
-import threading
 import time
 
 import numpy as np
 import pytest
 
+from tissue_testing import harness
 from sim_probe import (T0_NS, SimProbe, call_reset, finite_and_bounded, force_of, press_path,
                        set_parameters, sim)
 
@@ -51,30 +51,19 @@ def test_a_one_frame_jump_50_mm_deep_keeps_every_reply_finite_and_the_tissue_san
     assert _totals(output)['steps'] == len(poses)
 
 
-class PoseStream:
+class PoseStream(harness.Ticker):
     """Publishes omni/pose at about 1 kHz from a thread (a device that never stops)."""
 
     def __init__(self, probe: SimProbe, path: np.ndarray) -> None:
+        super().__init__()
         self.probe, self.path = probe, path
         self.sent = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._t0 = time.monotonic_ns()
 
-    def _run(self) -> None:
-        t0 = time.monotonic_ns()
-        while not self._stop.is_set():
-            k = self.sent
-            self.probe.publish(self.path[k % len(self.path)], T0_NS + (time.monotonic_ns() - t0))
-            self.sent += 1
-            time.sleep(0.001)
-
-    def __enter__(self) -> 'PoseStream':
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join(5.0)
+    def tick(self) -> None:
+        self.probe.publish(self.path[self.sent % len(self.path)],
+                           T0_NS + (time.monotonic_ns() - self._t0))
+        self.sent += 1
 
 
 def _timed(call):

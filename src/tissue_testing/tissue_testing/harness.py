@@ -222,3 +222,30 @@ def wait_for_matching(node, endpoint, count: int = 1, timeout: float = 20.0) -> 
     executor = getattr(node, 'executor_for_test', None)
     if not spin_until(node, lambda: current() >= count, timeout, executor=executor):
         raise AssertionError(f'expected {count} {what}, have {current()} after {timeout} s')
+
+
+class Ticker:
+    """Calls :meth:`tick` about every ``period`` seconds on its own thread while in a ``with``
+    block (a device stream that never stops); subclasses define ``tick``."""
+
+    period = 0.001
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def tick(self) -> None:
+        raise NotImplementedError
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.tick()
+            time.sleep(self.period)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
