@@ -66,6 +66,11 @@ class Probe:
                     return s
         return None
 
+    def value(self, name_part: str, key: str):
+        """``key``'s value in the newest status named by ``name_part`` (None before any arrived)."""
+        s = self.status(name_part)
+        return None if s is None else {kv.key: kv.value for kv in s.values}.get(key)
+
     def run(self, rate: float, until, timeout: float, make=None) -> bool:
         """Publish at ``rate`` Hz (0: publish nothing) until ``until()`` or ``timeout``."""
         period = 1.0 / rate if rate > 0 else None
@@ -110,8 +115,7 @@ def test_diagnostics_follow_the_metrics_rate_ok_then_warn_then_no_data(rclpy_nod
             s = probe.status('tissue/metrics rate')
             return s is not None and _level(s) == 0
         assert probe.run(200.0, metrics_ok, 20), probe.status('tissue/metrics rate')
-        rate = float(dict((kv.key, kv.value) for kv in probe.status('tissue/metrics rate').values)
-                     ['rate [Hz]'])
+        rate = float(probe.value('tissue/metrics rate', 'rate [Hz]'))
         assert 100 * 0.8 <= rate <= 250 * 1.2
         assert 'p99' in probe.status('step time').message and _level(probe.status('step time')) == 0
         # All OK now: the one-line summary turns from a warning into an info line.
@@ -175,12 +179,10 @@ def test_sigint_writes_a_report_whose_summary_matches_what_was_sent(rclpy_node, 
         probe.run(200.0, lambda: probe.sent >= len(forces), 120, make=ramp)
         assert probe.sent == len(forces)
 
-        def all_counted():
-            s = probe.status('tissue/metrics rate')
-            return s is not None and dict((kv.key, kv.value) for kv in s.values)['messages'] == \
-                str(len(forces))
         # Reliable QoS: every message reaches the node; wait until it has counted them all.
-        assert probe.run(0, all_counted, 30), probe.status('tissue/metrics rate')
+        counted = str(len(forces))
+        assert probe.run(0, lambda: probe.value('tissue/metrics rate', 'messages') == counted, 30), \
+            probe.status('tissue/metrics rate')
         rc = viz.stop(timeout=30)
         assert rc == 0, viz.output()
         assert 'report written' in viz.output()
@@ -364,21 +366,16 @@ def test_pose_to_force_latency_is_matched_by_stamp_and_lost_replies_raise_an_err
 
         # Every pose answered: OK with a measured median.
         assert probe.run(200.0, latency(0), 20, make=loop(1)), probe.status('pose to force latency')
-        status = probe.status('pose to force latency')
-        values = dict((kv.key, kv.value) for kv in status.values)
-        assert 0.0 <= float(values['p50 [ms]']) < 100.0
-        assert float(values['poses without reply [%]']) < 5.0
+        assert 0.0 <= float(probe.value('pose to force latency', 'p50 [ms]')) < 100.0
+        assert float(probe.value('pose to force latency', 'poses without reply [%]')) < 5.0
         # the pose stream is measured (its level depends on how evenly a busy machine let the probe
         # publish: a burst after a stall reads as a rate above pose_max_rate)
-        pose_rate = dict((kv.key, kv.value) for kv in probe.status('omni/pose rate').values)
-        assert int(pose_rate['messages']) > 0
+        assert int(probe.value('omni/pose rate', 'messages')) > 0
 
         # Only every 2nd pose answered: half the replies are lost in the window, ERROR.
         assert probe.run(200.0, latency(2), 20, make=loop(2)), probe.status('pose to force latency')
-        status = probe.status('pose to force latency')
-        assert 'without reply' in status.message
-        assert float(dict((kv.key, kv.value) for kv in status.values)
-                     ['poses without reply [%]']) > 20.0
+        assert 'without reply' in probe.status('pose to force latency').message
+        assert float(probe.value('pose to force latency', 'poses without reply [%]')) > 20.0
         assert viz.alive() and 'Traceback' not in viz.output(), viz.output()
 
 
@@ -405,11 +402,8 @@ def test_inconsistent_targets_set_at_run_time_are_refused_and_consistent_ones_ap
         harness.wait_for_matching(rclpy_node, probe.diag_sub)
         assert set_param(client, 'metrics_min_rate', 20.0).successful
 
-        def new_target():
-            s = probe.status('tissue/metrics rate')
-            return s is not None and dict((kv.key, kv.value) for kv in s.values)[
-                'min rate [Hz]'] == '20.0'
-        assert probe.run(0, new_target, 10), probe.status('tissue/metrics rate')
+        assert probe.run(0, lambda: probe.value('tissue/metrics rate', 'min rate [Hz]') == '20.0',
+                         10), probe.status('tissue/metrics rate')
         assert viz.alive()
 
 
@@ -477,12 +471,8 @@ def _publish_normal_and_absurd_input(rclpy_node, viz) -> dict:
         return _set(_metrics(p.stamp_ns), plan[i][1])
     probe.run(100.0, lambda: probe.sent >= len(plan), 30, make=make)
     assert probe.sent == len(plan)
-
-    def all_counted():
-        s = probe.status('tissue/metrics rate')
-        return s is not None and dict((kv.key, kv.value) for kv in s.values)['messages'] == \
-            str(len(plan))
-    assert probe.run(0, all_counted, 20), (probe.status('tissue/metrics rate'), viz.output())
+    assert probe.run(0, lambda: probe.value('tissue/metrics rate', 'messages') == str(len(plan)),
+                     20), (probe.status('tissue/metrics rate'), viz.output())
     expected = {}
     for key, _ in absurd:
         if key:

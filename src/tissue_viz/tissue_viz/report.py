@@ -138,6 +138,14 @@ def _left_out(ax, count: int, what: str) -> None:
                 transform=ax.transAxes, fontsize=8, color='tab:red', va='bottom')
 
 
+def _finish(plt, fig, ax, path: Path, xlabel: str, ylabel: str, dropped: int, what: str) -> None:
+    """Label the axes, say what was left out (:func:`_left_out`) and save."""
+    _left_out(ax, dropped, what)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    _save(plt, fig, path)
+
+
 def _force_source(data: ReportData) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, Limit]:
     """(t, force vectors, tool positions, label, limit of the force components): force commands
     if any, else metrics forces."""
@@ -212,10 +220,7 @@ def plot_force_vs_time(data: ReportData, path: Path) -> None:
     else:
         _no_data(ax, 'force')
         ax.set_title('Force on the tool')
-    _left_out(ax, dropped, 'forces')
-    ax.set_xlabel('time [s]')
-    ax.set_ylabel('force [N]')
-    _save(plt, fig, path)
+    _finish(plt, fig, ax, path, 'time [s]', 'force [N]', dropped, 'forces')
 
 
 def _time_scatter(fig, ax, x, y, t, title: str) -> None:
@@ -254,10 +259,7 @@ def plot_force_vs_displacement(data: ReportData, path: Path) -> None:
         else:
             _no_data(ax, 'contact')
             ax.set_title('Force against tool displacement')
-    _left_out(ax, dropped, 'samples')
-    ax.set_xlabel('tool displacement [mm]')
-    ax.set_ylabel('|F| [N]')
-    _save(plt, fig, path)
+    _finish(plt, fig, ax, path, 'tool displacement [mm]', '|F| [N]', dropped, 'samples')
 
 
 # Log-spaced bins span at most this many decades; anything faster lands in the first bin (a log
@@ -322,10 +324,8 @@ def plot_step_hist(data: ReportData, path: Path) -> None:
     else:
         _no_data(ax, 'step')
         ax.set_title('Step wall time')
-    _left_out(ax, int(raw.size - steps.size), 'step times')
-    ax.set_xlabel('step wall time [ms]')
-    ax.set_ylabel('steps')
-    _save(plt, fig, path)
+    _finish(plt, fig, ax, path, 'step wall time [ms]', 'steps', int(raw.size - steps.size),
+            'step times')
 
 
 def _rate_target(value) -> tuple[float, float] | None:
@@ -382,10 +382,7 @@ def plot_latency_hist(data: ReportData, path: Path) -> None:
     else:
         _no_data(ax, 'latency')
         ax.set_title('Pose to force latency')
-    _left_out(ax, int(raw.size - lat.size), 'latencies')
-    ax.set_xlabel('latency [ms]')
-    ax.set_ylabel('replies')
-    _save(plt, fig, path)
+    _finish(plt, fig, ax, path, 'latency [ms]', 'replies', int(raw.size - lat.size), 'latencies')
 
 
 def _placeholder(path: Path, title: str, reason: str) -> None:
