@@ -68,19 +68,22 @@ def kernel_dwij(xij0: float, xij1: float, xij2: float, h: float, out: np.ndarray
     out[2] = f * xij2
 
 
+ZERO3X3 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+"""A 3x3 matrix as a row-major 9-tuple: a pair-sum accumulator that stays in registers."""
+
+
+@njit(cache=True, fastmath=True, inline='always')
+def add_outer(m, d0, d1, d2, g0, g1, g2):
+    """``m + d (x) g`` for a row-major 9-tuple ``m``: one pair's term of ``sum_j d_j (x) DWIJ``."""
+    return (m[0] + d0 * g0, m[1] + d0 * g1, m[2] + d0 * g2,
+            m[3] + d1 * g0, m[4] + d1 * g1, m[5] + d1 * g2,
+            m[6] + d2 * g0, m[7] + d2 * g1, m[8] + d2 * g2)
+
+
 @njit(cache=True)
 def kernel_w_array(r: np.ndarray, h: float) -> np.ndarray:
-    """Vectorised :func:`kernel_w` over an array of distances (for tests and plots)."""
+    """:func:`kernel_w` over an array of distances (the surface discs' pair weights)."""
     out = np.empty(r.shape[0])
     for i in range(r.shape[0]):
         out[i] = kernel_w(r[i], h)
-    return out
-
-
-@njit(cache=True)
-def kernel_dwdr_array(r: np.ndarray, h: float) -> np.ndarray:
-    """Vectorised :func:`kernel_dwdr`."""
-    out = np.empty(r.shape[0])
-    for i in range(r.shape[0]):
-        out[i] = kernel_dwdr(r[i], h)
     return out

@@ -62,6 +62,23 @@ def _cell_of(x: float, origin: float, cell: float, dim: int) -> int:
     return c
 
 
+@njit(cache=True, inline='always')
+def cell_block(p0: float, p1: float, p2: float, origin: np.ndarray, cell: float, dims: np.ndarray,
+               out: np.ndarray) -> int:
+    """Ids of the cells (up to 27) in the 3x3x3 block around the cell of point ``p`` into ``out``;
+    returns how many. With ``cell`` >= the search radius they hold every neighbour of ``p``."""
+    cx = _cell_of(p0, origin[0], cell, dims[0])
+    cy = _cell_of(p1, origin[1], cell, dims[1])
+    cz = _cell_of(p2, origin[2], cell, dims[2])
+    n = 0
+    for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
+        for ay in range(max(cy - 1, 0), min(cy + 2, dims[1])):
+            for az in range(max(cz - 1, 0), min(cz + 2, dims[2])):
+                out[n] = (ax * dims[1] + ay) * dims[2] + az
+                n += 1
+    return n
+
+
 @njit(cache=True)
 def bin_points(points: np.ndarray, origin: np.ndarray, cell: float,
                dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -127,26 +144,23 @@ def _neighbour_pass(points, radius, origin, cell, dims, cell_start, cell_particl
     ``indices[offsets[i]:offsets[i + 1]]`` (``fill`` True, after the counts were summed)."""
     n = points.shape[0]
     r2 = radius * radius
+    cells = np.empty(27, dtype=np.int64)
     for i in range(n):
-        cx = _cell_of(points[i, 0], origin[0], cell, dims[0])
-        cy = _cell_of(points[i, 1], origin[1], cell, dims[1])
-        cz = _cell_of(points[i, 2], origin[2], cell, dims[2])
         m = offsets[i] if fill else 0
-        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
-            for ay in range(max(cy - 1, 0), min(cy + 2, dims[1])):
-                for az in range(max(cz - 1, 0), min(cz + 2, dims[2])):
-                    c = (ax * dims[1] + ay) * dims[2] + az
-                    for k in range(cell_start[c], cell_start[c + 1]):
-                        j = cell_particles[k]
-                        if j == i:
-                            continue
-                        d0 = points[j, 0] - points[i, 0]
-                        d1 = points[j, 1] - points[i, 1]
-                        d2 = points[j, 2] - points[i, 2]
-                        if d0 * d0 + d1 * d1 + d2 * d2 < r2:
-                            if fill:
-                                indices[m] = j
-                            m += 1
+        n_cells = cell_block(points[i, 0], points[i, 1], points[i, 2], origin, cell, dims, cells)
+        for q in range(n_cells):
+            c = cells[q]
+            for k in range(cell_start[c], cell_start[c + 1]):
+                j = cell_particles[k]
+                if j == i:
+                    continue
+                d0 = points[j, 0] - points[i, 0]
+                d1 = points[j, 1] - points[i, 1]
+                d2 = points[j, 2] - points[i, 2]
+                if d0 * d0 + d1 * d1 + d2 * d2 < r2:
+                    if fill:
+                        indices[m] = j
+                    m += 1
         if not fill:
             offsets[i + 1] = m
 

@@ -68,9 +68,9 @@ import numpy as np
 from numba import njit
 from numba.extending import overload
 
-from .kernel import kernel_dwdr, kernel_w
+from .kernel import ZERO3X3, add_outer, kernel_dwdr, kernel_w
 from .material import Material
-from .neighbours import _cell_of, append_once, bin_points
+from .neighbours import append_once, bin_points, cell_block
 from .protocols import STATUS_BROKEN, STATUS_FULL, STATUS_OK, internal_forces, is_state
 
 _MAX_CELLS = 50_000_000   # a larger current-configuration grid means the body flew apart
@@ -90,32 +90,28 @@ def _fill_pairs(x, search, rows, n_rows, h, pos, origin, dims, cell_start, cell_
     cap = nb_idx.shape[0]
     m = 0
     nb_off[0] = 0
+    cells = np.empty(27, dtype=np.int64)
     for r in range(n_rows):
         i = rows[r]
         xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
-        cx = _cell_of(xi0, origin[0], support, dims[0])
-        cy = _cell_of(xi1, origin[1], support, dims[1])
-        cz = _cell_of(xi2, origin[2], support, dims[2])
-        for ax in range(max(cx - 1, 0), min(cx + 2, dims[0])):
-            for ay in range(max(cy - 1, 0), min(cy + 2, dims[1])):
-                for az in range(max(cz - 1, 0), min(cz + 2, dims[2])):
-                    cc = (ax * dims[1] + ay) * dims[2] + az
-                    for k in range(cell_start[cc], cell_start[cc + 1]):
-                        p = cell_particles[k]
-                        j = search[p]
-                        if j == i:
-                            continue
-                        d0 = xi0 - pos[p, 0]; d1 = xi1 - pos[p, 1]; d2 = xi2 - pos[p, 2]
-                        rr = d0 * d0 + d1 * d1 + d2 * d2
-                        if rr >= r2max:
-                            continue
-                        if m >= cap:
-                            return -1
-                        rij = math.sqrt(rr)
-                        nb_idx[m] = j
-                        nb_dw[m] = kernel_dwdr(rij, h) / rij if rij > 1e-300 else 0.0
-                        nb_w[m] = kernel_w(rij, h)
-                        m += 1
+        n_cells = cell_block(xi0, xi1, xi2, origin, support, dims, cells)
+        for q in range(n_cells):
+            for k in range(cell_start[cells[q]], cell_start[cells[q] + 1]):
+                p = cell_particles[k]
+                j = search[p]
+                if j == i:
+                    continue
+                d0 = xi0 - pos[p, 0]; d1 = xi1 - pos[p, 1]; d2 = xi2 - pos[p, 2]
+                rr = d0 * d0 + d1 * d1 + d2 * d2
+                if rr >= r2max:
+                    continue
+                if m >= cap:
+                    return -1
+                rij = math.sqrt(rr)
+                nb_idx[m] = j
+                nb_dw[m] = kernel_dwdr(rij, h) / rij if rij > 1e-300 else 0.0
+                nb_w[m] = kernel_w(rij, h)
+                m += 1
         nb_off[r + 1] = m
     return m
 
@@ -216,20 +212,18 @@ def strain_stress(p, X, x, v, mass):
         xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
         ui0 = xi0 - X[i, 0]; ui1 = xi1 - X[i, 1]; ui2 = xi2 - X[i, 2]
         vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
-        a00 = 0.0; a01 = 0.0; a02 = 0.0; a10 = 0.0; a11 = 0.0; a12 = 0.0; a20 = 0.0; a21 = 0.0; a22 = 0.0
-        b00 = 0.0; b01 = 0.0; b02 = 0.0; b10 = 0.0; b11 = 0.0; b12 = 0.0; b20 = 0.0; b21 = 0.0; b22 = 0.0
+        a = ZERO3X3
+        b = ZERO3X3
         for k in range(nb_off[r], nb_off[r + 1]):
             j = nb_idx[k]
             f = nb_dw[k] * mass / rho[j]
             g0 = f * (xi0 - x[j, 0]); g1 = f * (xi1 - x[j, 1]); g2 = f * (xi2 - x[j, 2])
             d0 = x[j, 0] - X[j, 0] - ui0; d1 = x[j, 1] - X[j, 1] - ui1; d2 = x[j, 2] - X[j, 2] - ui2
             e0 = v[j, 0] - vi0; e1 = v[j, 1] - vi1; e2 = v[j, 2] - vi2
-            a00 += d0 * g0; a01 += d0 * g1; a02 += d0 * g2
-            a10 += d1 * g0; a11 += d1 * g1; a12 += d1 * g2
-            a20 += d2 * g0; a21 += d2 * g1; a22 += d2 * g2
-            b00 += e0 * g0; b01 += e0 * g1; b02 += e0 * g2
-            b10 += e1 * g0; b11 += e1 * g1; b12 += e1 * g2
-            b20 += e2 * g0; b21 += e2 * g1; b22 += e2 * g2
+            a = add_outer(a, d0, d1, d2, g0, g1, g2)
+            b = add_outer(b, e0, e1, e2, g0, g1, g2)
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = a
+        b00, b01, b02, b10, b11, b12, b20, b21, b22 = b
         exy = 0.5 * (a01 + a10); exz = 0.5 * (a02 + a20); eyz = 0.5 * (a12 + a21)
         rxy = 0.5 * (b01 + b10); rxz = 0.5 * (b02 + b20); ryz = 0.5 * (b12 + b21)
         eps[i, 0] = a00; eps[i, 1] = a11; eps[i, 2] = a22

@@ -42,7 +42,7 @@ import numpy as np
 from numba import njit, prange
 from numba.extending import overload
 
-from .kernel import kernel_dwdr, kernel_w
+from .kernel import ZERO3X3, add_outer, kernel_dwdr, kernel_w
 from .material import Material
 from .protocols import STATUS_OK, FixedStateScheme, internal_forces, is_state
 
@@ -143,21 +143,17 @@ def tlsph_stress_one(i, s, x, v):
     gv, offsets, indices, Linv, volume = s.gv, s.offsets, s.indices, s.Linv, s.volume
     G, K, eta_s, eta_v, hg_k, hg_c = s.G, s.K, s.eta_s, s.eta_v, s.hg_k, s.hg_c
     F, Fd, A, H = s.F, s.Fd, s.A, s.H
-    a00 = 0.0; a01 = 0.0; a02 = 0.0; a10 = 0.0; a11 = 0.0; a12 = 0.0; a20 = 0.0; a21 = 0.0; a22 = 0.0
-    b00 = 0.0; b01 = 0.0; b02 = 0.0; b10 = 0.0; b11 = 0.0; b12 = 0.0; b20 = 0.0; b21 = 0.0; b22 = 0.0
+    a = ZERO3X3
+    b = ZERO3X3
     xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
     vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
     for k in range(offsets[i], offsets[i + 1]):
         j = indices[k]
         g0 = gv[k, 0]; g1 = gv[k, 1]; g2 = gv[k, 2]      # V_j DWIJ0 (see pair_gradients)
-        d0 = x[j, 0] - xi0; d1 = x[j, 1] - xi1; d2 = x[j, 2] - xi2
-        e0 = v[j, 0] - vi0; e1 = v[j, 1] - vi1; e2 = v[j, 2] - vi2
-        a00 += d0 * g0; a01 += d0 * g1; a02 += d0 * g2
-        a10 += d1 * g0; a11 += d1 * g1; a12 += d1 * g2
-        a20 += d2 * g0; a21 += d2 * g1; a22 += d2 * g2
-        b00 += e0 * g0; b01 += e0 * g1; b02 += e0 * g2
-        b10 += e1 * g0; b11 += e1 * g1; b12 += e1 * g2
-        b20 += e2 * g0; b21 += e2 * g1; b22 += e2 * g2
+        a = add_outer(a, x[j, 0] - xi0, x[j, 1] - xi1, x[j, 2] - xi2, g0, g1, g2)
+        b = add_outer(b, v[j, 0] - vi0, v[j, 1] - vi1, v[j, 2] - vi2, g0, g1, g2)
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = a
+    b00, b01, b02, b10, b11, b12, b20, b21, b22 = b
     Li = Linv[i]
     Fm = F[i]
     Fdm = Fd[i]
