@@ -1,0 +1,127 @@
+"""One device's haptic renderer: estimator, virtual coupling, passivity, in that order.
+
+Per device sample (tissue frame, SI units)::
+
+    E_in  <- observer.observe(x)            energy of the force held since the last sample
+    x^, v^ <- estimator.update(x, dt)
+    proxy, F <- coupling.render(x^, v^)      against the contact model
+    F <- F + controller.damp(E_in, v^, dt)   only while E_in < 0
+    F <- clamp(F, force_limit); observer.hold(F)
+
+The proxy is where the solver should put its tool; after each solver step, :meth:`refresh` hands
+the reaction it found there to the contact model. How often that happens (every pose, every ``k``
+poses, or whenever a solver thread finishes) is the caller's choice; the renderer answers every
+sample at once either way.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from tissue_common.force import HARD_FORCE_LIMIT, clamp_norm
+
+from .coupling import ContactModel, VirtualCoupling
+from .estimator import TrackingFilter
+from .passivity import PassivityController, PassivityObserver
+
+#: the contact model's stiffness may reach this many times the coupling's: it linearises the tissue
+#: for the proxy's implicit update (a stiffer solver than the model destabilises the proxy), while the
+#: hand never feels more than the coupling
+STIFFNESS_CEILING = 50.0
+
+#: (lowest, highest) of every :class:`RendererConfig` field, both included
+RENDERER_RANGES = {
+    'velocity_cutoff': (0.5, 500.0),
+    'coupling_stiffness': (1.0, 3000.0),
+    'coupling_damping': (0.0, 10.0),
+    'proxy_damping': (0.01, 100.0),
+    'passivity_max_damping': (0.0, 10.0),
+    'force_limit': (0.0, HARD_FORCE_LIMIT),
+}
+
+
+@dataclass
+class RendererConfig:
+    """Renderer settings (SI units).
+
+    Attributes:
+        velocity_cutoff: cut-off of the position/velocity tracking filter [Hz] (see
+            :mod:`.estimator`); lower is smoother.
+        coupling_stiffness: ``K_c`` of the virtual coupling [N/m]; the hand never feels more.
+            Default 700 N/m, what a PHANTOM Omni renders (about 0.7 N/mm).
+        coupling_damping: ``B_c`` on the device's normal velocity in contact [N s/m]; passivity
+            of the held spring needs ``B_c > K_c T / 2`` (0.35 at 700 N/m and 1 kHz).
+        passivity_max_damping: the most damping the passivity controller may add [N s/m].
+        force_limit: norm of the rendered force at most this [N].
+    """
+
+    velocity_cutoff: float = 10.0
+    coupling_stiffness: float = 700.0
+    coupling_damping: float = 0.5
+    proxy_damping: float = 2.0
+    passivity_max_damping: float = 2.0
+    force_limit: float = HARD_FORCE_LIMIT
+
+    def validate(self) -> 'RendererConfig':
+        """Raise ``ValueError`` naming the first field outside :data:`RENDERER_RANGES`."""
+        for name, (lo, hi) in RENDERER_RANGES.items():
+            val = getattr(self, name)
+            if not (isinstance(val, (int, float)) and math.isfinite(val) and lo <= val <= hi):
+                raise ValueError(f'{name} must be in [{lo:g}, {hi:g}], got {val!r}')
+        return self
+
+
+@dataclass
+class Rendered:
+    """One sample's answer."""
+
+    force: np.ndarray       # (3,) [N] for the device (tissue frame), clamped
+    proxy: np.ndarray       # (3,) [m] where the simulated tool should be
+    energy: float           # E_in before this sample's force [J]
+    damping: float          # damping the passivity controller added [N s/m]
+    stretch: float          # coupling stretch [m]
+
+
+class HapticRenderer:
+    """Answers each device sample at once from the latest contact model."""
+
+    def __init__(self, config: RendererConfig | None = None) -> None:
+        self.config = (config or RendererConfig()).validate()
+        c = self.config
+        self.estimator = TrackingFilter(c.velocity_cutoff)
+        self.model = ContactModel(k_max=STIFFNESS_CEILING * c.coupling_stiffness)
+        self.coupling = VirtualCoupling(c.coupling_stiffness, c.coupling_damping, c.proxy_damping,
+                                        self.model)
+        self.observer = PassivityObserver()
+        self.controller = PassivityController(c.passivity_max_damping)
+        self.proxy = np.zeros(3)
+
+    def reset(self) -> None:
+        """Forget the device's past and the contact (e.g. after the tissue was reset)."""
+        self.estimator.reset()
+        self.model.clear()
+        self.coupling.reset()
+        self.observer.reset()
+        self.controller.alpha = 0.0
+
+    def answer(self, x, dt: float) -> Rendered:
+        """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one."""
+        prev = self.observer.last
+        energy = self.observer.observe(x)
+        x_hat, v_hat = self.estimator.update(x, dt)
+        # the controller damps the measured motion: a filtered velocity lags, and a damper on a
+        # velocity of the wrong sign would give energy instead of taking it
+        v_meas = (self.observer.last - prev) / dt if prev is not None and dt > 0.0 else np.zeros(3)
+        proxy, force = self.coupling.render(x_hat, v_hat, dt)
+        force = force + self.controller.damp(energy, v_meas, dt)
+        force, _ = clamp_norm(force, self.config.force_limit)
+        self.observer.hold(force)
+        self.proxy = proxy
+        return Rendered(force, proxy, energy, self.controller.alpha, self.coupling.stretch)
+
+    def refresh(self, point, force) -> None:
+        """The solver found the reaction ``force`` [N] with its tool at ``point`` [m]."""
+        self.model.refresh(point, force)

@@ -1,0 +1,173 @@
+"""Haptic renderer: the estimator on quantised ramps, the coupling and the passivity controller on a
+synthetic stiff wall, against analytic answers."""
+
+import math
+
+import numpy as np
+import pytest
+
+from sph_tissue_sim.haptics.coupling import ContactModel, VirtualCoupling
+from sph_tissue_sim.haptics.estimator import TrackingFilter
+from sph_tissue_sim.haptics.passivity import PassivityController, PassivityObserver
+from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
+
+T = 1e-3            # [s] device period
+TICK = 5.5e-5       # [m] Omni encoder resolution
+Z = np.array([0.0, 0.0, 1.0])
+
+
+def quantised(x: np.ndarray) -> np.ndarray:
+    return np.round(x / TICK) * TICK
+
+
+def test_a_single_tick_moves_the_estimate_by_the_filter_gains_not_by_a_55_mm_per_s_spike():
+    f = TrackingFilter(cutoff=20.0)
+    f.update(np.zeros(3), T)
+    x, v = f.update(np.array([TICK, 0.0, 0.0]), T)
+    lam = math.exp(-2.0 * math.pi * 20.0 * T)
+    assert x[0] == pytest.approx((1.0 - lam * lam) * TICK, rel=1e-12)
+    assert v[0] == pytest.approx((1.0 - lam) ** 2 * TICK / T, rel=1e-12)
+    assert v[0] < 0.001 * 1.0 and TICK / T == pytest.approx(0.055)   # < 1 mm/s against 55 mm/s
+
+
+def test_a_constant_velocity_ramp_is_tracked_without_lag():
+    f = TrackingFilter(cutoff=10.0)
+    vel = np.array([0.02, -0.01, 0.005])
+    for k in range(2000):
+        x, v = f.update(vel * k * T, T)
+    np.testing.assert_allclose(v, vel, rtol=1e-9)
+    np.testing.assert_allclose(x, vel * 1999 * T, atol=1e-12)
+
+
+def test_a_quantised_ramp_gives_a_steady_velocity_where_differences_spike():
+    speed = 0.01                                      # 10 mm/s: a tick every 5.5 frames
+    t = np.arange(3000) * T
+    pos = quantised(np.outer(speed * t, [1.0, 0.0, 0.0]))
+    f = TrackingFilter(cutoff=10.0)
+    est = np.array([f.update(p, T)[1][0] for p in pos])
+    raw = np.diff(pos[:, 0]) / T
+    assert raw.max() == pytest.approx(TICK / T)       # the one-frame difference: 55 mm/s spikes
+    settled = est[1000:]
+    assert abs(settled.mean() - speed) < 0.01 * speed
+    assert np.abs(settled - speed).max() < 0.15 * speed
+
+
+def test_the_filter_refuses_a_cut_off_that_is_not_a_frequency():
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError):
+            TrackingFilter(bad)
+
+
+class Wall:
+    """A stand-in solver: a wall z < 0 of stiffness ``k`` pushing +z, refreshed into a model."""
+
+    def __init__(self, k: float) -> None:
+        self.k = k
+
+    def force(self, x: np.ndarray) -> np.ndarray:
+        return self.k * max(0.0, -x[2]) * Z
+
+
+def press_wall(renderer: HapticRenderer, wall: Wall, path: np.ndarray, every: int = 1):
+    """Drive ``path`` (device samples) through the renderer; the wall answers every ``every``
+    samples at the proxy. Returns forces and E_in per sample."""
+    forces, energy = [], []
+    for k, x in enumerate(path):
+        out = renderer.answer(x, T)
+        forces.append(out.force)
+        energy.append(out.energy)
+        if (k + 1) % every == 0:
+            renderer.refresh(out.proxy, wall.force(out.proxy))
+    return np.array(forces), np.array(energy)
+
+
+def test_held_against_a_wall_the_hand_feels_the_wall_in_series_with_the_coupling():
+    cfg = RendererConfig(coupling_stiffness=700.0)
+    r = HapticRenderer(cfg)
+    depth, k_wall = 0.004, 2000.0
+    path = np.array([[0.0, 0.0, -depth * min(1.0, k / 500)] for k in range(3000)])
+    forces, energy = press_wall(r, Wall(k_wall), path)
+    series = 700.0 * k_wall / (700.0 + k_wall) * depth
+    np.testing.assert_allclose(forces[-1], series * Z, rtol=1e-6, atol=1e-12)
+    assert energy.min() >= 0.0
+
+
+def test_the_controller_adds_damping_only_when_energy_has_been_given_back():
+    c = PassivityController(max_damping=2.0)
+    v = np.array([0.0, 0.0, 0.01])
+    assert not c.damp(1e-6, v, T).any() and c.alpha == 0.0
+    f = c.damp(-1e-8, v, T)
+    assert c.alpha == pytest.approx(1e-8 / (T * 1e-4))               # gives E back over one sample
+    np.testing.assert_allclose(f, -c.alpha * v)
+    c.damp(-1.0, v, T)
+    assert c.alpha == 2.0                                             # never more than the device can
+    assert not c.damp(-1.0, np.zeros(3), T).any()                    # no motion, nothing to damp
+
+
+def test_the_observer_charges_each_held_force_with_the_next_displacement():
+    o = PassivityObserver()
+    assert o.observe([0.0, 0.0, 0.0]) == 0.0
+    o.hold([0.0, 0.0, 1.0])
+    assert o.observe([0.0, 0.0, -0.001]) == pytest.approx(0.001)      # pushed in against 1 N
+    o.hold([0.0, 0.0, 2.0])
+    assert o.observe([0.0, 0.0, 0.0]) == pytest.approx(0.001 - 0.002)  # pushed out by 2 N
+    assert o.minimum == pytest.approx(-0.001)
+
+
+def run_active_damper(controller: PassivityController | None) -> PassivityObserver:
+    """A rendering that pushes along the hand's motion (a negative damper, -0.5 N s/m) on a 4 Hz
+    stroke: it gives energy back at every sample."""
+    o = PassivityObserver()
+    t = np.arange(3000) * T
+    z = -0.002 * (1.0 - np.cos(2 * np.pi * 4.0 * t))
+    last = np.zeros(3)
+    for zk in z:
+        x = np.array([0.0, 0.0, zk])
+        e = o.observe(x)
+        v, last = (x - last) / T, x
+        force = 0.5 * v
+        if controller is not None:
+            force = force + controller.damp(e, v, T)
+        o.hold(force)
+    return o
+
+
+def test_the_controller_takes_back_what_an_active_rendering_gives_within_a_sample():
+    alone = run_active_damper(None)
+    assert alone.minimum < -1e-4                        # 0.5 * mean(v^2) * 3 s given back
+    held = run_active_damper(PassivityController(max_damping=2.0))
+    # never more than one sample's generation below zero: 0.5 N s/m * (0.05 m/s)^2 * 1 ms
+    assert held.minimum > -2e-6
+    assert held.energy > -2e-6
+
+
+def test_in_free_space_no_force_and_the_proxy_follows_the_device():
+    r = HapticRenderer()
+    for k in range(200):
+        out = r.answer([0.001 * k * T, 0.0, 0.01], T)
+        r.refresh(out.proxy, np.zeros(3))
+        assert not out.force.any()
+    assert np.linalg.norm(out.proxy - [0.001 * 199 * T, 0.0, 0.01]) < 1e-5
+
+
+def test_renderer_settings_outside_their_ranges_are_refused_by_name():
+    for name, bad in (('velocity_cutoff', 0.0), ('coupling_stiffness', math.nan),
+                      ('force_limit', 10.0), ('proxy_damping', -1.0)):
+        with pytest.raises(ValueError, match=name):
+            HapticRenderer(RendererConfig(**{name: bad}))
+
+
+def test_the_contact_model_learns_the_stiffness_of_the_answers_it_is_given():
+    m = ContactModel(k_max=700.0)
+    for k in range(200):
+        z = -1e-4 * k
+        m.refresh([0.0, 0.0, z], 300.0 * -z * Z + 1e-3 * Z)
+    assert m.stiffness == pytest.approx(300.0, rel=1e-3)
+    np.testing.assert_allclose(m.force_at([0.0, 0.0, -0.0200]), (300.0 * 0.0200 + 1e-3) * Z, rtol=1e-3)
+    assert not m.force_at([0.0, 0.0, 1.0]).any()                     # never pulls
+
+
+def test_coupling_without_a_contact_force_renders_nothing():
+    c = VirtualCoupling(700.0, 0.5, 2.0, ContactModel(700.0))
+    proxy, force = c.render(np.zeros(3), np.zeros(3), T)
+    assert not force.any() and not proxy.any()
