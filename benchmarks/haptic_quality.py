@@ -1,0 +1,187 @@
+#!/usr/bin/env python3
+"""What the hand feels: smoothness and passivity of the rendered force on the bundled sessions.
+
+Replays each bundled bag's poses in order, in the bags' own (lockstep) set-up (``bags/
+golden_sim_params.yaml``: the 2000-particle block, tlsph, local mode), through the core alone (no
+ROS), two ways:
+
+* ``direct``: one solver step per pose at the device's position; the force is the solver's
+  reaction (what ``sim_node`` sends today);
+* ``renderer``: :class:`sph_tissue_sim.haptics.renderer.HapticRenderer` answers each pose (velocity
+  estimator, virtual coupling, passivity controller) and the solver steps at the proxy every
+  ``--every`` poses, refreshing the contact model (every pose by default: the lockstep schedule).
+
+Per bag and way, in steady contact (more than 20 frames after contact onset): per-frame |dF| p99 and
+max, the median force change on frames where the device moved by exactly one encoder tick as a share
+of the force, the ripple (|F| minus its 21-frame centred mean, rms), and E_in (the energy the hand
+put in with each force held until the next pose) minimum and final. Also the quasi-static force at
+2, 4 and 6 mm on the block, renderer against direct. Writes ``haptic_quality.csv`` and
+``haptic_quality.png`` (the press session's force, both ways) to ``--out``.
+
+Usage: ``python benchmarks/haptic_quality.py [--bags press,pull,...] [--every K] [--out DIR]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from haptic_omni_driver import bagio
+from sph_tissue_sim import params as sim_params
+from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
+from sph_tissue_sim.sim_node import SimNode, make_solver
+from tissue_common.force import clamp_norm
+from tissue_common.stamps import stamp_to_ns
+
+ROOT = Path(__file__).resolve().parents[1]
+BAGS = ('press', 'pull', 'sweep', 'poke', 'long')
+TICK = 5.5e-5           # [m] the Omni's encoder resolution (the bags reproduce it)
+STEADY_AFTER = 20       # frames after contact onset before contact counts as steady
+RIPPLE_WINDOW = 21      # frames of the centred mean the ripple is measured against
+COLUMNS = ('bag', 'way', 'frames', 'steady_frames', 'dF_p99_mN', 'dF_max_mN', 'tick_change_pct',
+           'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
+
+
+def golden_params() -> dict:
+    """sim_node's parameters as the bundled bags were recorded with."""
+    p = {name: spec[0] for name, spec in sim_params.SIM_PARAMS.items()}
+    text = (ROOT / 'bags' / 'golden_sim_params.yaml').read_text()
+    p.update(yaml.safe_load(text)['/**']['ros__parameters'])
+    return p
+
+
+def bag_poses(name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps [ns] (M,), device positions [m] (M, 3)) of a bundled bag, in order."""
+    stamps, pos = [], []
+    for _, _, _, msg in bagio.read_bag(ROOT / 'bags' / name, ['/omni/pose']):
+        stamps.append(stamp_to_ns(msg.header.stamp))
+        q = msg.pose.position
+        pos.append((q.x, q.y, q.z))
+    return np.array(stamps), np.array(pos)
+
+
+def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int = 1,
+           config: RendererConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Tissue-frame (positions, forces) per pose, ``way`` 'direct' or 'renderer'."""
+    solver = make_solver(sim_params.build_model(p), sim_params.build_material(p),
+                         sim_params.build_config(p), p['nominal_dt'])
+    mapping = SimNode._make_mapping(p, solver)
+    renderer = HapticRenderer(config or RendererConfig(force_limit=p['force_limit']))
+    xs = np.array([mapping.to_tissue(d) for d in device])
+    dts = np.r_[p['nominal_dt'], np.diff(stamps) * 1e-9]
+    forces = np.empty_like(xs)
+    pending = 0.0
+    for k, (x, dt) in enumerate(zip(xs, dts)):
+        if way == 'direct':
+            forces[k] = clamp_norm(solver.step(x, dt).force_raw, p['force_limit'])[0]
+            continue
+        out = renderer.answer(x, dt)
+        forces[k] = out.force
+        pending += dt
+        if (k + 1) % every == 0:
+            renderer.refresh(out.proxy, solver.step(out.proxy, pending).force_raw)
+            pending = 0.0
+    return xs, forces
+
+
+def quality(xs: np.ndarray, forces: np.ndarray) -> dict:
+    """The smoothness and passivity measures of one replay."""
+    mag = np.linalg.norm(forces, axis=1)
+    run = np.zeros(mag.size, int)
+    for k in range(mag.size):
+        run[k] = run[k - 1] + 1 if mag[k] > 0.0 and k else int(mag[k] > 0.0)
+    steady = (run > STEADY_AFTER)
+    steady[1:] &= steady[:-1]
+    steady[0] = False
+    dF = np.r_[0.0, np.linalg.norm(np.diff(forces, axis=0), axis=1)]
+    moved = np.r_[0.0, np.linalg.norm(np.diff(xs, axis=0), axis=1)]
+    tick = steady & (np.abs(moved - TICK) < 1e-3 * TICK)
+    e_in = -np.cumsum(np.r_[0.0, np.einsum('ij,ij->i', forces[:-1], np.diff(xs, axis=0))])
+    mean = np.convolve(mag, np.ones(RIPPLE_WINDOW) / RIPPLE_WINDOW, 'same')
+    some = steady.any()
+    return {
+        'frames': mag.size, 'steady_frames': int(steady.sum()),
+        'dF_p99_mN': float(np.percentile(dF[steady], 99) * 1e3) if some else float('nan'),
+        'dF_max_mN': float(dF[steady].max() * 1e3) if some else float('nan'),
+        'tick_change_pct': float(np.median(dF[tick] / mag[tick]) * 100) if tick.any() else float('nan'),
+        'ticks': int(tick.sum()),
+        'ripple_mN': float(np.sqrt(np.mean((mag - mean)[steady] ** 2)) * 1e3) if some else float('nan'),
+        'E_in_min_uJ': float(e_in.min() * 1e6), 'E_in_final_uJ': float(e_in[-1] * 1e6),
+        'peak_N': float(mag.max()),
+    }
+
+
+def quasi_static(p: dict, depths=(0.002, 0.004, 0.006), hold: int = 1500) -> list[tuple]:
+    """Force after a slow press to each depth and a hold, direct and through the renderer."""
+    out = []
+    for depth in depths:
+        ramp = np.r_[np.linspace(0.0, depth, 2000), np.full(hold, depth)]
+        device = np.zeros((ramp.size, 3))
+        device[:, 1] = -ramp                      # device y (up) is tissue z in the default mapping
+        stamps = np.arange(ramp.size) * 1_000_000
+        f = [np.linalg.norm(replay(p, stamps, device, way)[1][-1]) for way in ('direct', 'renderer')]
+        out.append((depth, f[0], f[1]))
+    return out
+
+
+def plot(path: Path, press: dict) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for way, colour in (('direct', '#d62728'), ('renderer', '#1f77b4')):
+        xs, forces = press[way]
+        t = np.arange(forces.shape[0]) * 1e-3
+        ax.plot(t, np.linalg.norm(forces, axis=1), lw=0.7, color=colour, label=way)
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('|F| [N]')
+    ax.set_title('press session (lockstep): force sent to the device')
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--bags', default=','.join(BAGS))
+    ap.add_argument('--every', type=int, default=1, help='solver steps every K poses (renderer)')
+    ap.add_argument('--out', type=Path, default=ROOT / 'benchmarks' / 'results')
+    args = ap.parse_args(argv)
+    p = golden_params()
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows, press = [], {}
+    print(f'{"bag":6} {"way":9} {"dF p99":>7} {"dF max":>7} {"tick %":>6} {"ripple":>6} '
+          f'{"E_in min":>9} {"E_in end":>9} {"peak":>6}   (mN, %, mN, uJ, uJ, N)')
+    for name in args.bags.split(','):
+        stamps, device = bag_poses(name)
+        for way in ('direct', 'renderer'):
+            xs, forces = replay(p, stamps, device, way, args.every)
+            if name == 'press':
+                press[way] = (xs, forces)
+            q = quality(xs, forces)
+            rows.append({'bag': name, 'way': way, **q})
+            print(f'{name:6} {way:9} {q["dF_p99_mN"]:7.1f} {q["dF_max_mN"]:7.1f} '
+                  f'{q["tick_change_pct"]:6.2f} {q["ripple_mN"]:6.2f} {q["E_in_min_uJ"]:9.2f} '
+                  f'{q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
+    print('quasi-static force after a slow press and 1.5 s hold (block, top centre):')
+    for depth, direct, rendered in quasi_static(p):
+        print(f'  {depth * 1e3:.0f} mm: direct {direct:.4f} N, renderer {rendered:.4f} N '
+              f'({(rendered / direct - 1) * 100:+.1f} %)')
+    with open(args.out / 'haptic_quality.csv', 'w', newline='') as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    if {'direct', 'renderer'} <= set(press):
+        plot(args.out / 'haptic_quality.png', press)
+    print(f'wrote {args.out / "haptic_quality.csv"}' + (', .png' if press else ''))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
