@@ -78,13 +78,6 @@ class ContactModel:
         self.force, self.point, self.normal, self.magnitude = force, point, normal, mag
         self.refreshes += 1
 
-    def force_at(self, x) -> np.ndarray:
-        """``F(x)`` of the model (zero where it would pull)."""
-        if self.magnitude == 0.0:
-            return np.zeros(3)
-        fn = self.magnitude - self.stiffness * float(self.normal @ (np.asarray(x) - self.point))
-        return fn * self.normal if fn > 0.0 else np.zeros(3)
-
 
 class VirtualCoupling:
     """The proxy (simulated tool) and the force on the device, against a :class:`ContactModel`."""

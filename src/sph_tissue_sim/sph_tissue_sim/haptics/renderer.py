@@ -105,7 +105,7 @@ class HapticRenderer:
         self.model.clear()
         self.coupling.reset()
         self.observer.reset()
-        self.controller.alpha = 0.0
+        self.controller.alpha = self.controller.total = 0.0
 
     def answer(self, x, dt: float) -> Rendered:
         """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one."""
