@@ -26,7 +26,7 @@ import numpy as np
 from numba import njit
 
 from .contact import contact_vector, segment_distance2
-from .neighbours import append_once, query_ball
+from .neighbours import append_new, query_ball
 from .state import Area, Body, Grid, Sets, Topology
 
 
@@ -124,9 +124,8 @@ def local_prepare(body, topo, grid, area, n_active, stamp_val, contact_idx, Dr, 
     n_stress = 0
     for t in range(n_sph):
         i = sph_list[t]
-        n_stress = append_once(i, stamp, stamp_val, stress_list, n_stress)
-        for k in range(offsets[i], offsets[i + 1]):
-            n_stress = append_once(indices[k], stamp, stamp_val, stress_list, n_stress)
+        n_stress = append_new(sph_list, t, t + 1, stamp, stamp_val, stress_list, n_stress)
+        n_stress = append_new(indices, offsets[i], offsets[i + 1], stamp, stamp_val, stress_list, n_stress)
     return n_active, n_sph, n_lp, n_stress, n_cand, n_interaction, n_relaxing
 
 

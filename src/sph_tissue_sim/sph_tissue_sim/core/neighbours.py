@@ -190,12 +190,18 @@ def find_neighbours(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.n
     return neighbour_lists(points, float(radius), origin, float(radius), dims)
 
 
-@njit(cache=True, inline='always')
-def append_once(j, stamp, stamp_val, out, n):
-    """Append ``j`` to ``out[:n]`` unless it is stamped ``stamp_val`` already (then it is listed);
-    returns the new count. One stamp array and a fresh value per set make a set O(its size)."""
-    if stamp[j] != stamp_val:
-        stamp[j] = stamp_val
-        out[n] = j
-        n += 1
+@njit(cache=True, nogil=True)
+def append_new(items, lo, hi, stamp, stamp_val, out, n):
+    """Append those of ``items[lo:hi]`` not stamped ``stamp_val`` yet to ``out[:n]`` (stamping
+    them); returns the new count. One stamp array and a fresh value per set make a set O(its size).
+
+    A range rather than one item per call: numba increfs array arguments at every call and cannot
+    prune that around a branch, which made a per-item helper nine times slower than this loop.
+    """
+    for t in range(lo, hi):
+        j = items[t]
+        if stamp[j] != stamp_val:
+            stamp[j] = stamp_val
+            out[n] = j
+            n += 1
     return n

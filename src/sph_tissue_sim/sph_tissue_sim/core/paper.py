@@ -70,7 +70,7 @@ from numba.extending import overload
 
 from .kernel import ZERO3X3, add_outer, kernel_dwdr, kernel_w
 from .material import Material
-from .neighbours import append_once, bin_points, cell_block
+from .neighbours import append_new, bin_points, cell_block
 from .protocols import STATUS_BROKEN, STATUS_FULL, STATUS_OK, internal_forces, is_state
 
 _MAX_CELLS = 50_000_000   # a larger current-configuration grid means the body flew apart
@@ -355,20 +355,14 @@ def local_rows(offsets, indices, sph, n_sph, stress, n_stress, active, n_active,
     The search set is the rows, their reference neighbours and every active particle (active
     particles may have moved far from home). Returns ``(n_rows, n_search)``.
     """
-    n_rows = 0
-    for t in range(n_sph):
-        n_rows = append_once(sph[t], stamp, stamp_val, rows, n_rows)
-    for t in range(n_stress):
-        n_rows = append_once(stress[t], stamp, stamp_val, rows, n_rows)
+    n_rows = append_new(sph, 0, n_sph, stamp, stamp_val, rows, 0)
+    n_rows = append_new(stress, 0, n_stress, stamp, stamp_val, rows, n_rows)
     search[:n_rows] = rows[:n_rows]
     n_search = n_rows
     for t in range(n_rows):
         i = rows[t]
-        for k in range(offsets[i], offsets[i + 1]):
-            n_search = append_once(indices[k], stamp, stamp_val, search, n_search)
-    for t in range(n_active):
-        n_search = append_once(active[t], stamp, stamp_val, search, n_search)
-    return n_rows, n_search
+        n_search = append_new(indices, offsets[i], offsets[i + 1], stamp, stamp_val, search, n_search)
+    return n_rows, append_new(active, 0, n_active, stamp, stamp_val, search, n_search)
 
 
 @njit(cache=True, nogil=True)

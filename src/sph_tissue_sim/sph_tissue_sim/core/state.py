@@ -45,7 +45,7 @@ class Area(NamedTuple):
     in_area: np.ndarray    # int8: inside the area (or a candidate) this frame
     in_active: np.ndarray  # int8: listed in ``active``
     active: np.ndarray     # particles moving (area, layers, still relaxing)
-    stamp: np.ndarray      # int64 set membership marks (:func:`~.neighbours.append_once`)
+    stamp: np.ndarray      # int64 set membership marks (:func:`~.neighbours.append_new`)
     sph: np.ndarray        # the frame's sets (see :class:`Sets`)
     layer: np.ndarray
     layer_w: np.ndarray
