@@ -18,7 +18,13 @@ put in with each force held until the next pose) minimum and final. Also the qua
 2, 4 and 6 mm on the block, renderer against direct. Writes ``haptic_quality.csv`` and
 ``haptic_quality.png`` (the press session's force, both ways) to ``--out``.
 
-Usage: ``python benchmarks/haptic_quality.py [--bags press,pull,...] [--every K] [--out DIR]``
+``--live`` adds the live half: ``sim_node`` started as ``ros2 run`` would, fed poses at 1 kHz along a
+pressing path (``sim_latency.py``), on the 3670-, 50k- and 100k-particle livers, multirate and
+direct, idle and beside one busy process (``python3 -c 'while True: pass'``): pose-to-force latency
+p50/p99, the share of poses answered, and the solver's step rate. Writes
+``haptic_quality_live.csv``.
+
+Usage: ``python benchmarks/haptic_quality.py [--bags press,pull,...] [--every K] [--live] [--out DIR]``
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ import yaml
 
 from haptic_omni_driver import bagio
 from sph_tissue_sim import params as sim_params
+from sph_tissue_sim.haptics.multirate import MultiRate
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
 from sph_tissue_sim.sim_node import SimNode, make_solver
 from tissue_common.force import clamp_norm
@@ -67,25 +74,24 @@ def bag_poses(name: str) -> tuple[np.ndarray, np.ndarray]:
 
 def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int = 1,
            config: RendererConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Tissue-frame (positions, forces) per pose, ``way`` 'direct' or 'renderer'."""
+    """Tissue-frame (positions, forces) per pose, ``way`` 'direct' or 'renderer' (the lockstep
+    schedule of ``sim_node``: the solver steps at the proxy after every ``every``-th pose)."""
     solver = make_solver(sim_params.build_model(p), sim_params.build_material(p),
                          sim_params.build_config(p), p['nominal_dt'])
     mapping = SimNode._make_mapping(p, solver)
-    renderer = HapticRenderer(config or RendererConfig(force_limit=p['force_limit']))
+    handoff = MultiRate(HapticRenderer(config or RendererConfig(force_limit=p['force_limit'])), every,
+                        p['max_dt'])
     xs = np.array([mapping.to_tissue(d) for d in device])
     dts = np.r_[p['nominal_dt'], np.diff(stamps) * 1e-9]
     forces = np.empty_like(xs)
-    pending = 0.0
     for k, (x, dt) in enumerate(zip(xs, dts)):
         if way == 'direct':
             forces[k] = clamp_norm(solver.step(x, dt).force_raw, p['force_limit'])[0]
             continue
-        out = renderer.answer(x, dt)
-        forces[k] = out.force
-        pending += dt
-        if (k + 1) % every == 0:
-            renderer.refresh(out.proxy, solver.step(out.proxy, pending).force_raw)
-            pending = 0.0
+        forces[k] = handoff.answer(x, dt).force
+        if handoff.due():
+            job = handoff.take()
+            handoff.refresh(job, solver.step(job.point, job.dt))
     return xs, forces
 
 
@@ -129,6 +135,43 @@ def quasi_static(p: dict, depths=(0.002, 0.004, 0.006), hold: int = 1500) -> lis
     return out
 
 
+LIVE_SIZES = (3670, 50000, 100000)
+LIVE_COLUMNS = ('particles', 'haptic_mode', 'load', 'poses_sent', 'replies', 'answered_pct',
+                'rtt_median_ms', 'rtt_p99_ms', 'rtt_max_ms', 'solver_rate_hz', 'max_force_n')
+
+
+def live(sizes=LIVE_SIZES, modes=('multirate', 'direct'), duration: float = 10.0) -> list[dict]:
+    """The live graph's answers at 1 kHz: each size x mode x (idle, one busy process)."""
+    import subprocess
+
+    sys.path.insert(0, str(ROOT / 'benchmarks'))
+    import sim_latency
+
+    rows = []
+    for n in sizes:
+        for mode in modes:
+            for load in ('idle', 'busy'):
+                busy = (subprocess.Popen([sys.executable, '-c', 'while True: pass'])
+                        if load == 'busy' else None)
+                try:
+                    args = sim_latency.parser().parse_args(
+                        ['--n-particles', str(n), '--haptic-mode', mode, '--duration', str(duration),
+                         '--csv', ''])
+                    s = sim_latency.run(args)
+                finally:
+                    if busy is not None:
+                        busy.kill()
+                        busy.wait()
+                row = {k: s.get(k) for k in LIVE_COLUMNS if k in s}
+                row.update(particles=s['particles'], haptic_mode=mode, load=load,
+                           answered_pct=100.0 - s['no_reply_pct'])
+                rows.append(row)
+                print(f'{row["particles"]:>7} {mode:9} {load:5} {row["answered_pct"]:8.2f} '
+                      f'{row["rtt_median_ms"]:7.3f} {row["rtt_p99_ms"]:7.3f} {row["rtt_max_ms"]:7.2f} '
+                      f'{row["solver_rate_hz"]:8.1f} {row["max_force_n"]:6.3f}', flush=True)
+    return rows
+
+
 def plot(path: Path, press: dict) -> None:
     import matplotlib
     matplotlib.use('Agg')
@@ -151,8 +194,23 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--bags', default=','.join(BAGS))
     ap.add_argument('--every', type=int, default=1, help='solver steps every K poses (renderer)')
+    ap.add_argument('--live', action='store_true', help='also the live half (sim_node at 1 kHz, '
+                    '3670/50k/100k livers, idle and busy; about 15 minutes)')
+    ap.add_argument('--live-only', action='store_true', help='only the live half')
     ap.add_argument('--out', type=Path, default=ROOT / 'benchmarks' / 'results')
     args = ap.parse_args(argv)
+    if args.live or args.live_only:
+        args.out.mkdir(parents=True, exist_ok=True)
+        print('live, 1 kHz poses for 10 s (first second left out):')
+        print(f'{"N":>7} {"mode":9} {"load":5} {"answered":>8} {"p50":>7} {"p99":>7} {"max":>7} '
+              f'{"solver":>8} {"|F|max":>6}   (%, ms, ms, ms, Hz, N)')
+        rows = live()
+        with open(args.out / 'haptic_quality_live.csv', 'w', newline='') as fh:
+            w = csv.DictWriter(fh, fieldnames=LIVE_COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+        if args.live_only:
+            return 0
     p = golden_params()
     args.out.mkdir(parents=True, exist_ok=True)
     rows, press = [], {}

@@ -62,7 +62,7 @@ def run(args) -> dict:
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     params = {'model': args.model, 'n_particles': args.n_particles, 'mode': args.mode,
               'scheme': args.scheme, 'timing_mode': args.timing,
-              'particles_rate': args.particles_rate}
+              'particles_rate': args.particles_rate, 'haptic_mode': args.haptic_mode}
     if args.step_thread != 'default':
         params['step_thread'] = args.step_thread == 'on'
     if args.model == 'block':
@@ -165,7 +165,7 @@ def run(args) -> dict:
     summary = {
         'model': args.model, 'n_particles_requested': args.n_particles,
         'particles': _particles(ready_line), 'scheme': args.scheme, 'mode': args.mode,
-        'timing': args.timing, 'rate_hz': args.rate, 'duration_s': args.duration,
+        'timing': args.timing, 'haptic_mode': args.haptic_mode, 'rate_hz': args.rate, 'duration_s': args.duration,
         'compile_s': float(m.group(1)),
         'poses_sent': int(n_total - skip),
         'send_rate_hz': (n_total - skip - 1) / span if span > 0 else math.nan,
@@ -180,6 +180,8 @@ def run(args) -> dict:
         'forces_finite': bool(np.all(np.isfinite(force[sel][got]))),
         'sim_totals': totals[-1].split('totals: ')[-1] if totals else '',
     }
+    steps = re.search(r'([0-9]+) steps', summary['sim_totals'])
+    summary['solver_rate_hz'] = int(steps.group(1)) / args.duration if steps else math.nan
     if args.csv:
         path = Path(args.csv)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -209,7 +211,7 @@ def _particles(ready_line: str) -> int:
     return int(m.group(1)) if m else -1
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--duration', type=float, default=10.0, help='seconds of poses')
     ap.add_argument('--rate', type=float, default=1000.0, help='pose rate [Hz]')
@@ -219,6 +221,8 @@ def main(argv=None) -> int:
     ap.add_argument('--mode', default='local', help='local | global')
     ap.add_argument('--scheme', default='tlsph', help='tlsph | mass_spring | paper')
     ap.add_argument('--timing', default='live', help='live | lockstep')
+    ap.add_argument('--haptic-mode', default='multirate', help='multirate (the renderer answers, the '
+                    'solver refreshes it) | direct (one solver step per pose)')
     ap.add_argument('--depth', type=float, default=0.006, help='[m] deepest press below the surface')
     ap.add_argument('--press-period', type=float, default=2.0, help='[s] one press and release')
     ap.add_argument('--particles-rate', type=float, default=30.0, help='[Hz] cloud rate of the node')
@@ -231,11 +235,16 @@ def main(argv=None) -> int:
                          'step-time line at shutdown)')
     ap.add_argument('--csv', default=str(ROOT / 'benchmarks' / 'results' / 'sim_latency.csv'),
                     help='per-pose CSV ("" = none); a *_summary.csv next to it gets one row per run')
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
     s = run(args)
     rows = [
         ('configuration', f"{s['model']} ({s['particles']} particles), {s['scheme']}, {s['mode']}, "
-                          f"{s['timing']}, cloud {args.particles_rate:g} Hz, step thread {args.step_thread}"),
+                          f"{s['timing']}, haptic {s['haptic_mode']}, cloud {args.particles_rate:g} Hz, step thread "
+                          f"{args.step_thread}"),
         ('numba warm-up + first step', f"{s['compile_s']:.2f} s"),
         ('poses sent / replies', f"{s['poses_sent']} / {s['replies']}"),
         ('pose rate sent', f"{s['send_rate_hz']:.1f} Hz (target {args.rate:g})"),

@@ -27,9 +27,11 @@ from .core.factory import MODELS, make_model
 from .core.models import TissueModel
 from .core.solver import MODES, SCHEMES, SolverConfig
 from .core.tools import TOOLS
+from .haptics.renderer import RENDERER_RANGES, RendererConfig
 from .mapping import ANCHORS, DEFAULT_ROTATION
 
 TIMING_MODES = ('live', 'lockstep')
+HAPTIC_MODES = ('multirate', 'direct')
 
 # name: (default, description, range/choices, read_only, rebuild)
 SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
@@ -104,6 +106,31 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                     (0.001, HARD_FORCE_LIMIT), False, None),
     'force_scale': (1.0, 'device force = force_scale * tissue force (use workspace_scale for an '
                          'energy-consistent scaled workspace)', (0.001, 100.0), False, None),
+    # -- haptic rendering (sph_tissue_sim.haptics) ------------------------------------------------
+    'haptic_mode': ('multirate', 'multirate (each pose answered at once by the haptic renderer: '
+                                 'velocity filter, virtual coupling, passivity control; the solver '
+                                 'refreshes its contact model at its own rate) | direct (one solver '
+                                 'step per pose, its reaction sent as is)', HAPTIC_MODES, True, None),
+    'solver_every': (1, 'multirate, lockstep: the solver steps after every n-th pose, in order (live: '
+                        'a solver thread steps as fast as it can)', (1, 1000), False, None),
+    'velocity_cutoff': (RendererConfig.velocity_cutoff, '[Hz] cut-off of the position/velocity '
+                        'filter of the encoder-quantised device positions (lower is smoother, '
+                        'laggier)', RENDERER_RANGES['velocity_cutoff'], False, 'renderer'),
+    'coupling_stiffness': (RendererConfig.coupling_stiffness, '[N/m] virtual coupling spring between '
+                           'the device and the simulated tool: the stiffest the hand can feel (an '
+                           'Omni renders about 700; times force_scale / workspace_scale at the '
+                           'device)', RENDERER_RANGES['coupling_stiffness'], False, 'renderer'),
+    'coupling_damping': (RendererConfig.coupling_damping, '[N s/m] damper on the device\'s normal '
+                         'velocity in contact (passive above coupling_stiffness * period / 2)',
+                         RENDERER_RANGES['coupling_damping'], False, 'renderer'),
+    'proxy_damping': (RendererConfig.proxy_damping, '[N s/m] damper of the simulated tool to the '
+                      'world (keeps the loop through the solver stable; the tool lags the device by '
+                      'proxy_damping / coupling_stiffness)', RENDERER_RANGES['proxy_damping'], False,
+                      'renderer'),
+    'passivity_max_damping': (RendererConfig.passivity_max_damping, '[N s/m] the most damping the '
+                              'passivity controller may add when the energy at the device port '
+                              'goes negative', RENDERER_RANGES['passivity_max_damping'], False,
+                              'renderer'),
     # -- device -> tissue -------------------------------------------------------------------------
     'device_frame': ('omni_base', 'frame of accepted poses (and of the force replies)', None, False,
                      None),
@@ -238,3 +265,17 @@ def build_config(p: dict) -> SolverConfig:
     if not math.isfinite(p['force_limit']) or p['force_limit'] > HARD_FORCE_LIMIT:
         raise ConfigError(f'force_limit must be <= {HARD_FORCE_LIMIT} N, got {p["force_limit"]}')
     return cfg
+
+
+def build_renderer(p: dict) -> RendererConfig:
+    """Haptic renderer settings from the parameters (raises ConfigError). Its force limit is the
+    device's in tissue units, so the renderer's passivity accounting holds what is sent."""
+    try:
+        return RendererConfig(velocity_cutoff=float(p['velocity_cutoff']),
+                              coupling_stiffness=float(p['coupling_stiffness']),
+                              coupling_damping=float(p['coupling_damping']),
+                              proxy_damping=float(p['proxy_damping']),
+                              passivity_max_damping=float(p['passivity_max_damping']),
+                              force_limit=float(p['force_limit']) / float(p['force_scale'])).validate()
+    except ValueError as exc:
+        raise ConfigError(f'haptic renderer: {exc}') from exc

@@ -8,6 +8,16 @@ are the pose's, so the round trip can be measured). Publishes ``tissue/particles
 (sensor_msgs/PointCloud2, see :mod:`.cloud`) at ``particles_rate`` and ``tissue/metrics``
 (tissue_msgs/SimMetrics) per step; serves ``tissue/reset`` (tissue_msgs/srv/ResetTissue).
 
+Haptic modes (parameter ``haptic_mode``):
+
+- ``multirate`` (default): each pose is answered at once by the haptic renderer
+  (:mod:`.haptics`: velocity filter, virtual coupling to the simulated tool, passivity control)
+  from a local contact model; the solver steps at the coupling's proxy and refreshes that model.
+  Live: the subscription callback answers and a solver thread steps as fast as it can. Lockstep:
+  the solver steps after every ``solver_every``-th pose in the pose's thread, so replays stay
+  bit-identical.
+- ``direct``: one solver step per pose; its reaction is the force (the timing modes below).
+
 Timing modes (parameter ``timing_mode``):
 
 - ``live``: only the newest pose is stepped; poses that arrive during a step are dropped, so there
@@ -57,9 +67,12 @@ from tissue_msgs.srv import ResetTissue
 
 from .cloud import POINT_DTYPE, make_cloud, pack_points
 from .core.errors import ConfigError, ModelError, SimError
-from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, warmup
+from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, StepResult, warmup
 from .mapping import DeviceMapping, anchor_point, check_position
-from .params import SIM_PARAMS, build_config, build_material, build_model, check_value
+from .haptics.multirate import MultiRate, SolverJob
+from .haptics.renderer import HapticRenderer
+from .params import (SIM_PARAMS, build_config, build_material, build_model, build_renderer,
+                     check_value)
 from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 
 EXIT_OK, EXIT_INPUT = 0, 1
@@ -136,12 +149,21 @@ class SimNode(Node):
         self.clock = StampClock(p['nominal_dt'], p['max_dt'])
         self.lockstep = p['timing_mode'] == 'lockstep'
         self.use_thread = p['step_thread']
+        # multirate: the renderer answers each pose; the solver refreshes its contact model after
+        # every solver_every-th pose (lockstep, in order) or from its own thread (live)
+        self.haptic: MultiRate | None = None
+        if p['haptic_mode'] == 'multirate':
+            self.haptic = MultiRate(HapticRenderer(build_renderer(p)),
+                                    p['solver_every'] if self.lockstep else 0, p['max_dt'])
+        self._pose_lock = threading.Lock()       # the stamp clock and the last answer (multirate)
+        self._wake = threading.Event()           # a pose came: the live solver thread has a job
 
         self._lock = threading.Lock()            # the solver and its state
         self._cv = threading.Condition()         # the pose inbox
         self._inbox: collections.deque = collections.deque()
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
+        self._solver_thread: threading.Thread | None = None
         self._last_force_dev = np.zeros(3)
         self._last_stamp = None
         self._step_count = 0
@@ -204,15 +226,28 @@ class SimNode(Node):
                 f'scheme {c.scheme}, mode {c.mode}, material {m.name} (E {m.E:.4g} Pa, nu {m.nu:g}, '
                 f'eta_shear {m.eta_shear:g} Pa s), timing {self.p["timing_mode"]}, pose QoS '
                 f'{"reliable" if self.io_qos.reliability == ReliabilityPolicy.RELIABLE else "best effort"}'
-                f' depth {self.io_qos.depth}, force_limit {self.p["force_limit"]:g} N, device origin '
+                f' depth {self.io_qos.depth}, haptic {self._describe_haptic()}, force_limit '
+                f'{self.p["force_limit"]:g} N, device origin '
                 f'-> tissue ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) m')
+
+    def _describe_haptic(self) -> str:
+        if self.haptic is None:
+            return 'direct (one solver step per pose)'
+        c = self.haptic.renderer.config
+        when = (f'every {self.haptic.every} poses' if self.haptic.every else 'on its own thread')
+        return (f'multirate (solver {when}; coupling {c.coupling_stiffness:g} N/m, '
+                f'{c.coupling_damping:g} N s/m, velocity filter {c.velocity_cutoff:g} Hz)')
 
     # -- lifecycle -------------------------------------------------------------------------------
     def start(self) -> None:
         """Start the stepping thread (if configured) and report ready."""
-        if self.use_thread:
+        if self.use_thread and not (self.haptic is not None and not self.lockstep):
             self._worker = threading.Thread(target=self._work, name='sim_step', daemon=True)
             self._worker.start()
+        if self.haptic is not None and not self.lockstep:
+            self._solver_thread = threading.Thread(target=self._solve_loop, name='sim_solver',
+                                                   daemon=True)
+            self._solver_thread.start()
         self.get_logger().info(f'numba warm-up (compile or cache load) and first step: '
                                f'{self.compile_time:.2f} s ({self.kernels_compiled} kernels '
                                f'compiled, {self.kernels_loaded} loaded from the cache)')
@@ -227,8 +262,10 @@ class SimNode(Node):
         self._stop.set()
         with self._cv:
             self._cv.notify_all()
-        if self._worker is not None:
-            self._worker.join(2.0)
+        self._wake.set()
+        for thread in (self._worker, self._solver_thread):
+            if thread is not None:
+                thread.join(2.0)
         c = self.counts
         # not the node logger: after Ctrl-C the context is shut down and rosout would fail
         rclpy.logging.get_logger(self.get_name() + '.shutdown').info(
@@ -261,7 +298,8 @@ class SimNode(Node):
 
     # -- pose intake -------------------------------------------------------------------------------
     def _on_pose(self, msg: PoseStamped) -> None:
-        if not self.use_thread:
+        if not self.use_thread or (self.haptic is not None and not self.lockstep):
+            # multirate live: answering costs microseconds, so answer here; the solver has its thread
             # stepping here: poses that arrive meanwhile wait in the reader history, which keeps
             # only the newest qos_depth of them in live mode (DDS drops the rest, never a backlog)
             self.counts['poses'] += 1
@@ -312,73 +350,162 @@ class SimNode(Node):
         header = msg.header
         reason = self._reject_reason(msg)
         if reason is not None:
-            self.counts['rejected'] += 1
-            self._throttled('reject', 'warn', f'rejected pose ({reason}): answered zero force, '
-                            f'tissue not stepped')
-            self._publish_force(header, np.zeros(3))
+            self._reject(header, f'rejected pose ({reason}): answered zero force, tissue not stepped')
             return
         stamp_ns = stamp_to_ns(header.stamp)
+        if self.haptic is not None:
+            self._answer(msg, stamp_ns)
+            return
         pos = msg.pose.position
-        res = None
         with self._lock:
-            dt, kind = self.clock.advance(stamp_ns)
-            if kind == REPEAT:
-                self._publish_force(header, self._last_force_dev)
+            dt = self._advance(header, stamp_ns)
+            if dt is None:
                 return
-            if kind == BACKWARDS:
-                self._throttled('backwards', 'warn', f'pose stamp went backwards (to {stamp_ns} ns): '
-                                f'stepping {self.clock.nominal_dt * 1e3:g} ms')
-            elif kind == JUMP:
-                self._throttled('jump', 'warn', f'pose stamp jumped by more than max_dt: step '
-                                f'clamped to {self.clock.max_dt * 1e3:g} ms')
-            tool = self.mapping.to_tissue((pos.x, pos.y, pos.z))
-            solver = self.solver
             try:
-                rot = None
-                if solver.tool.oriented:
-                    q = msg.pose.orientation
-                    try:
-                        rot = self.mapping.rotation_to_tissue((q.x, q.y, q.z, q.w))
-                    except ValueError as exc:   # refused below like any bad tool input
-                        raise InvalidInput(f'stylus orientation: {exc}') from exc
-                res = solver.step(tool, dt, rot)
+                rot = self._rotation(msg)
             except InvalidInput as exc:
-                self.counts['rejected'] += 1
-                self._throttled('invalid', 'warn', f'step refused the input ({exc}): answered zero '
-                                f'force')
-            except ConfigError as exc:
-                self._throttled('config', 'error', f'step impossible ({exc}): answered zero force')
-            except StepInterrupted:
-                self.counts['interrupted'] += 1  # a reset or parameter change took the solver
-            except SimError as exc:
-                self.counts['sim_errors'] += 1
-                solver.reset()
-                self.clock.reset()
-                self._throttled('unstable', 'error', f'{exc}: answered zero force and reset the '
-                                f'tissue to rest')
-            if res is None:
-                force_dev = np.zeros(3)
-            else:
-                # clamped once, as sent (force_scale may enlarge the solver's reaction)
-                force_dev, _ = clamp_norm(self.mapping.force_to_device(res.force_raw),
-                                          self.p['force_limit'])
-                self._wall[self.counts['steps'] % STEP_TIME_HISTORY] = res.wall_time
-                self.counts['steps'] += 1
-                if res.tool_lag > TOOL_LAG_LOG:
-                    self._throttled('tool_lag', 'warn', f'the device moved faster than max_tool_speed '
-                                    f'({solver.config.max_tool_speed:g} m/s): the simulated tool '
-                                    f'follows {res.tool_lag * 1e3:.1f} mm behind')
-                if res.substeps_capped:
-                    self._throttled('capped', 'warn', f'frame needed more than max_substeps '
-                                    f'({solver.config.max_substeps}): simulated time lags')
+                self._reject(header, f'step refused the input ({exc}): answered zero force')
+                return
+            res = self._step(self.mapping.to_tissue((pos.x, pos.y, pos.z)), dt, rot)
+            force_dev = np.zeros(3) if res is None else self._to_device(res.force_raw)
             self._last_force_dev = force_dev
             self._last_stamp = header.stamp
-            metrics = self._metrics(header, res, solver) if res is not None else None
+            metrics = self._metrics(header.stamp, res, self.solver) if res is not None else None
         self._publish_force(header, force_dev)
         if metrics is not None:
             self.metrics_pub.publish(metrics)
         if self._cloud_due:
             self._publish_cloud()
+
+    def _answer(self, msg: PoseStamped, stamp_ns: int) -> None:
+        """Multirate: answer the pose from the renderer at once; the solver follows (lockstep: here,
+        every solver_every poses; live: its thread is woken)."""
+        header, pos = msg.header, msg.pose.position
+        with self._pose_lock:
+            dt = self._advance(header, stamp_ns)
+            if dt is None:
+                return
+            try:
+                rot = self._rotation(msg)
+            except InvalidInput as exc:
+                self._reject(header, f'refused the input ({exc}): answered zero force')
+                return
+            out = self.haptic.answer(self.mapping.to_tissue((pos.x, pos.y, pos.z)), dt, rot,
+                                     header.stamp)
+            force_dev = self._to_device(out.force)
+            self._last_force_dev = force_dev
+        self._publish_force(header, force_dev)
+        if not self.lockstep:
+            self._wake.set()
+        elif self.haptic.due():
+            self._solve()
+
+    def _solve_loop(self) -> None:
+        """Multirate live: step the solver at the newest proxy whenever a pose has come."""
+        while not self._stop.is_set():
+            self._wake.wait(0.1)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            try:
+                self._solve()
+            except Exception:  # noqa: BLE001  (the poses are answered by the renderer meanwhile)
+                self._throttled('internal', 'error', 'internal error in the solver thread:\n'
+                                + traceback.format_exc())
+
+    def _solve(self) -> None:
+        job: SolverJob | None = self.haptic.take()
+        if job is None:
+            return
+        with self._lock:
+            res = self._step(job.point, job.dt, job.rotation)
+            if res is not None:
+                self.haptic.refresh(job, res)
+                self._last_stamp = job.stamp
+            metrics = self._metrics(job.stamp, res, self.solver) if res is not None else None
+        if metrics is not None:
+            self.metrics_pub.publish(metrics)
+        if self._cloud_due:
+            self._publish_cloud()
+
+    def _reject(self, header, text: str) -> None:
+        """Answer zero force for a pose that must not move the tool."""
+        self.counts['rejected'] += 1
+        self._throttled('reject', 'warn', text)
+        if self.haptic is not None:
+            self.haptic.zero_held()
+        self._publish_force(header, np.zeros(3))
+
+    def _advance(self, header, stamp_ns: int) -> float | None:
+        """The pose's step [s] from its stamp, or None after answering a repeated stamp with the
+        previous force."""
+        dt, kind = self.clock.advance(stamp_ns)
+        if kind == REPEAT:
+            self._publish_force(header, self._last_force_dev)
+            return None
+        if kind == BACKWARDS:
+            self._throttled('backwards', 'warn', f'pose stamp went backwards (to {stamp_ns} ns): '
+                            f'stepping {self.clock.nominal_dt * 1e3:g} ms')
+        elif kind == JUMP:
+            self._throttled('jump', 'warn', f'pose stamp jumped by more than max_dt: step '
+                            f'clamped to {self.clock.max_dt * 1e3:g} ms')
+        return dt
+
+    def _rotation(self, msg: PoseStamped) -> np.ndarray | None:
+        """The stylus orientation in the tissue frame, for a tool that has one (else None)."""
+        if not self.solver.tool.oriented:
+            return None
+        q = msg.pose.orientation
+        try:
+            return self.mapping.rotation_to_tissue((q.x, q.y, q.z, q.w))
+        except ValueError as exc:
+            raise InvalidInput(f'stylus orientation: {exc}') from exc
+
+    def _to_device(self, force_tissue: np.ndarray) -> np.ndarray:
+        # clamped once, as sent (force_scale may enlarge the tissue's force)
+        return clamp_norm(self.mapping.force_to_device(force_tissue), self.p['force_limit'])[0]
+
+    def _step(self, tool: np.ndarray, dt: float, rot) -> StepResult | None:
+        """One solver step (caller holds the solver lock); None when it was refused or failed."""
+        solver = self.solver
+        try:
+            res = solver.step(tool, dt, rot)
+        except InvalidInput as exc:
+            self.counts['rejected'] += 1
+            self._throttled('invalid', 'warn', f'step refused the input ({exc}): answered zero '
+                            f'force')
+            return None
+        except ConfigError as exc:
+            self._throttled('config', 'error', f'step impossible ({exc}): answered zero force')
+            return None
+        except StepInterrupted:
+            self.counts['interrupted'] += 1  # a reset or parameter change took the solver
+            return None
+        except SimError as exc:
+            self.counts['sim_errors'] += 1
+            self._rest()
+            self._throttled('unstable', 'error', f'{exc}: answered zero force and reset the '
+                            f'tissue to rest')
+            return None
+        self._wall[self.counts['steps'] % STEP_TIME_HISTORY] = res.wall_time
+        self.counts['steps'] += 1
+        if res.tool_lag > TOOL_LAG_LOG:
+            self._throttled('tool_lag', 'warn', f'the device moved faster than max_tool_speed '
+                            f'({solver.config.max_tool_speed:g} m/s): the simulated tool '
+                            f'follows {res.tool_lag * 1e3:.1f} mm behind')
+        if res.substeps_capped:
+            self._throttled('capped', 'warn', f'frame needed more than max_substeps '
+                            f'({solver.config.max_substeps}): simulated time lags')
+        return res
+
+    def _rest(self) -> None:
+        """The tissue back to rest and the device's past forgotten (caller holds the solver lock)."""
+        self.solver.reset()
+        with self._pose_lock:
+            self.clock.reset()
+            self._last_force_dev = np.zeros(3)
+            if self.haptic is not None:
+                self.haptic.reset()
 
     def _publish_force(self, header, force: np.ndarray) -> None:
         msg = self._wrench_msg  # reused: building a message costs more than the step of a small area
@@ -388,12 +515,12 @@ class SimNode(Node):
         f.x, f.y, f.z = (float(v) for v in force)
         self.force_pub.publish(msg)
 
-    def _metrics(self, header, res, solver: Solver) -> SimMetrics | None:
+    def _metrics(self, stamp, res: StepResult, solver: Solver) -> SimMetrics | None:
         self._step_count += 1
         if self._step_count % self.p['metrics_decimation']:
             return None
         m = self._metrics_msg
-        m.header.stamp = header.stamp
+        m.header.stamp = stamp
         m.header.frame_id = self.p['tissue_frame']
         m.step_wall_time = float(res.wall_time)
         m.sim_time = float(solver.sim_time)
@@ -418,6 +545,13 @@ class SimNode(Node):
         m.kinetic_energy = float(res.kinetic_energy)
         m.scheme = solver.config.scheme_index
         m.mode = solver.config.mode_index
+        if self.haptic is None:
+            m.haptic_mode = SimMetrics.HAPTIC_DIRECT
+        else:
+            h = self.haptic.status()
+            m.haptic_mode = SimMetrics.HAPTIC_MULTIRATE
+            m.solver_rate, m.model_age, m.coupling_stretch = h.solver_rate, h.model_age, h.stretch
+            m.energy_in, m.energy_in_min, m.added_damping = h.energy, h.energy_min, h.damping
         return m
 
     # -- particles -------------------------------------------------------------------------------
@@ -475,9 +609,7 @@ class SimNode(Node):
                     response.success = False
                     response.message = f'reset refused: {exc}'
                     return response
-            self.solver.reset()
-            self.clock.reset()
-            self._last_force_dev = np.zeros(3)
+            self._rest()
             response.n_particles = int(self.solver.n_particles)
         self.counts['resets'] += 1
         response.success = True
@@ -504,6 +636,7 @@ class SimNode(Node):
         try:
             config = build_config(new)
             material = build_material(new) if 'material' in kinds else None
+            renderer = build_renderer(new) if self.haptic is not None else None
             solver = None
             if 'solver' in kinds:
                 solver = make_solver(self.model, material or self.solver.material, config,
@@ -521,8 +654,7 @@ class SimNode(Node):
         with self._solver_now():
             if solver is not None:
                 self.solver = solver
-                self.clock.reset()
-                self._last_force_dev = np.zeros(3)
+                self._rest()
             elif material is not None:
                 self.solver.set_material(material)
             self.solver.config.force_limit = float(new['force_limit'])
@@ -531,6 +663,15 @@ class SimNode(Node):
                 self.mapping = mapping
             self.clock.nominal_dt = float(new['nominal_dt'])
             self.clock.max_dt = float(new['max_dt'])
+            if renderer is not None:
+                with self._pose_lock:
+                    if 'renderer' in kinds:   # new gains: the device's past no longer applies
+                        self.haptic.reset()
+                        self.haptic.renderer = HapticRenderer(renderer)
+                    self.haptic.renderer.config.force_limit = renderer.force_limit
+                    self.haptic.max_dt = float(new['max_dt'])
+                    if self.lockstep:
+                        self.haptic.every = int(new['solver_every'])
             self.p = new
         if 'particles_rate' in changed:
             self._set_cloud_timer(new['particles_rate'])

@@ -1,6 +1,7 @@
 """Error paths of sim_node's step, driven in-process (a real node object, poses handed to its
 callback directly, published forces captured): unstable steps, refused inputs, internal errors, and
-a fuzz of random poses and stamps."""
+a fuzz of random poses and stamps; in direct mode (one step per pose) and in multirate mode with
+the lockstep schedule (the renderer answers, the solver steps after each pose in the same thread)."""
 
 from __future__ import annotations
 
@@ -26,8 +27,7 @@ def pose(pos, ns: int, frame: str = 'omni_base'):
     return msg
 
 
-@pytest.fixture
-def node(ros_domain):
+def make_node(**extra):
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -35,11 +35,43 @@ def node(ros_domain):
 
     ctx = rclpy.context.Context()
     rclpy.init(context=ctx)
-    params = {**BLOCK, 'force_limit': LIMIT, 'particles_rate': 0.0, 'warmup': False}
+    params = {**BLOCK, 'force_limit': LIMIT, 'particles_rate': 0.0, 'warmup': False, **extra}
     n = SimNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
     n.sent = []
     n._publish_force = lambda header, f: n.sent.append(
         (header.stamp.sec * 1_000_000_000 + header.stamp.nanosec, np.array(f, dtype=float)))
+    return n, ctx
+
+
+@pytest.fixture
+def node(ros_domain):
+    import rclpy
+
+    n, ctx = make_node(haptic_mode='direct')
+    try:
+        yield n
+    finally:
+        n.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture(params=['direct', 'multirate'])
+def any_node(request, ros_domain):
+    import rclpy
+
+    n, ctx = make_node(haptic_mode=request.param, timing_mode='lockstep')
+    try:
+        yield n
+    finally:
+        n.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture
+def multirate(ros_domain):
+    import rclpy
+
+    n, ctx = make_node(haptic_mode='multirate', timing_mode='lockstep')
     try:
         yield n
     finally:
@@ -96,9 +128,10 @@ def test_an_unexpected_exception_answers_zero_and_the_node_goes_on(node, monkeyp
     assert node.sent[-1][1][1] > 0.0
 
 
-def test_random_poses_and_stamps_never_give_a_bad_force(node):
+def test_random_poses_and_stamps_never_give_a_bad_force(any_node):
     """Valid presses mixed with NaN/inf/huge positions, foreign frames, repeated, backwards and
-    jumping stamps: one reply per pose, always finite and within force_limit."""
+    jumping stamps: one reply per pose, always finite and within force_limit (both haptic modes)."""
+    node = any_node
     rng = np.random.default_rng(1)
     t = T0_NS
     n = 600
@@ -126,3 +159,44 @@ def test_random_poses_and_stamps_never_give_a_bad_force(node):
     assert np.all(np.linalg.norm(forces, axis=1) <= LIMIT + 1e-12)
     assert np.any(np.linalg.norm(forces, axis=1) > 0.0)        # some presses were felt
     assert node.counts["rejected"] > 0
+
+
+def test_multirate_answers_from_the_renderer_and_steps_the_solver_after_each_pose(multirate):
+    node = multirate
+    t = press(node)
+    assert node.counts['steps'] == 60 and len(node.sent) == 60
+    assert node.sent[-1][1][1] > 0.0                          # pushed back up (device y)
+    status = node.haptic.status()
+    assert status.model_age == pytest.approx(1e-3) and status.stretch > 0.0
+    node._handle(pose((0.0, -0.004, 0.0), t - 1_000_000))     # a repeated stamp: the same answer
+    assert np.array_equal(node.sent[-1][1], node.sent[-2][1]) and node.counts['steps'] == 60
+
+
+def test_multirate_unstable_solver_step_resets_the_tissue_and_the_renderer(multirate, monkeypatch):
+    from sph_tissue_sim.core.errors import SimError
+
+    node = multirate
+    t = press(node)
+    felt = node.sent[-1][1]
+    assert felt[1] > 0.0
+
+    def unstable(tool, dt, rot=None):
+        raise SimError('tlsph local step went unstable')
+
+    monkeypatch.setattr(node.solver, 'step', unstable)
+    node._handle(pose((0.0, -0.004, 0.0), t))
+    # the pose was answered from the contact model before the solver failed
+    assert np.all(np.isfinite(node.sent[-1][1])) and np.linalg.norm(node.sent[-1][1]) <= LIMIT
+    assert node.counts['sim_errors'] == 1 and node.solver.sim_time == 0.0
+    assert node.haptic.renderer.model.magnitude == 0.0        # the contact is forgotten
+    monkeypatch.undo()
+    node._handle(pose((0.0, -0.004, 0.0), t + 1_000_000))
+    assert np.all(node.sent[-1][1] == 0.0)                    # no model yet: nothing is pushed
+
+
+def test_multirate_rejected_pose_is_answered_zero_and_charged_as_zero(multirate):
+    node = multirate
+    t = press(node)
+    node._handle(pose((np.nan, 0.0, 0.0), t))
+    assert np.all(node.sent[-1][1] == 0.0) and node.counts['rejected'] == 1
+    assert np.all(node.haptic.renderer.observer._f == 0.0)   # E_in charges what the device held

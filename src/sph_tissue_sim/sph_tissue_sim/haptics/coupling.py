@@ -10,20 +10,22 @@ tissue's stiffness ``k`` along the contact normal ``n = F0 / |F0|``::
 series, so it is what the hand should feel, not the stiffer frozen-particle penalty), low-pass
 filtered over refreshes and kept in ``[0, k_max]``.
 
-The simulated tool (the proxy ``x_t``) is a massless point with a damper ``B_p`` to the world, held
-by a spring ``K_c`` to the filtered device point ``x^`` and pushed by the contact model. Each sample
-updates it implicitly (a 3x3 solve, Sherman-Morrison)::
+The simulated tool (the proxy ``x_t = x^ + a``) is held by a spring ``K_c`` to the filtered device
+point ``x^``, pushed by the contact model, and its offset ``a`` from the device point is damped by
+``B_p``. Each sample updates the offset implicitly (a 3x3 solve, Sherman-Morrison)::
 
-    B_p (x_t - x_t') / T = K_c (x^ - x_t) + F0 - k n n . (x_t - x0)
+    B_p (a - a') / T = -K_c a + F0 - k n n . (x^ + a - x0)
 
-(``x_t'`` the proxy a sample ago). At rest this is the quasi-static coupling ``K_c (x_t - x^) =
-F(x_t)``: the hand feels the tissue in series with ``K_c``, never stiffer than ``K_c``. The damper
-keeps the loop through the solver stable: the solver answers at the proxy a sample (or more) later
-and, within one frame, with its stiff penalty contact ``K_s``; the update is stable while
-``K_s < 2 B_p / T + K_c + 2 k`` (``B_p`` 2 N s/m: about 4700 N/m at 1 kHz before ``k`` has
-learned anything). It also makes the proxy slide into and out of contact instead of jumping, so
-the solver's contact dashpot never sees a jump. Without contact the proxy follows the device with
-the lag ``B_p / K_c`` (2.9 ms) and no force is rendered.
+(``a'`` the offset a sample ago). At rest this is the quasi-static coupling ``K_c a = F(x_t)``: the
+hand feels the tissue in series with ``K_c``, never stiffer than ``K_c``. The damper keeps the loop
+through the solver stable: the solver answers at the proxy a sample (or more) later and, within one
+frame, with its stiff penalty contact ``K_s``; the update is stable while ``K_s < 2 B_p / T + K_c +
+2 k`` (``B_p`` 2 N s/m: about 4700 N/m at 1 kHz before ``k`` has learned anything). It also makes
+the proxy slide into and out of contact instead of jumping, so the solver's contact dashpot never
+sees a jump. The damper acts on the offset, not on the proxy's motion in the world: in free space
+the offset decays (time constant ``B_p / K_c``, 2.9 ms) and the proxy moves with the device, so a
+fast approach does not arrive with a stretched spring (a damper to the world trailed the device by
+``B_p / K_c`` times its speed, 0.7 mm at 0.24 m/s, felt as 0.5 N the moment contact began).
 
 The device receives the spring's force ``K_c (x_t - x^)`` plus a damper ``-B_c (n . v^) n`` on the
 device's normal velocity, while the spring pushes (``. n > 0``); never a pull. With zero-order
@@ -94,10 +96,12 @@ class VirtualCoupling:
         self.proxy_damping = proxy_damping
         self.model = model
         self.proxy: np.ndarray | None = None
-        self.stretch = 0.0            # a [m]: how far the proxy sits outside the device point
+        self.offset = np.zeros(3)     # x_t - x^ [m]
+        self.stretch = 0.0            # [m] how far the proxy sits outside the device point
 
     def reset(self) -> None:
         self.proxy = None
+        self.offset = np.zeros(3)
         self.stretch = 0.0
 
     def render(self, x_hat: np.ndarray, v_hat: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -105,15 +109,15 @@ class VirtualCoupling:
         after the previous sample (``dt <= 0``: the proxy stays where it is)."""
         m = self.model
         if self.proxy is None:
-            self.proxy = x_hat.copy()
+            self.offset = np.zeros(3)
         elif dt > 0.0:
-            # B_p (x_t - x_prev) / dt = K_c (x^ - x_t) + F0 - k n n.(x_t - x0), solved for x_t:
-            # ((b + K_c) I + k n n^T) x_t = r, inverted by Sherman-Morrison. Without contact the
-            # proxy follows the device with the same lag, so the solver's tool never jumps.
+            # B_p (a - a_prev) / dt = -K_c a + F0 - k n n.(x^ + a - x0) for the offset a = x_t - x^,
+            # solved for a: ((b + K_c) I + k n n^T) a = r, inverted by Sherman-Morrison
             b, kc, k, n = self.proxy_damping / dt, self.stiffness, m.stiffness, m.normal
-            r = b * self.proxy + kc * x_hat + m.force + (k * float(n @ m.point)) * n
-            self.proxy = (r - (k * float(n @ r) / (b + kc + k)) * n) / (b + kc)
-        spring = self.stiffness * (self.proxy - x_hat)
+            r = b * self.offset + m.force - (k * float(n @ (x_hat - m.point))) * n
+            self.offset = (r - (k * float(n @ r) / (b + kc + k)) * n) / (b + kc)
+        self.proxy = x_hat + self.offset
+        spring = self.stiffness * self.offset
         n = m.normal
         fn = float(spring @ n)
         if m.magnitude == 0.0 or fn <= 0.0:

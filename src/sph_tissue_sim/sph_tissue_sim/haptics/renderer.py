@@ -39,7 +39,7 @@ RENDERER_RANGES = {
     'coupling_damping': (0.0, 10.0),
     'proxy_damping': (0.01, 100.0),
     'passivity_max_damping': (0.0, 10.0),
-    'force_limit': (0.0, HARD_FORCE_LIMIT),
+    'force_limit': (0.0, math.inf),    # in the renderer's units: the device's clamp is the caller's
 }
 
 
@@ -55,7 +55,8 @@ class RendererConfig:
         coupling_damping: ``B_c`` on the device's normal velocity in contact [N s/m]; passivity
             of the held spring needs ``B_c > K_c T / 2`` (0.35 at 700 N/m and 1 kHz).
         passivity_max_damping: the most damping the passivity controller may add [N s/m].
-        force_limit: norm of the rendered force at most this [N].
+        force_limit: norm of the rendered force at most this [N] (set it to what the device
+            receives, so that the passivity observer charges the force really held).
     """
 
     velocity_cutoff: float = 10.0

@@ -1,0 +1,132 @@
+"""The hand-off between the 1 kHz answer and the solver (multi-rate haptics).
+
+Every pose is answered at once by the :class:`~.renderer.HapticRenderer`; the solver steps at the
+renderer's proxy (the simulated tool) whenever it is given a :class:`SolverJob`, and its reaction
+refreshes the renderer's contact model. Two schedules:
+
+* ``every = k > 0`` (lockstep): :meth:`MultiRate.due` after every ``k``-th pose; the caller steps the
+  solver then, in the pose's thread and order, so a replay of the same poses is bit-identical;
+* ``every = 0`` (live): a solver thread calls :meth:`MultiRate.take` whenever it is free and gets the
+  newest proxy and all the pose time since its previous job (at most ``max_dt``).
+
+Thread-safe: :meth:`answer` runs on the pose thread, :meth:`take` and :meth:`refresh` on the solver's;
+one lock guards the renderer and the job. ROS-free, like the rest of :mod:`sph_tissue_sim.haptics`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .renderer import HapticRenderer, Rendered
+
+#: weight of a new interval in the solver's smoothed update rate
+RATE_GAIN = 0.1
+
+
+@dataclass
+class SolverJob:
+    """What the solver should simulate next."""
+
+    point: np.ndarray                 # (3,) [m] the proxy: where the tool goes (tissue frame)
+    rotation: np.ndarray | None       # (3, 3) the stylus orientation (oriented tools), or None
+    dt: float                         # [s] pose time to simulate (clamped to ``max_dt``)
+    age: float                        # [s] pose time the contact model has served (unclamped)
+    stamp: Any                        # the newest pose's stamp (for the metrics)
+
+
+@dataclass
+class HapticStatus:
+    """The rendering's state for metrics and diagnostics."""
+
+    solver_rate: float                # [Hz] solver refreshes per wall-clock second (smoothed)
+    model_age: float                  # [s] pose time the model had served when last refreshed
+    stretch: float                    # [m] coupling stretch at the newest pose
+    energy: float                     # [J] E_in at the device port
+    energy_min: float                 # [J] lowest E_in so far
+    damping: float                    # [N s/m] passivity damping at the newest pose
+
+
+class MultiRate:
+    """One renderer, its solver schedule and the job between them."""
+
+    def __init__(self, renderer: HapticRenderer, every: int, max_dt: float,
+                 clock=time.perf_counter) -> None:
+        if every < 0:
+            raise ValueError(f'every must be >= 0 poses, got {every}')
+        self.renderer = renderer
+        self.every = int(every)
+        self.max_dt = float(max_dt)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._clear()
+
+    def _clear(self) -> None:
+        self._poses = 0               # poses answered since the last job
+        self._pending = 0.0           # their pose time [s]
+        self._point: np.ndarray | None = None
+        self._rotation = None
+        self._stamp = None
+        self._last: Rendered | None = None
+        self._age = 0.0
+        self._rate = 0.0
+        self._refreshed_at: float | None = None
+
+    def reset(self) -> None:
+        """Forget the device and the contact (the tissue was reset or rebuilt)."""
+        with self._lock:
+            self.renderer.reset()
+            self._clear()
+
+    def answer(self, x, dt: float, rotation=None, stamp=None) -> Rendered:
+        """The force for the device sample ``x`` [m, tissue frame], ``dt`` [s] after the previous."""
+        with self._lock:
+            out = self.renderer.answer(x, dt)
+            self._poses += 1
+            self._pending += dt
+            self._point, self._rotation, self._stamp, self._last = out.proxy, rotation, stamp, out
+            return out
+
+    def zero_held(self) -> None:
+        """The device was sent a zero force outside the renderer (a rejected pose)."""
+        with self._lock:
+            self.renderer.observer.hold(np.zeros(3))
+
+    def due(self) -> bool:
+        """Lockstep: a solver step is due now (``every`` poses since the last)."""
+        return self.every > 0 and self._poses >= self.every
+
+    def take(self) -> SolverJob | None:
+        """The solver's next job, or None when no pose came since the last one."""
+        with self._lock:
+            if self._poses == 0 or self._point is None:
+                return None
+            job = SolverJob(self._point.copy(), self._rotation, min(self._pending, self.max_dt),
+                            self._pending, self._stamp)
+            self._poses = 0
+            self._pending = 0.0
+            return job
+
+    def refresh(self, job: SolverJob, result) -> None:
+        """The solver stepped ``job``; ``result`` is its :class:`~..core.solver.StepResult` (the
+        reaction before clamping, found with the tool where the step left it)."""
+        point = result.tool_segment[0] if result.tool_segment is not None else job.point
+        with self._lock:
+            self.renderer.refresh(point, result.force_raw)
+            self._age = job.age
+            now = self._clock()
+            if self._refreshed_at is not None and now > self._refreshed_at:
+                rate = 1.0 / (now - self._refreshed_at)
+                self._rate = rate if self._rate == 0.0 else self._rate + RATE_GAIN * (rate - self._rate)
+            self._refreshed_at = now
+
+    def status(self) -> HapticStatus:
+        with self._lock:
+            last = self._last
+            obs = self.renderer.observer
+            return HapticStatus(self._rate, self._age, last.stretch if last else 0.0, obs.energy,
+                                obs.minimum, last.damping if last else 0.0)
