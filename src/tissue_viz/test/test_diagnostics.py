@@ -7,10 +7,10 @@ import math
 import pytest
 
 from tissue_viz.diagnostics import (ERROR, OK, STALE, WARN, RateTarget, Targets, evaluate,
-                                    input_status, latency_status, rate_status, step_status,
-                                    tissue_status, worst_level)
+                                    haptic_status, input_status, latency_status, rate_status,
+                                    step_status, tissue_status, worst_level)
 from tissue_viz.errors import VizConfigError
-from tissue_viz.stats import Snapshot, VizStats
+from tissue_viz.stats import HAPTIC_MULTIRATE, Snapshot, VizStats
 
 MS = 1_000_000
 
@@ -81,6 +81,51 @@ def test_tissue_status_warns_when_the_force_reaches_the_device_limit():
     assert tissue_status(stats.snapshot(0.03), Targets()).level == WARN
 
 
+def _multirate(stats: VizStats, now: float, energy_in: float) -> None:
+    stats.on_metrics(now, int(now * 1e9), 1e-4, (0.0, 0.0, 1.0), 0.002,
+                     haptic_mode=HAPTIC_MULTIRATE, solver_rate=400.0, model_age=2.5e-3,
+                     coupling_stretch=1e-4, energy_in=energy_in,
+                     energy_in_min=min(energy_in, 0.0), added_damping=0.75)
+
+
+def test_haptic_status_is_ok_while_e_in_stays_above_the_target_and_carries_the_rendering_values():
+    stats = VizStats(window=1.0)
+    _multirate(stats, 0.0, 5e-6)
+    _multirate(stats, 0.1, -0.5e-6)               # round-off above the -1 uJ target
+    status = haptic_status(stats.snapshot(0.2), Targets())
+    assert status.level == OK and status.name == 'viz_node: haptic rendering'
+    assert 'E_in -0.500 uJ' in status.message and 'solver 400 Hz' in status.message
+    values = dict(status.values)
+    assert values['solver rate [Hz]'] == '400.0' and values['model age [ms]'] == '2.500'
+    assert values['coupling stretch [mm]'] == '0.100' and values['E_in [uJ]'] == '-0.500'
+    assert values['added damping [N s/m]'] == '0.750'
+    assert values['E_in warn below [uJ]'] == '-1.000'
+
+
+def test_haptic_status_warns_when_e_in_goes_below_the_target_until_the_dip_leaves_the_window():
+    stats = VizStats(window=1.0)
+    _multirate(stats, 0.0, 5e-6)
+    _multirate(stats, 0.1, -2e-6)                 # the rendering gave 2 uJ back
+    _multirate(stats, 0.2, 1e-6)                  # the hand pushes again: E_in above zero
+    status = haptic_status(stats.snapshot(0.3), Targets())
+    assert status.level == WARN and status.message.startswith('gave energy back')
+    assert dict(status.values)['lowest E_in in window [uJ]'] == '-2.000'
+    # A looser target accepts the dip; once it is out of the window the default one does too.
+    assert haptic_status(stats.snapshot(0.3), Targets(energy_in_min=-1e-5)).level == OK
+    _multirate(stats, 1.5, 1e-6)
+    assert haptic_status(stats.snapshot(1.6), Targets()).level == OK
+
+
+def test_haptic_status_says_direct_mode_or_no_metrics_at_ok_level():
+    stats = VizStats(window=1.0)
+    status = haptic_status(stats.snapshot(0.0), Targets())
+    assert status.level == OK and status.message == 'no metrics yet'
+    stats.on_metrics(0.0, 0, 1e-4, (0.0, 0.0, 1.0), 0.002)        # direct: haptic fields zero
+    status = haptic_status(stats.snapshot(0.01), Targets())
+    assert status.level == OK and status.message.startswith('direct')
+    assert dict(status.values)['E_in [uJ]'] == 'n/a'
+
+
 def test_input_status_names_nan_and_backwards_stamps():
     stats = VizStats(window=1.0)
     assert input_status(stats.snapshot(0.0)).level == OK
@@ -96,7 +141,8 @@ def test_evaluate_reports_every_topic_and_the_worst_level():
     statuses = evaluate(stats.snapshot(0.0), Targets())
     assert [s.name.split(': ', 1)[1] for s in statuses] == [
         'tissue/metrics rate', 'tissue/particles rate', 'omni/pose rate',
-        'omni/force_feedback rate', 'step time', 'pose to force latency', 'tissue', 'input']
+        'omni/force_feedback rate', 'step time', 'pose to force latency', 'tissue',
+        'haptic rendering', 'input']
     assert worst_level(statuses) == STALE
     assert worst_level([]) == OK
 
@@ -106,6 +152,7 @@ def test_evaluate_reports_every_topic_and_the_worst_level():
     ({'stale_timeout': 0.0}, 'stale_timeout'),
     ({'step_p99_warn': 2e-3, 'step_p99_error': 1e-3}, 'step_p99_warn <= step_p99_error'),
     ({'force_limit': -1.0}, 'force_limit'),
+    ({'energy_in_min': 1e-6}, 'energy_in_min'),
 ])
 def test_inconsistent_targets_are_rejected_with_the_parameter_named(change, message):
     targets = Targets(**change)
@@ -170,7 +217,9 @@ def test_a_snapshot_with_absurd_numbers_gives_short_readable_values():
                     deadline_misses=3, deadline_miss_pct=100.0, latency_p50=1e300,
                     latency_p99=1e300, latency_max=math.nan, replies_missed_pct=math.nan,
                     active=4e18, n_interaction=-1e300, force=1e308, force_max=1e308,
-                    displacement=-math.inf)
+                    displacement=-math.inf, haptic_mode=HAPTIC_MULTIRATE, solver_rate=1e308,
+                    model_age=math.inf, coupling_stretch=1e308, energy_in=-1e308,
+                    energy_in_min=math.nan, energy_in_low=-1e308, added_damping=1e308)
     snap.rates = {t: 1e308 for t in ('metrics', 'particles', 'pose', 'force')}
     snap.ages = {t: 0.0 for t in snap.rates}
     snap.counts = {t: 10 for t in snap.rates}

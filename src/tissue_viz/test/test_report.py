@@ -11,15 +11,20 @@ from PIL import Image
 
 from tissue_viz.errors import ReportError
 from tissue_viz.report import (PLOTS, TABLES, ReportData, load_report_data, main, read_csv,
-                               write_report)
-from tissue_viz.stats import VizStats
+                               write_csv, write_report)
+from tissue_viz.stats import HAPTIC_MULTIRATE, VizStats
 
 MS = 1_000_000
 PNGS = [png for png, _ in PLOTS]
 
 
-def _press_run(seconds: float = 2.0, rate: float = 500.0) -> VizStats:
-    """A press into 400 N/m tissue and back, poses/forces/metrics at ``rate``, 1 in 50 steps slow."""
+def _press_run(seconds: float = 2.0, rate: float = 500.0, multirate: bool = True) -> VizStats:
+    """A press into 400 N/m tissue and back, poses/forces/metrics at ``rate``, 1 in 50 steps slow.
+
+    Multirate: E_in is the spring's stored energy plus a steady 10 uJ/s lost to damping, so it
+    never goes below zero and ends at about 20 uJ; solver at 400 Hz, 0.3 N s/m added in contact.
+    Direct: the haptic values are zero, as the simulator sends them.
+    """
     stats = VizStats(window=0.5, haptic_rate=1000.0)
     n = int(seconds * rate)
     for i in range(n):
@@ -27,9 +32,12 @@ def _press_run(seconds: float = 2.0, rate: float = 500.0) -> VizStats:
         z = 0.002 - 0.006 * math.sin(math.pi * t / seconds) ** 2
         f = 400.0 * max(0.0, -z)
         step = 2e-3 if i % 50 == 0 else 1e-4 + 1e-4 * (i % 7) / 7
+        haptic = dict(haptic_mode=HAPTIC_MULTIRATE, solver_rate=400.0, model_age=2.5e-3,
+                      coupling_stretch=f / 2000.0, energy_in=0.5 * f * max(0.0, -z) + 1e-5 * t,
+                      energy_in_min=0.0, added_damping=0.3 if f else 0.0) if multirate else {}
         stats.on_pose(t, i * MS, (0.0, 0.0, z))
         stats.on_metrics(t + step, i * MS, step, (0.0, 0.0, f), 0.5 * max(0.0, -z),
-                         n_interaction=80 if f else 0, n_layer=[30, 10] if f else [])
+                         n_interaction=80 if f else 0, n_layer=[30, 10] if f else [], **haptic)
         stats.on_force(t + 3e-4, i * MS, (0.0, 0.0, f))
         if i % 50 == 0:
             stats.sample_rates(t)
@@ -105,6 +113,79 @@ def test_summary_numbers_match_the_run(report):
     md = (out / 'summary.md').read_text()
     assert '| deadline misses | 20 (2.00 %) |' in md
     assert '| pose to force latency p50 | 0.300 ms |' in md
+
+
+def test_a_multirate_run_gets_the_e_in_plot_and_the_haptic_summary_rows(report, tmp_path,
+                                                                        monkeypatch):
+    out, _ = report
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['energy_in_min_j'] == 0.0
+    assert summary['energy_in_final_j'] == pytest.approx(1e-5 * 999 / 500)
+    assert summary['max_added_damping_n_s_per_m'] == pytest.approx(0.3)
+    assert summary['solver_rate_p50_hz'] == pytest.approx(400.0)
+    md = (out / 'summary.md').read_text()
+    assert '| E_in min (below zero: not passive) | 0.000 uJ |' in md
+    assert '| E_in final | 19.980 uJ |' in md and '| solver rate p50 | 400.0 Hz |' in md
+    assert '| max added damping | 0.300 N s/m |' in md
+    # The same figures when the summary is recomputed from the CSV files, and E_in is drawn.
+    said = _spy_no_data(monkeypatch)
+    assert main([str(out), '-o', str(tmp_path / 'again'), '--recompute-summary']) == 0
+    assert 'multirate haptic rendering' not in said
+    again = json.loads((tmp_path / 'again' / 'summary.json').read_text())
+    for key in ('energy_in_min_j', 'energy_in_final_j', 'max_added_damping_n_s_per_m',
+                'solver_rate_p50_hz'):
+        assert again[key] == pytest.approx(summary[key]), key
+
+
+def _spy_no_data(monkeypatch) -> list[str]:
+    """Record what each plot said it had no data of (the placeholder is still drawn)."""
+    import tissue_viz.report as report
+
+    said = []
+    real = report._no_data
+
+    def no_data(ax, what):
+        said.append(what)
+        real(ax, what)
+
+    monkeypatch.setattr(report, '_no_data', no_data)
+    return said
+
+
+def test_a_direct_run_gets_an_e_in_placeholder_and_no_haptic_summary_rows(tmp_path, monkeypatch):
+    said = _spy_no_data(monkeypatch)
+    out = write_report(tmp_path / 'run',
+                       ReportData.from_stats(_press_run(0.5, multirate=False), 0.5))
+    summary = _assert_complete_with_drawn_plots(out)
+    assert said == ['multirate haptic rendering']        # every other plot has its data
+    assert 'energy_in_min_j' not in summary and 'E_in' not in (out / 'summary.md').read_text()
+
+
+def test_an_old_report_without_the_haptic_columns_still_loads_and_renders(tmp_path, monkeypatch):
+    old = write_report(tmp_path / 'old', ReportData.from_stats(_press_run(0.5), 0.5))
+    haptic = ('haptic_mode',) + VizStats.HAPTIC_COLUMNS
+    old_columns = tuple(c for c in TABLES['metrics'] if c not in haptic)
+    write_csv(old / 'metrics.csv', old_columns, read_csv(old / 'metrics.csv'))
+    summary = json.loads((old / 'summary.json').read_text())
+    (old / 'summary.json').write_text(json.dumps(
+        {k: v for k, v in summary.items() if k not in ('energy_in_min_j', 'energy_in_final_j',
+                                                        'max_added_damping_n_s_per_m',
+                                                        'solver_rate_p50_hz')}))
+    data = load_report_data(old)
+    assert tuple(data.tables['metrics']) == old_columns
+    assert np.isnan(data.table('metrics')['energy_in']).all()
+    said = _spy_no_data(monkeypatch)
+    # Rebuilt with its summary, recomputed, and rebuilt again from the rebuilt (empty haptic cells).
+    runs = ((old, 'kept', []), (old, 'recomputed', ['--recompute-summary']),
+            (tmp_path / 'recomputed', 'twice', ['--recompute-summary']))
+    for src, name, flags in runs:
+        assert main([str(src), '-o', str(tmp_path / name), *flags]) == 0
+        summary = _assert_complete_with_drawn_plots(tmp_path / name)
+        assert summary['steps'] == 250 and 'energy_in_min_j' not in summary, name
+        assert not any(summary['bad_values'].get(c) for c in haptic), (name, summary['bad_values'])
+        md = (tmp_path / name / 'summary.md').read_text()
+        assert 'E_in' not in md and '## Not shown' not in md, name
+    assert said == ['multirate haptic rendering'] * len(runs)
 
 
 def test_csv_series_round_trip_with_the_recorded_values(report):
@@ -333,7 +414,7 @@ def test_a_file_that_cannot_be_written_is_named_and_the_others_are_written(tmp_p
         real(path, columns, table)
 
     monkeypatch.setattr(report, 'write_csv', full_disk)
-    with pytest.raises(ReportError, match=r'1 of 12 report files not written .*force\.csv '
+    with pytest.raises(ReportError, match=r'1 of 13 report files not written .*force\.csv '
                                           r'\(OSError: .*No space left on device\)'):
         write_report(tmp_path / 'run', ReportData.from_stats(_press_run(0.5), 0.5))
     written = {p.name for p in (tmp_path / 'run').iterdir()}

@@ -9,8 +9,9 @@ import pytest
 
 from tissue_viz.errors import VizConfigError
 from tissue_viz.markers import ToolShape, force_arrow
-from tissue_viz.stats import (LIMITS, DecimatingRecorder, LatencyMatcher, Limit, RateMeter,
-                              StampOrder, VizStats, percentile, press_displacement, summary_line)
+from tissue_viz.stats import (HAPTIC_MULTIRATE, LIMITS, DecimatingRecorder, LatencyMatcher, Limit,
+                              RateMeter, StampOrder, VizStats, percentile, press_displacement,
+                              summary_line)
 
 MS = 1_000_000  # ns per ms
 
@@ -169,6 +170,74 @@ def test_absurd_poses_and_forces_are_counted_and_do_not_move_the_tool(value):
     snap = stats.snapshot(0.004)
     assert snap.bad_values['pose_position'] == 1 and snap.bad_values['wrench_force'] == 1
     assert snap.force_max == pytest.approx(1.0) and snap.latency_max == pytest.approx(0.001)
+
+
+# A multirate rendering mid-press: values as the simulator's haptic renderer reports them.
+HAPTIC = dict(haptic_mode=HAPTIC_MULTIRATE, solver_rate=400.0, model_age=2.5e-3,
+              coupling_stretch=1e-4, energy_in=3e-6, energy_in_min=-2e-7, added_damping=0.5)
+
+
+def test_the_multirate_constant_is_the_one_of_the_message():
+    from tissue_msgs.msg import SimMetrics
+
+    assert HAPTIC_MULTIRATE == SimMetrics.HAPTIC_MULTIRATE != SimMetrics.HAPTIC_DIRECT
+
+
+def test_multirate_haptic_values_are_recorded_in_the_table_the_snapshot_and_the_summary():
+    stats = VizStats(window=1.0)
+    assert stats.on_metrics(0.0, 0, 1e-4, (0, 0, 0.5), 0.001,
+                            **dict(HAPTIC, energy_in=-4e-7, added_damping=2.0, solver_rate=300.0))
+    assert stats.on_metrics(0.5, 500 * MS, 1e-4, (0, 0, 0.5), 0.001, **HAPTIC)
+    table = stats.metrics_table.as_dict()
+    assert {c: table[c][-1] for c in HAPTIC} == pytest.approx(HAPTIC)
+    snap = stats.snapshot(0.6)
+    assert snap.haptic_mode == HAPTIC_MULTIRATE
+    assert (snap.solver_rate, snap.model_age, snap.coupling_stretch, snap.added_damping) == \
+        pytest.approx((400.0, 2.5e-3, 1e-4, 0.5))
+    assert snap.energy_in == pytest.approx(3e-6) and snap.energy_in_min == pytest.approx(-2e-7)
+    assert snap.energy_in_low == pytest.approx(-4e-7)           # the dip at t = 0, in the window
+    assert stats.snapshot(1.2).energy_in_low == pytest.approx(3e-6)   # the dip left the window
+    summary = stats.summary(1.2)
+    assert summary['energy_in_min_j'] == pytest.approx(-4e-7)
+    assert summary['energy_in_final_j'] == pytest.approx(3e-6)
+    assert summary['max_added_damping_n_s_per_m'] == pytest.approx(2.0)
+    assert summary['solver_rate_p50_hz'] == pytest.approx(350.0)
+
+
+def test_direct_mode_zeros_are_recorded_but_are_no_haptic_measurements():
+    stats = VizStats(window=1.0)
+    assert stats.on_metrics(0.0, 0, 1e-4, (0, 0, 0.5), 0.001, **HAPTIC)
+    assert stats.on_metrics(0.001, MS, 1e-4, (0, 0, 0.5), 0.001)      # direct: all zero
+    assert stats.metrics_table.as_dict()['haptic_mode'].tolist() == [HAPTIC_MULTIRATE, 0.0]
+    snap = stats.snapshot(0.002)
+    assert snap.haptic_mode == 0
+    assert math.isnan(snap.energy_in) and math.isnan(snap.solver_rate)
+    assert 'energy_in_min_j' not in VizStats().summary(0.0)           # no multirate row at all
+    assert VizStats().snapshot(0.0).haptic_mode is None                 # no metrics yet
+
+
+def test_a_negative_energy_in_is_a_valid_value_since_it_is_what_is_watched_for():
+    stats = VizStats(window=1.0)
+    assert stats.on_metrics(0.0, 0, 1e-4, (0, 0, 0.5), 0.001,
+                            **dict(HAPTIC, energy_in=-5e-3, energy_in_min=-5e-3))
+    assert stats.snapshot(0.001).energy_in_low == pytest.approx(-5e-3)
+
+
+@pytest.mark.parametrize('field, value, key', [
+    *[(f, v, f) for f in ('solver_rate', 'model_age', 'coupling_stretch', 'added_damping')
+      for v in ABSURD],
+    *[(f, v, 'energy_in') for f in ('energy_in', 'energy_in_min') for v in ABSURD[:-1]],
+    ('haptic_mode', 256, 'haptic_mode'), ('haptic_mode', math.nan, 'haptic_mode'),
+], ids=lambda x: repr(x)[:16])
+def test_an_absurd_haptic_value_is_counted_and_its_message_left_out(field, value, key):
+    stats = VizStats(window=5.0)
+    assert stats.on_metrics(0.0, 0, 1e-4, (0, 0, 0.5), 0.001, **HAPTIC)
+    assert not stats.on_metrics(0.001, MS, 1e-4, (0, 0, 0.5), 0.001,
+                                **dict(HAPTIC, **{field: value}))
+    snap = stats.snapshot(0.002)
+    assert snap.bad_values[key] == 1 and sum(snap.bad_values.values()) == 1
+    assert len(stats.metrics_table) == 1
+    assert (snap.energy_in, snap.solver_rate) == pytest.approx((3e-6, 400.0))
 
 
 def test_zero_and_the_limits_themselves_are_valid_values():

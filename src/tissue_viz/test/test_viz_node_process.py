@@ -307,6 +307,41 @@ def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node, frame
             assert not shafts
 
 
+def test_haptic_rendering_status_is_ok_for_direct_and_passive_metrics_and_warns_on_negative_e_in(
+        rclpy_node):
+    def multirate(energy_in: float):
+        def make(probe):
+            msg = _metrics(probe.stamp_ns)
+            msg.haptic_mode = msg.HAPTIC_MULTIRATE
+            msg.solver_rate, msg.model_age, msg.coupling_stretch = 400.0, 2.5e-3, 1e-4
+            msg.energy_in, msg.energy_in_min = energy_in, min(energy_in, 0.0)
+            msg.added_damping = 0.75
+            return msg
+        return make
+
+    def says(level: int, start: str):
+        def check():
+            s = probe.status('haptic rendering')
+            return s is not None and _level(s) == level and s.message.startswith(start)
+        return check
+
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=FAST) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        probe = Probe(rclpy_node)
+        harness.wait_for_matching(rclpy_node, probe.pub)
+        harness.wait_for_matching(rclpy_node, probe.diag_sub)
+        assert probe.run(200.0, says(0, 'direct'), 20), probe.status('haptic rendering')
+        assert probe.run(200.0, says(0, 'E_in 5.000 uJ'), 20, make=multirate(5e-6)), \
+            probe.status('haptic rendering')
+        assert probe.value('haptic rendering', 'solver rate [Hz]') == '400.0'
+        assert probe.value('haptic rendering', 'model age [ms]') == '2.500'
+        assert probe.value('haptic rendering', 'added damping [N s/m]') == '0.750'
+        # 3 uJ given back, below the default -1 uJ target: WARN.
+        assert probe.run(200.0, says(1, 'gave energy back'), 20, make=multirate(-3e-6)), \
+            probe.status('haptic rendering')
+        assert viz.alive() and 'Traceback' not in viz.output(), viz.output()
+
+
 def test_inconsistent_rate_targets_are_rejected_at_start_with_a_clear_message():
     params = dict(FAST, metrics_min_rate=500.0, metrics_max_rate=100.0)
     with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
@@ -410,8 +445,8 @@ def test_inconsistent_targets_set_at_run_time_are_refused_and_consistent_ones_ap
 # -- absurd input and unwritable reports ------------------------------------------------------------
 U32, I32_MIN = 4_294_967_295, -2_147_483_648
 REPORT_FILES = {'force_vs_time.png', 'force_vs_displacement.png', 'step_time_hist.png', 'rates.png',
-                'latency_hist.png', 'metrics.csv', 'force.csv', 'latency.csv', 'rates.csv',
-                'summary.md', 'index.html', 'summary.json'}
+                'latency_hist.png', 'energy_in.png', 'metrics.csv', 'force.csv', 'latency.csv',
+                'rates.csv', 'summary.md', 'index.html', 'summary.json'}
 
 
 def _absurd_metrics() -> list[tuple[str, dict]]:
@@ -426,6 +461,10 @@ def _absurd_metrics() -> list[tuple[str, dict]]:
             ('active_particles', {'n_interaction': U32}),
             ('active_particles', {'n_layer': [U32] * 4}), ('active_particles', {'n_relaxing': U32}),
             ('substeps', {'substeps': U32}), ('contact_index', {'contact_index': I32_MIN}),
+            ('solver_rate', {'solver_rate': nan}), ('model_age', {'model_age': -1e-3}),
+            ('coupling_stretch', {'coupling_stretch': inf}),
+            ('energy_in', {'energy_in': -1e308}), ('energy_in', {'energy_in_min': nan}),
+            ('added_damping', {'added_damping': -inf}),
             ('', {'sim_time': inf, 'substep_dt': nan, 'n_particles': U32, 'scheme': 255,
                   'mode': 255})]
     return bad

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass, field
 
 from tissue_viz.errors import VizConfigError
-from tissue_viz.stats import LIMITS, TOPICS, Snapshot
+from tissue_viz.stats import HAPTIC_MULTIRATE, LIMITS, TOPICS, Snapshot
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
@@ -55,6 +55,7 @@ class Targets:
     reply_loss_warn_pct: float = 1.0     # [%] poses without a reply
     reply_loss_error_pct: float = 10.0
     force_limit: float = 3.3             # [N] device peak force (PHANTOM Omni)
+    energy_in_min: float = -1e-6         # [J] lowest E_in of a passive rendering (round-off slack)
 
     def validate(self) -> 'Targets':
         """Raise VizConfigError on inconsistent thresholds; return self."""
@@ -80,6 +81,8 @@ class Targets:
             raise VizConfigError(f'latency_p50_warn must be > 0 s, got {self.latency_p50_warn}')
         if not self.force_limit > 0:
             raise VizConfigError(f'force_limit must be > 0 N, got {self.force_limit}')
+        if not self.energy_in_min <= 0:    # above zero even a passive rendering would warn
+            raise VizConfigError(f'energy_in_min must be <= 0 J, got {self.energy_in_min}')
         return self
 
 
@@ -110,6 +113,11 @@ def _num(x: float | None, digits: int = 3) -> str:
 
 def _ms(x: float | None) -> str:
     return NO_VALUE if x is None or not math.isfinite(x) else _num(x * 1e3, 3)
+
+
+def _uj(x: float | None) -> str:
+    """Joules as microjoules: the scale of the energy a hand exchanges with soft tissue."""
+    return NO_VALUE if x is None or not math.isfinite(x) else _num(x * 1e6, 3)
 
 
 def rate_status(topic: str, snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> Status:
@@ -204,6 +212,34 @@ def tissue_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') ->
     return Status(name, OK, text, values)
 
 
+def haptic_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> Status:
+    """Multirate haptic rendering: WARN when the lowest E_in in the window is below
+    ``energy_in_min`` (the rendering gave energy back to the hand, i.e. it is not passive)."""
+    values = [('solver rate [Hz]', _num(snap.solver_rate, 1)),
+              ('model age [ms]', _ms(snap.model_age)),
+              ('coupling stretch [mm]', _ms(snap.coupling_stretch)),
+              ('E_in [uJ]', _uj(snap.energy_in)),
+              ('lowest E_in in window [uJ]', _uj(snap.energy_in_low)),
+              ('lowest E_in since reset [uJ]', _uj(snap.energy_in_min)),
+              ('E_in warn below [uJ]', _uj(targets.energy_in_min)),
+              ('added damping [N s/m]', _num(snap.added_damping, 3))]
+    name = f'{prefix}: haptic rendering'
+    # Optional, like a topic that is not required: without a multirate renderer there is nothing
+    # to judge, and the step and tissue statuses already speak for missing metrics.
+    if snap.haptic_mode is None:
+        return Status(name, OK, 'no metrics yet', values)
+    if snap.haptic_mode != HAPTIC_MULTIRATE:
+        return Status(name, OK, 'direct (no haptic renderer)', values)
+    if not math.isfinite(snap.energy_in_low):
+        return Status(name, OK, 'no multirate metrics in the window', values)
+    text = (f'E_in {_uj(snap.energy_in)} uJ (lowest {_uj(snap.energy_in_low)} uJ), '
+            f'solver {_num(snap.solver_rate, 0)} Hz, '
+            f'added damping {_num(snap.added_damping, 2)} N s/m')
+    if snap.energy_in_low < targets.energy_in_min:
+        return Status(name, WARN, 'gave energy back: ' + text, values)
+    return Status(name, OK, text, values)
+
+
 def input_status(snap: Snapshot, prefix: str = 'viz_node') -> Status:
     """Bad input seen in the window: messages with NaN/inf or out-of-range values (with the count
     of each kind of bad value since start), header stamps going backwards."""
@@ -229,7 +265,8 @@ def evaluate(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> list
     """Every status of the viz node for one snapshot, in a stable order."""
     statuses = [rate_status(topic, snap, targets, prefix) for topic in TOPICS]
     statuses += [step_status(snap, targets, prefix), latency_status(snap, targets, prefix),
-                 tissue_status(snap, targets, prefix), input_status(snap, prefix)]
+                 tissue_status(snap, targets, prefix), haptic_status(snap, targets, prefix),
+                 input_status(snap, prefix)]
     return statuses
 
 

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from tissue_viz.errors import ReportError
-from tissue_viz.stats import (LIMITS, MAX_SECONDS, Limit, VizStats, within, percentile,
-                              press_displacement)
+from tissue_viz.stats import (HAPTIC_MULTIRATE, LIMITS, MAX_RATE, MAX_SECONDS, Limit, VizStats,
+                              haptic_summary, within, percentile, press_displacement)
 
 TABLES = {
     'metrics': VizStats.METRICS_COLUMNS,
@@ -41,6 +41,7 @@ PLOTS = (
     ('step_time_hist.png', 'Simulation step wall time'),
     ('rates.png', 'Topic rates over time'),
     ('latency_hist.png', 'Pose to force latency'),
+    ('energy_in.png', 'Energy the hand put into the rendered tissue (multirate haptic rendering)'),
 )
 
 
@@ -103,7 +104,7 @@ def read_csv(path: Path) -> dict:
 # -- plots ----------------------------------------------------------------------------------------
 # Columns the node derives from its own clock have no input limit; only absurd numbers are dropped.
 _TIMES = Limit(-math.inf, math.inf, 'times', 's')
-_RATES = Limit(0.0, 1e7, 'rates', 'Hz')
+_RATES = Limit(0.0, MAX_RATE, 'rates', 'Hz')
 
 
 def _pyplot():
@@ -385,6 +386,32 @@ def plot_latency_hist(data: ReportData, path: Path) -> None:
     _finish(plt, fig, ax, path, 'latency [ms]', 'replies', int(raw.size - lat.size), 'latencies')
 
 
+def plot_energy_in(data: ReportData, path: Path) -> None:
+    """E_in of the multirate rendering against time; a passive rendering never goes below zero."""
+    plt, fig, ax = _figure()
+    m = data.table('metrics')
+    # A direct run, or an old CSV without the column (NaN), has no multirate rows.
+    multirate = m['haptic_mode'] == HAPTIC_MULTIRATE
+    t, energy = m['t'][multirate], m['energy_in'][multirate]
+    ok = _TIMES.mask(t) & LIMITS['energy_in'].mask(energy)
+    dropped = int(ok.size - np.count_nonzero(ok))
+    if ok.any():
+        t, energy = t[ok], energy[ok]
+        sel = _thin(len(t), energy)
+        t, energy = _break_gaps(t[sel], energy[sel])
+        uj = energy * 1e6
+        ax.axhline(0.0, color='k', lw=1.0)
+        if np.any(uj < 0):
+            ax.fill_between(t, uj, 0.0, where=uj < 0, color='tab:red', alpha=0.3,
+                            label='given back (not passive)')
+        ax.plot(t, uj, color='tab:blue', lw=1.2, label='E_in')
+        ax.legend(loc='upper left', fontsize=8)
+    else:
+        _no_data(ax, 'multirate haptic rendering')
+    ax.set_title('E_in: energy the hand put in (below zero the rendering gives energy back)')
+    _finish(plt, fig, ax, path, 'time [s]', 'E_in [uJ]', dropped, 'energies')
+
+
 def _placeholder(path: Path, title: str, reason: str) -> None:
     """A plot that says why it could not be drawn (a plain grey PNG if not even text can be).
 
@@ -432,6 +459,7 @@ PLOTTERS = {
     'step_time_hist.png': plot_step_hist,
     'rates.png': plot_rates,
     'latency_hist.png': plot_latency_hist,
+    'energy_in.png': plot_energy_in,
 }
 
 
@@ -446,6 +474,12 @@ BAD_VALUE_COLUMNS = (
     ('metrics', 'active_particles', ('n_active',)),
     ('metrics', 'substeps', ('substeps',)),
     ('metrics', 'contact_index', ('contact_index',)),
+    ('metrics', 'haptic_mode', ('haptic_mode',)),
+    ('metrics', 'solver_rate', ('solver_rate',)),
+    ('metrics', 'model_age', ('model_age',)),
+    ('metrics', 'coupling_stretch', ('coupling_stretch',)),
+    ('metrics', 'energy_in', ('energy_in', 'energy_in_min')),
+    ('metrics', 'added_damping', ('added_damping',)),
     ('force', 'wrench_force', ('fx', 'fy', 'fz')),
     ('force', 'pose_position', ('px', 'py', 'pz')),
     ('latency', 'latency', ('latency',)),
@@ -464,6 +498,10 @@ def bad_values_in_tables(data: ReportData) -> dict[str, int]:
         if not all(c in got for c in columns):
             continue
         values = np.column_stack([np.asarray(got[c], dtype=float) for c in columns])
+        if values.size and np.isnan(values).all():
+            # Not one value: the empty cells a rebuilt report writes for a column its source
+            # lacked (e.g. the haptic columns of an older report), so as good as absent.
+            continue
         bad = ~LIMITS[key].mask(values).all(axis=1)
         if key == 'pose_position':
             bad &= ~np.isnan(values).all(axis=1)
@@ -507,6 +545,7 @@ def summary_from_tables(data: ReportData) -> dict:
         'max_force_n': num(float(forces.max()) if forces.size else math.nan),
         'max_displacement_m': num(float(disp.max()) if disp.size else math.nan),
         'bad_values': bad_values_in_tables(data),
+        **{key: num(value) for key, value in haptic_summary(m).items()},
     }
 
 
@@ -548,6 +587,15 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
         ('messages with NaN/inf or out-of-range values (ignored)',
          _fmt(summary.get('bad_messages'), 1, 0)),
     ]
+    if 'energy_in_min_j' in summary:     # only a run with multirate haptic rendering has these
+        rows += [
+            ('E_in min (below zero: not passive)', _fmt(summary.get('energy_in_min_j'), 1e6, 3,
+                                                         'uJ')),
+            ('E_in final', _fmt(summary.get('energy_in_final_j'), 1e6, 3, 'uJ')),
+            ('max added damping', _fmt(summary.get('max_added_damping_n_s_per_m'), 1, 3,
+                                       'N s/m')),
+            ('solver rate p50', _fmt(summary.get('solver_rate_p50_hz'), 1, 1, 'Hz')),
+        ]
     return rows
 
 

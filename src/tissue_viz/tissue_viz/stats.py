@@ -17,6 +17,9 @@ import numpy as np
 from tissue_viz.errors import VizConfigError
 
 TOPICS = ('metrics', 'particles', 'pose', 'force')
+# tissue_msgs/SimMetrics.HAPTIC_MULTIRATE (kept here so the statistics and the report need no
+# message import): a haptic renderer answers each pose and the solver refreshes its contact model.
+HAPTIC_MULTIRATE = 1
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,8 @@ MAX_FORCE = 1e6          # [N] per component
 MAX_LENGTH = 1e3         # [m]
 MAX_ENERGY = 1e9         # [J]
 MAX_COUNT = 1_000_000_000
+MAX_RATE = 1e7           # [Hz]
+MAX_DAMPING = 1e9        # [N s/m]
 LIMITS: dict[str, Limit] = {
     'step_wall_time': Limit(0.0, MAX_SECONDS, 'step times', 's'),
     'contact_force': Limit(-MAX_FORCE, MAX_FORCE, 'metrics contact forces', 'N per component'),
@@ -72,6 +77,14 @@ LIMITS: dict[str, Limit] = {
     'pose_position': Limit(-MAX_LENGTH, MAX_LENGTH, 'tool positions', 'm per component'),
     'wrench_force': Limit(-MAX_FORCE, MAX_FORCE, 'device forces', 'N per component'),
     'latency': Limit(0.0, MAX_SECONDS, 'latencies', 's'),
+    # Haptic rendering (zero in direct mode). E_in may be negative: that is what it is watched for.
+    'haptic_mode': Limit(0, 255, 'haptic modes'),
+    'solver_rate': Limit(0.0, MAX_RATE, 'solver rates', 'Hz'),
+    'model_age': Limit(0.0, MAX_SECONDS, 'contact model ages', 's'),
+    'coupling_stretch': Limit(0.0, MAX_LENGTH, 'coupling stretches', 'm'),
+    'energy_in': Limit(-MAX_ENERGY, MAX_ENERGY, 'haptic input energies (E_in and its minimum)',
+                       'J'),
+    'added_damping': Limit(0.0, MAX_DAMPING, 'added dampings', 'N s/m'),
 }
 
 
@@ -305,6 +318,14 @@ class Snapshot:
     force: float = math.nan                            # [N] latest force magnitude
     force_max: float = math.nan                        # [N] max in the window
     displacement: float = math.nan                     # [m] latest max displacement
+    haptic_mode: int | None = None                     # SimMetrics.HAPTIC_* of the latest metrics
+    solver_rate: float = math.nan                      # [Hz] latest multirate values (NaN direct)
+    model_age: float = math.nan                        # [s]
+    coupling_stretch: float = math.nan                 # [m]
+    energy_in: float = math.nan                        # [J] E_in, hand -> rendered tissue
+    energy_in_min: float = math.nan                    # [J] lowest E_in since start or reset
+    energy_in_low: float = math.nan                    # [J] lowest E_in in the window
+    added_damping: float = math.nan                    # [N s/m]
     bad_in_window: int = 0                             # messages with a bad value (ignored)
     bad_total: int = 0
     bad_values: dict = field(default_factory=dict)     # LIMITS key -> bad values since start
@@ -325,9 +346,12 @@ class VizStats:
         max_report_rows: memory bound of each whole-run table kept for the report.
     """
 
+    # Multirate haptic rendering values, named as in SimMetrics (zero in direct mode).
+    HAPTIC_COLUMNS = ('solver_rate', 'model_age', 'coupling_stretch', 'energy_in', 'energy_in_min',
+                      'added_damping')
     METRICS_COLUMNS = ('t', 'step_wall_time', 'substeps', 'n_interaction', 'n_active',
                        'contact_index', 'penetration', 'fx', 'fy', 'fz', 'force',
-                       'max_displacement', 'kinetic_energy')
+                       'max_displacement', 'kinetic_energy', 'haptic_mode') + HAPTIC_COLUMNS
     FORCE_COLUMNS = ('t', 'fx', 'fy', 'fz', 'force', 'px', 'py', 'pz')
     LATENCY_COLUMNS = ('t', 'latency')
     RATE_COLUMNS = ('t',) + TOPICS
@@ -361,6 +385,9 @@ class VizStats:
         self.last_displacement: float = math.nan
         self.last_active: float = math.nan
         self.last_interaction: float = math.nan
+        self.last_haptic_mode: int | None = None
+        self.last_haptic: dict[str, float] = {}        # HAPTIC_COLUMNS -> value, multirate only
+        self.energy_window = WindowedSeries(window)    # E_in of multirate metrics
         self.last_pose: tuple[float, float, float] | None = None
         self.last_force_vec: tuple[float, float, float] | None = None
         self.t0: float | None = None
@@ -393,9 +420,13 @@ class VizStats:
     def on_metrics(self, now: float, stamp_ns: int, step_wall_time: float, force: Sequence[float],
                    max_displacement: float, n_interaction: int = 0, n_layer: Sequence[int] = (),
                    n_relaxing: int = 0, substeps: int = 0, contact_index: int = -1,
-                   penetration: float = 0.0, kinetic_energy: float = 0.0) -> bool:
+                   penetration: float = 0.0, kinetic_energy: float = 0.0, haptic_mode: int = 0,
+                   solver_rate: float = 0.0, model_age: float = 0.0,
+                   coupling_stretch: float = 0.0, energy_in: float = 0.0,
+                   energy_in_min: float = 0.0, added_damping: float = 0.0) -> bool:
         """One SimMetrics message; returns False (and counts it) if a value is NaN/inf or out of
-        its :data:`LIMITS`."""
+        its :data:`LIMITS`. The haptic values (``haptic_mode`` .. ``added_damping``) are those of
+        the multirate rendering, zero in direct mode."""
         t = self._rel(now)
         self.meters['metrics'].tick(now)
         self._check_order('metrics', now, stamp_ns)
@@ -405,7 +436,10 @@ class VizStats:
                 'step_wall_time': (step_wall_time,), 'contact_force': (fx, fy, fz),
                 'max_displacement': (max_displacement,), 'penetration': (penetration,),
                 'kinetic_energy': (kinetic_energy,), 'active_particles': (active,),
-                'substeps': (substeps,), 'contact_index': (contact_index,)}):
+                'substeps': (substeps,), 'contact_index': (contact_index,),
+                'haptic_mode': (haptic_mode,), 'solver_rate': (solver_rate,),
+                'model_age': (model_age,), 'coupling_stretch': (coupling_stretch,),
+                'energy_in': (energy_in, energy_in_min), 'added_damping': (added_damping,)}):
             return False
         fmag = math.sqrt(fx * fx + fy * fy + fz * fz)
         self.step.add(now, step_wall_time)
@@ -421,9 +455,16 @@ class VizStats:
         self.last_interaction = n_interaction
         if self.meters['force'].count == 0:
             self.force_window.add(now, fmag)
+        haptic = (solver_rate, model_age, coupling_stretch, energy_in, energy_in_min, added_damping)
+        self.last_haptic_mode = int(haptic_mode)
+        # Direct mode sends zeros: they are no measurements, so the snapshot shows none.
+        self.last_haptic = {}
+        if self.last_haptic_mode == HAPTIC_MULTIRATE:
+            self.last_haptic = dict(zip(self.HAPTIC_COLUMNS, (float(v) for v in haptic)))
+            self.energy_window.add(now, energy_in)
         self.metrics_table.append((t, step_wall_time, substeps, n_interaction, active,
                                    contact_index, penetration, fx, fy, fz, fmag,
-                                   max_displacement, kinetic_energy))
+                                   max_displacement, kinetic_energy, haptic_mode, *haptic))
         return True
 
     def on_particles(self, now: float, stamp_ns: int, n_points: int) -> None:
@@ -479,7 +520,8 @@ class VizStats:
     def snapshot(self, now: float) -> Snapshot:
         """Rolling statistics over the window ending at ``now`` (also expires unanswered poses)."""
         self._expire(now)
-        snap = Snapshot(now=now, window=self.window)
+        snap = Snapshot(now=now, window=self.window, haptic_mode=self.last_haptic_mode,
+                        **self.last_haptic)
         for topic, meter in self.meters.items():
             snap.rates[topic] = meter.rate(now)
             snap.ages[topic] = meter.age(now)
@@ -507,6 +549,9 @@ class VizStats:
         if forces.size:
             snap.force_max = float(forces.max())
         snap.displacement = self.last_displacement
+        energies = self.energy_window.values(now)
+        if energies.size:
+            snap.energy_in_low = float(energies.min())
         snap.bad_in_window = len(self.bad_window.values(now))
         snap.bad_total = self.bad_total
         snap.bad_values = dict(self.bad_values)
@@ -559,7 +604,33 @@ class VizStats:
             'bad_messages': self.bad_total,
             'bad_values': dict(self.bad_values),
             'backwards_stamps': {t: self.order[t].backwards for t in TOPICS},
+            **{key: num(value) for key, value in haptic_summary(metrics).items()},
         }
+
+
+def haptic_summary(metrics: dict[str, np.ndarray]) -> dict[str, float]:
+    """Whole-run figures of the multirate haptic rendering from a metrics table (column -> array,
+    every :attr:`VizStats.METRICS_COLUMNS`): lowest and final E_in [J], largest added damping
+    [N s/m] and median solver rate [Hz], NaN where no valid value. Empty without multirate rows
+    (a direct run, or a table from before the haptic columns: its ``haptic_mode`` is NaN)."""
+    multirate = np.asarray(metrics['haptic_mode'], dtype=float) == HAPTIC_MULTIRATE
+    if not multirate.any():
+        return {}
+
+    def valid(column: str, key: str) -> np.ndarray:
+        values = np.asarray(metrics[column], dtype=float)[multirate]
+        return values[LIMITS[key].mask(values)]
+
+    energy = valid('energy_in', 'energy_in')
+    # The simulator's running minimum also catches dips between (decimated) metrics rows.
+    lowest = np.concatenate([energy, valid('energy_in_min', 'energy_in')])
+    damping = valid('added_damping', 'added_damping')
+    return {
+        'energy_in_min_j': float(lowest.min()) if lowest.size else math.nan,
+        'energy_in_final_j': float(energy[-1]) if energy.size else math.nan,
+        'max_added_damping_n_s_per_m': float(damping.max()) if damping.size else math.nan,
+        'solver_rate_p50_hz': percentile(valid('solver_rate', 'solver_rate'), 50),
+    }
 
 
 def _fmt(value: float, scale: float, digits: int, unit: str) -> str:

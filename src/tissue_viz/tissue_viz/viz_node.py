@@ -83,6 +83,8 @@ PARAMETERS: dict[str, tuple] = {
     'reply_loss_error_pct': (10.0, 'poses without a force reply above this share are ERROR [%]',
                              (0.001, 100.0), False),
     'force_limit': (3.3, 'device force limit [N]; reaching it is WARN', (0.01, 100.0), False),
+    'energy_in_min': (-1e-6, 'energy the hand put into the multirate rendering below this is WARN '
+                      '(the rendering gave energy back) [J]', (-1000.0, 0.0), False),
     'report_dir': ('', 'report folder; empty = ./reports/<timestamp> for each report', None, False),
     'report_on_shutdown': (True, 'write the report when the node shuts down', None, False),
     'report_title': ('SPH soft-tissue simulation run', 'title of the report', None, False),
@@ -119,7 +121,7 @@ def targets_from(values: dict) -> Targets:
     keys = ('rate_tolerance', 'stale_timeout', 'step_p99_warn', 'step_p99_error',
             'deadline_miss_warn_pct', 'deadline_miss_error_pct', 'latency_p50_warn',
             'latency_p99_warn', 'latency_p99_error', 'reply_loss_warn_pct', 'reply_loss_error_pct',
-            'force_limit')
+            'force_limit', 'energy_in_min')
     return Targets(rates=rates, **{k: float(values[k]) for k in keys}).validate()
 
 
@@ -218,7 +220,10 @@ class VizNode(Node):
         self.stats.on_metrics(time.monotonic(), stamp_to_ns(msg.header.stamp), msg.step_wall_time,
                               (f.x, f.y, f.z), msg.max_displacement, msg.n_interaction,
                               msg.n_layer, msg.n_relaxing, msg.substeps, msg.contact_index,
-                              msg.penetration, msg.kinetic_energy)
+                              msg.penetration, msg.kinetic_energy, haptic_mode=msg.haptic_mode,
+                              solver_rate=msg.solver_rate, model_age=msg.model_age,
+                              coupling_stretch=msg.coupling_stretch, energy_in=msg.energy_in,
+                              energy_in_min=msg.energy_in_min, added_damping=msg.added_damping)
         tool = ToolShape.from_metrics(msg)
         if tool is not None:
             self.sim_tool = (msg.header.frame_id, tool, np.array([f.x, f.y, f.z]))
