@@ -122,6 +122,14 @@ def quality(xs: np.ndarray, forces: np.ndarray) -> dict:
     }
 
 
+def stiff_params(p: dict, factor: float = 10.0) -> dict:
+    """The same set-up on a tissue ``factor`` times stiffer (E; same Poisson ratio, viscosities
+    and density)."""
+    m = sim_params.build_material(p)
+    return {**p, 'material': 'custom', 'E': m.E * factor, 'nu': m.nu, 'eta_shear': m.eta_shear,
+            'eta_bulk': m.eta_bulk, 'rho': m.rho}
+
+
 def quasi_static(p: dict, depths=(0.002, 0.004, 0.006), hold: int = 1500) -> list[tuple]:
     """Force after a slow press to each depth and a hold, direct and through the renderer."""
     out = []
@@ -227,6 +235,13 @@ def main(argv=None) -> int:
             print(f'{name:6} {way:9} {q["dF_p99_mN"]:7.1f} {q["dF_max_mN"]:7.1f} '
                   f'{q["tick_change_pct"]:6.2f} {q["ripple_mN"]:6.2f} {q["E_in_min_uJ"]:9.2f} '
                   f'{q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
+    stamps, device = bag_poses('poke')
+    for way in ('direct', 'renderer'):
+        q = quality(*replay(stiff_params(p), stamps, device, way))
+        rows.append({'bag': 'poke E x10', 'way': way, **q})
+        print(f'{"poke, E x10":>6} {way:9} {q["dF_p99_mN"]:7.1f} {q["dF_max_mN"]:7.1f} '
+              f'{q["tick_change_pct"]:6.2f} {q["ripple_mN"]:6.2f} {q["E_in_min_uJ"]:9.2f} '
+              f'{q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
     print('quasi-static force after a slow press and 1.5 s hold (block, top centre):')
     for depth, direct, rendered in quasi_static(p):
         print(f'  {depth * 1e3:.0f} mm: direct {direct:.4f} N, renderer {rendered:.4f} N '

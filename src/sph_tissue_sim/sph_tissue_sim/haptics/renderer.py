@@ -49,20 +49,23 @@ class RendererConfig:
 
     Attributes:
         velocity_cutoff: cut-off of the position/velocity tracking filter [Hz] (see
-            :mod:`.estimator`); lower is smoother.
+            :mod:`.estimator`); lower is smoother but overshoots more where the hand turns
+            (which is active).
         coupling_stiffness: ``K_c`` of the virtual coupling [N/m]; the hand never feels more.
             Default 700 N/m, what a PHANTOM Omni renders (about 0.7 N/mm).
         coupling_damping: ``B_c`` on the device's normal velocity in contact [N s/m]; passivity
-            of the held spring needs ``B_c > K_c T / 2`` (0.35 at 700 N/m and 1 kHz).
+            of the held spring needs ``B_c > K_c T / 2`` (0.35 at 700 N/m and 1 kHz); more
+            covers the loop through the solver (see :mod:`.coupling`).
+        proxy_damping: ``B_p`` on the simulated tool's offset from the device [N s/m].
         passivity_max_damping: the most damping the passivity controller may add [N s/m].
         force_limit: norm of the rendered force at most this [N] (set it to what the device
             receives, so that the passivity observer charges the force really held).
     """
 
-    velocity_cutoff: float = 10.0
+    velocity_cutoff: float = 30.0
     coupling_stiffness: float = 700.0
-    coupling_damping: float = 0.5
-    proxy_damping: float = 2.0
+    coupling_damping: float = 1.5
+    proxy_damping: float = 4.0
     passivity_max_damping: float = 2.0
     force_limit: float = HARD_FORCE_LIMIT
 
