@@ -356,17 +356,11 @@ class SimNode(Node):
         if self.haptic is not None:
             self._answer(msg, stamp_ns)
             return
-        pos = msg.pose.position
         with self._lock:
-            dt = self._advance(header, stamp_ns)
-            if dt is None:
+            pose = self._tool_pose(msg, stamp_ns)
+            if pose is None:
                 return
-            try:
-                rot = self._rotation(msg)
-            except InvalidInput as exc:
-                self._reject(header, f'step refused the input ({exc}): answered zero force')
-                return
-            res = self._step(self.mapping.to_tissue((pos.x, pos.y, pos.z)), dt, rot)
+            res = self._step(*pose)
             force_dev = np.zeros(3) if res is None else self._to_device(res.force_raw)
             self._last_force_dev = force_dev
             self._last_stamp = header.stamp
@@ -380,18 +374,12 @@ class SimNode(Node):
     def _answer(self, msg: PoseStamped, stamp_ns: int) -> None:
         """Multirate: answer the pose from the renderer at once; the solver follows (lockstep: here,
         every solver_every poses; live: its thread is woken)."""
-        header, pos = msg.header, msg.pose.position
+        header = msg.header
         with self._pose_lock:
-            dt = self._advance(header, stamp_ns)
-            if dt is None:
+            pose = self._tool_pose(msg, stamp_ns)
+            if pose is None:
                 return
-            try:
-                rot = self._rotation(msg)
-            except InvalidInput as exc:
-                self._reject(header, f'refused the input ({exc}): answered zero force')
-                return
-            out = self.haptic.answer(self.mapping.to_tissue((pos.x, pos.y, pos.z)), dt, rot,
-                                     header.stamp)
+            out = self.haptic.answer(*pose, header.stamp)
             force_dev = self._to_device(out.force)
             self._last_force_dev = force_dev
         self._publish_force(header, force_dev)
@@ -435,6 +423,20 @@ class SimNode(Node):
         if self.haptic is not None:
             self.haptic.zero_held()
         self._publish_force(header, np.zeros(3))
+
+    def _tool_pose(self, msg: PoseStamped, stamp_ns: int) -> tuple | None:
+        """(tool position, dt, rotation) in the tissue frame for a pose, or None when the pose was
+        answered already (a repeated stamp, or a refused orientation)."""
+        dt = self._advance(msg.header, stamp_ns)
+        if dt is None:
+            return None
+        try:
+            rot = self._rotation(msg)
+        except InvalidInput as exc:
+            self._reject(msg.header, f'refused the input ({exc}): answered zero force')
+            return None
+        pos = msg.pose.position
+        return self.mapping.to_tissue((pos.x, pos.y, pos.z)), dt, rot
 
     def _advance(self, header, stamp_ns: int) -> float | None:
         """The pose's step [s] from its stamp, or None after answering a repeated stamp with the
