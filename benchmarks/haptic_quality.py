@@ -205,14 +205,15 @@ def main(argv=None) -> int:
     ap.add_argument('--live', action='store_true', help='also the live half (sim_node at 1 kHz, '
                     '3670/50k/100k livers, idle and busy; about 15 minutes)')
     ap.add_argument('--live-only', action='store_true', help='only the live half')
+    ap.add_argument('--live-duration', type=float, default=10.0, help='[s] of 1 kHz poses per live run')
     ap.add_argument('--out', type=Path, default=ROOT / 'benchmarks' / 'results')
     args = ap.parse_args(argv)
     if args.live or args.live_only:
         args.out.mkdir(parents=True, exist_ok=True)
-        print('live, 1 kHz poses for 10 s (first second left out):')
+        print(f'live, 1 kHz poses for {args.live_duration:g} s (first second left out):')
         print(f'{"N":>7} {"mode":9} {"load":5} {"answered":>8} {"p50":>7} {"p99":>7} {"max":>7} '
               f'{"solver":>8} {"|F|max":>6}   (%, ms, ms, ms, Hz, N)')
-        rows = live()
+        rows = live(duration=args.live_duration)
         with open(args.out / 'haptic_quality_live.csv', 'w', newline='') as fh:
             w = csv.DictWriter(fh, fieldnames=LIVE_COLUMNS)
             w.writeheader()
