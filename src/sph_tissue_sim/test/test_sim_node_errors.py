@@ -5,6 +5,7 @@ the lockstep schedule (the renderer answers, the solver steps after each pose in
 
 from __future__ import annotations
 
+import contextlib
 
 import numpy as np
 import pytest
@@ -27,7 +28,9 @@ def pose(pos, ns: int, frame: str = 'omni_base'):
     return msg
 
 
+@contextlib.contextmanager
 def make_node(**extra):
+    """An in-process sim_node on its own context; published forces land in ``node.sent``."""
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -40,19 +43,17 @@ def make_node(**extra):
     n.sent = []
     n._publish_force = lambda header, f: n.sent.append(
         (header.stamp.sec * 1_000_000_000 + header.stamp.nanosec, np.array(f, dtype=float)))
-    return n, ctx
-
-
-@pytest.fixture
-def node(ros_domain):
-    import rclpy
-
-    n, ctx = make_node(haptic_mode='direct')
     try:
         yield n
     finally:
         n.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture
+def node(ros_domain):
+    with make_node(haptic_mode='direct') as n:
+        yield n
 
 
 @pytest.fixture
@@ -66,26 +67,14 @@ def in_process_lockstep(monkeypatch):
 
 @pytest.fixture(params=['direct', 'multirate'])
 def any_node(request, ros_domain, in_process_lockstep):
-    import rclpy
-
-    n, ctx = make_node(haptic_mode=request.param, timing_mode='lockstep')
-    try:
+    with make_node(haptic_mode=request.param, timing_mode='lockstep') as n:
         yield n
-    finally:
-        n.destroy_node()
-        rclpy.try_shutdown(context=ctx)
 
 
 @pytest.fixture
 def multirate(ros_domain, in_process_lockstep):
-    import rclpy
-
-    n, ctx = make_node(haptic_mode='multirate', timing_mode='lockstep')
-    try:
+    with make_node(haptic_mode='multirate', timing_mode='lockstep') as n:
         yield n
-    finally:
-        n.destroy_node()
-        rclpy.try_shutdown(context=ctx)
 
 
 def press(node, n: int = 60, t0: int = T0_NS) -> int:
