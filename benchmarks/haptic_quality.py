@@ -21,8 +21,9 @@ put in with each force held until the next pose) minimum and final. Also the qua
 ``--live`` adds the live half: ``sim_node`` started as ``ros2 run`` would, fed poses at 1 kHz along a
 pressing path (``sim_latency.py``), on the 3670-, 50k- and 100k-particle livers, multirate and
 direct, idle and beside one busy process (``python3 -c 'while True: pass'``): pose-to-force latency
-p50/p99, the share of poses answered, and the solver's step rate. Writes
-``haptic_quality_live.csv``.
+p50/p99, the share of poses answered, and the solver's step rate; under each load it first times
+``echo_node.py`` (the same transport answering at once, no simulation) with the same probe: the
+floor of the round trip on this machine. Writes ``haptic_quality_live.csv``.
 
 Usage: ``python benchmarks/haptic_quality.py [--bags press,pull,...] [--every K] [--live] [--out DIR]``
 """
@@ -149,34 +150,34 @@ LIVE_COLUMNS = ('particles', 'haptic_mode', 'load', 'poses_sent', 'replies', 'an
 
 
 def live(sizes=LIVE_SIZES, modes=('multirate', 'direct'), duration: float = 10.0) -> list[dict]:
-    """The live graph's answers at 1 kHz: each size x mode x (idle, one busy process)."""
+    """The live graph's answers at 1 kHz: each size x mode x (idle, one busy process), and under
+    each load first the floor: ``echo_node.py`` (same transport, no simulation, particles 0)."""
     import subprocess
 
     sys.path.insert(0, str(ROOT / 'benchmarks'))
     import sim_latency
 
+    runs = [(load, 0, 'echo') for load in ('idle', 'busy')]
+    runs += [(load, n, mode) for n in sizes for mode in modes for load in ('idle', 'busy')]
     rows = []
-    for n in sizes:
-        for mode in modes:
-            for load in ('idle', 'busy'):
-                busy = (subprocess.Popen([sys.executable, '-c', 'while True: pass'])
-                        if load == 'busy' else None)
-                try:
-                    args = sim_latency.parser().parse_args(
-                        ['--n-particles', str(n), '--haptic-mode', mode, '--duration', str(duration),
-                         '--csv', ''])
-                    s = sim_latency.run(args)
-                finally:
-                    if busy is not None:
-                        busy.kill()
-                        busy.wait()
-                row = {k: s.get(k) for k in LIVE_COLUMNS if k in s}
-                row.update(particles=s['particles'], haptic_mode=mode, load=load,
-                           answered_pct=100.0 - s['no_reply_pct'])
-                rows.append(row)
-                print(f'{row["particles"]:>7} {mode:9} {load:5} {row["answered_pct"]:8.2f} '
-                      f'{row["rtt_median_ms"]:7.3f} {row["rtt_p99_ms"]:7.3f} {row["rtt_max_ms"]:7.2f} '
-                      f'{row["solver_rate_hz"]:8.1f} {row["max_force_n"]:6.3f}', flush=True)
+    for load, n, mode in runs:
+        busy = (subprocess.Popen([sys.executable, '-c', 'while True: pass'])
+                if load == 'busy' else None)
+        try:
+            argv = ['--peer'] if mode == 'echo' else ['--n-particles', str(n), '--haptic-mode', mode]
+            s = sim_latency.run(sim_latency.parser().parse_args(
+                [*argv, '--duration', str(duration), '--csv', '']))
+        finally:
+            if busy is not None:
+                busy.kill()
+                busy.wait()
+        row = {k: s.get(k) for k in LIVE_COLUMNS if k in s}
+        row.update(particles=max(s['particles'], 0), haptic_mode=mode, load=load,
+                   answered_pct=100.0 - s['no_reply_pct'])
+        rows.append(row)
+        print(f'{row["particles"]:>7} {mode:9} {load:5} {row["answered_pct"]:8.2f} '
+              f'{row["rtt_median_ms"]:7.3f} {row["rtt_p99_ms"]:7.3f} {row["rtt_max_ms"]:7.2f} '
+              f'{row["solver_rate_hz"]:8.1f} {row["max_force_n"]:6.3f}', flush=True)
     return rows
 
 

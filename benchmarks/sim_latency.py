@@ -79,8 +79,9 @@ def run(args) -> dict:
     stamp0 = time.time_ns()
     period_ns = int(round(1e9 / args.rate))
 
-    with harness.NodeProcess('sph_tissue_sim', 'sim_node', params=params) as sim:
-        m = sim.wait_for_output(r'numba warm-up .*: ([0-9.]+) s', 600)
+    peer = ([sys.executable, str(ROOT / 'benchmarks' / 'echo_node.py')] if args.peer else None)
+    with harness.NodeProcess('sph_tissue_sim', 'sim_node', params=params, command=peer) as sim:
+        m = None if peer else sim.wait_for_output(r'numba warm-up .*: ([0-9.]+) s', 600)
         sim.wait_for_output(r'ready:', 60)
         ready_line = [ln for ln in sim.output().splitlines() if 'ready:' in ln][-1]
         rclpy.init()
@@ -166,7 +167,7 @@ def run(args) -> dict:
         'model': args.model, 'n_particles_requested': args.n_particles,
         'particles': _particles(ready_line), 'scheme': args.scheme, 'mode': args.mode,
         'timing': args.timing, 'haptic_mode': args.haptic_mode, 'rate_hz': args.rate, 'duration_s': args.duration,
-        'compile_s': float(m.group(1)),
+        'compile_s': float(m.group(1)) if m else math.nan,
         'poses_sent': int(n_total - skip),
         'send_rate_hz': (n_total - skip - 1) / span if span > 0 else math.nan,
         'replies': int(got.sum()),
@@ -230,6 +231,9 @@ def parser() -> argparse.ArgumentParser:
                     'in a worker thread (on) or in the subscription callback (off)')
     ap.add_argument('--switch-interval', type=float, default=1e-4,
                     help='[s] this process\'s GIL switch interval (Python default 0.005)')
+    ap.add_argument('--peer', action='store_true',
+                    help='time benchmarks/echo_node.py instead of sim_node: the same transport and '
+                         'executor answering at once with no simulation (the floor of the round trip)')
     ap.add_argument('--metrics', action='store_true',
                     help='also subscribe tissue/metrics for the step time (default: the node\'s own '
                          'step-time line at shutdown)')
@@ -242,7 +246,8 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     s = run(args)
     rows = [
-        ('configuration', f"{s['model']} ({s['particles']} particles), {s['scheme']}, {s['mode']}, "
+        ('configuration', 'echo_node (no simulation: the floor)' if args.peer else
+                          f"{s['model']} ({s['particles']} particles), {s['scheme']}, {s['mode']}, "
                           f"{s['timing']}, haptic {s['haptic_mode']}, cloud {args.particles_rate:g} Hz, step thread "
                           f"{args.step_thread}"),
         ('numba warm-up + first step', f"{s['compile_s']:.2f} s"),

@@ -113,6 +113,9 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                  'step per pose, its reaction sent as is)', HAPTIC_MODES, True, None),
     'solver_every': (1, 'multirate, lockstep: the solver steps after every n-th pose, in order (live: '
                         'a solver thread steps as fast as it can)', (1, 1000), False, None),
+    'solver_nice': (10, 'multirate live: the solver thread runs this much nicer than the thread '
+                        'answering the poses (Linux thread priority; 0 = the same), so a solver '
+                        'that fills a core never delays an answer', (0, 19), True, None),
     'velocity_cutoff': (RendererConfig.velocity_cutoff, '[Hz] cut-off of the position/velocity '
                         'filter of the encoder-quantised device positions (lower is smoother, '
                         'laggier)', RENDERER_RANGES['velocity_cutoff'], False, 'renderer'),
@@ -168,7 +171,8 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'metrics_decimation': (1, 'publish tissue/metrics every n-th step', (1, 100000), False, None),
     'reliable': (False, 'reliable QoS on omni/pose and omni/force_feedback (lockstep: always)', None,
                  True, None),
-    'qos_depth': (1, 'history depth of omni/pose and omni/force_feedback (lockstep: at least 1000)',
+    'qos_depth': (1, 'history depth of omni/pose and omni/force_feedback (multirate live: at least '
+                  '10; lockstep: at least 1000)',
                   (1, 100000), True, None),
     'warmup': (True, 'compile the numba kernels before reporting ready', None, True, None),
     'log_throttle': (1.0, '[s] at most one log line per kind of bad input in this period',

@@ -13,14 +13,16 @@ Haptic modes (parameter ``haptic_mode``):
 - ``multirate`` (default): each pose is answered at once by the haptic renderer
   (:mod:`.haptics`: velocity filter, virtual coupling to the simulated tool, passivity control)
   from a local contact model; the solver steps at the coupling's proxy and refreshes that model.
-  Live: the subscription callback answers and a solver thread steps as fast as it can. Lockstep:
+  Live: the subscription callback answers every pose (best effort, history depth at least 10, so
+  a short stall of the executor delays poses instead of dropping them) and a solver thread steps as
+  fast as it can. Lockstep:
   the solver steps after every ``solver_every``-th pose in the pose's thread, so replays stay
   bit-identical.
 - ``direct``: one solver step per pose; its reaction is the force (the timing modes below).
 
 Timing modes (parameter ``timing_mode``):
 
-- ``live``: only the newest pose is stepped; poses that arrive during a step are dropped, so there
+- ``live``: (direct) only the newest pose is stepped; poses that arrive during a step are dropped, so there
   is never a backlog. By default (``step_thread: true``) the callback only stores the newest pose
   in an inbox and a stepping thread steps (drops are counted), so the executor thread is always
   free for services: a reset or parameter change interrupts a long step (the frame kernels release
@@ -65,7 +67,7 @@ from tissue_common.throttle import EventThrottle
 from tissue_msgs.msg import SimMetrics
 from tissue_msgs.srv import ResetTissue
 
-from .cloud import POINT_DTYPE, make_cloud, pack_points
+from .cloud import CloudBuffer
 from .core.errors import ConfigError, ModelError, SimError
 from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, StepResult, warmup
 from .mapping import DeviceMapping, anchor_point, check_position
@@ -78,6 +80,7 @@ from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 EXIT_OK, EXIT_INPUT = 0, 1
 REEXEC_ENV = 'SPH_SIM_NODE_REEXEC'
 LOCKSTEP_MIN_DEPTH = 1000
+MULTIRATE_MIN_DEPTH = 10  # [poses] 10 ms at 1 kHz: a stall of the executor thread, not a backlog
 STEP_TIME_HISTORY = 100_000
 SWITCH_INTERVAL = 2e-4  # [s]
 TOOL_LAG_LOG = 1e-3  # [m] a lag behind the device worth telling the operator about
@@ -135,6 +138,8 @@ class SimNode(Node):
             except SimError as exc:  # the probe step below still compiles what this model needs
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
         self.solver = make_solver(self.model, self.material, config, p['nominal_dt'])
+        self._cloud = CloudBuffer(self.solver.n_particles, p['tissue_frame'])
+        self._pack_cloud()  # compiles (or loads) its kernel now, not at the first cloud
         self.compile_time = time.perf_counter() - t0
         self.kernels_compiled, self.kernels_loaded = numba_cache_stats()
         if (self.kernels_compiled and p['timing_mode'] == 'lockstep'
@@ -167,7 +172,7 @@ class SimNode(Node):
         self._last_force_dev = np.zeros(3)
         self._last_stamp = None
         self._step_count = 0
-        self._cloud_buf = np.zeros(self.model.n_particles, dtype=POINT_DTYPE)
+        self._cloud_lock = threading.Lock()      # one cloud packed and published at a time
         self._wrench_msg = WrenchStamped()
         self._wall = np.zeros(STEP_TIME_HISTORY)   # ring of step wall times [s] for the totals
         self._metrics_msg = SimMetrics()
@@ -179,7 +184,12 @@ class SimNode(Node):
                                 reliability=ReliabilityPolicy.RELIABLE)
         else:
             depth = p['qos_depth']
-            if not self.use_thread and depth != 1:
+            if self.haptic is not None:
+                # answering costs microseconds: a short history carries the poses over a stall of
+                # the executor thread (a cloud, a service, the GIL) instead of dropping them, and the
+                # renderer's velocity filter and energy observer see every sample
+                depth = max(depth, MULTIRATE_MIN_DEPTH)
+            elif not self.use_thread and depth != 1:
                 # the callback steps every pose the reader holds: a deeper history is a backlog
                 log.warning(f'live mode stepping in the callback: pose history depth {depth} -> 1 '
                             f'(never a backlog); use step_thread for a deeper transport queue')
@@ -234,7 +244,8 @@ class SimNode(Node):
         if self.haptic is None:
             return 'direct (one solver step per pose)'
         c = self.haptic.renderer.config
-        when = (f'every {self.haptic.every} poses' if self.haptic.every else 'on its own thread')
+        when = (f'every {self.haptic.every} poses' if self.haptic.every
+                else f'on its own thread, nice +{self.p["solver_nice"]}')
         return (f'multirate (solver {when}; coupling {c.coupling_stiffness:g} N/m, '
                 f'{c.coupling_damping:g} N s/m, velocity filter {c.velocity_cutoff:g} Hz)')
 
@@ -369,7 +380,7 @@ class SimNode(Node):
         if metrics is not None:
             self.metrics_pub.publish(metrics)
         if self._cloud_due:
-            self._publish_cloud()
+            self._publish_cloud_once()
 
     def _answer(self, msg: PoseStamped, stamp_ns: int) -> None:
         """Multirate: answer the pose from the renderer at once; the solver follows (lockstep: here,
@@ -387,9 +398,12 @@ class SimNode(Node):
             self._wake.set()
         elif self.haptic.due():
             self._solve()
+            if self._cloud_due:
+                self._publish_cloud_once()
 
     def _solve_loop(self) -> None:
         """Multirate live: step the solver at the newest proxy whenever a pose has come."""
+        self._lower_priority(self.p['solver_nice'])
         while not self._stop.is_set():
             self._wake.wait(0.1)
             self._wake.clear()
@@ -397,9 +411,21 @@ class SimNode(Node):
                 return
             try:
                 self._solve()
+                if self._cloud_due:
+                    self._publish_cloud_once()
             except Exception:  # noqa: BLE001  (the poses are answered by the renderer meanwhile)
                 self._throttled('internal', 'error', 'internal error in the solver thread:\n'
                                 + traceback.format_exc())
+
+    def _lower_priority(self, nice: int) -> None:
+        """Make the calling thread ``nice`` steps nicer (Linux schedules threads one by one)."""
+        if nice <= 0:
+            return
+        try:
+            tid = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, tid, min(os.getpriority(os.PRIO_PROCESS, tid) + nice, 19))
+        except (OSError, AttributeError) as exc:  # not Linux, or refused: run at the same priority
+            self.get_logger().warning(f'solver thread priority unchanged ({exc})')
 
     def _solve(self) -> None:
         job: SolverJob | None = self.haptic.take()
@@ -413,8 +439,6 @@ class SimNode(Node):
             metrics = self._metrics(job.stamp, res, self.solver) if res is not None else None
         if metrics is not None:
             self.metrics_pub.publish(metrics)
-        if self._cloud_due:
-            self._publish_cloud()
 
     def _reject(self, header, text: str) -> None:
         """Answer zero force for a pose that must not move the tool."""
@@ -558,28 +582,44 @@ class SimNode(Node):
 
     # -- particles -------------------------------------------------------------------------------
     def _publish_cloud(self) -> None:
+        """The cloud timer (executor thread)."""
+        if self._solver_thread is not None:
+            # multirate live: the solver thread packs it between two steps; this thread is for poses
+            self._cloud_due = True
+            self._wake.set()
+            return
+        self._publish_cloud_once()
+
+    def _publish_cloud_once(self) -> None:
         try:
-            self._publish_cloud_once()
+            self._publish_cloud_now()
         except Exception:  # noqa: BLE001  (the picture is optional; the force loop must go on)
             self._throttled('cloud', 'error', 'tissue/particles not published:\n'
                             + traceback.format_exc())
 
-    def _publish_cloud_once(self) -> None:
+    def _pack_cloud(self):
+        s = self.solver
+        self._cloud.pack(s.positions, s.X, s.von_mises(), s.region)
+
+    def _publish_cloud_now(self) -> None:
         # never wait for a step here: the timer runs on the executor thread, which must stay free
         # for poses and services; the stepping thread publishes the cloud after its step instead
-        if not self._lock.acquire(blocking=False):
-            self._cloud_due = True
-            return
+        if not self._cloud_lock.acquire(blocking=False):
+            return  # one is being published this very moment
         try:
-            self._cloud_due = False
-            s = self.solver
-            pts = pack_points(s.positions, s.displacement(), s.von_mises(), s.region, self._cloud_buf)
-            stamp = self._last_stamp
+            if not self._lock.acquire(blocking=False):
+                self._cloud_due = True
+                return
+            try:
+                self._cloud_due = False
+                self._pack_cloud()
+                stamp = self._last_stamp
+            finally:
+                self._lock.release()
+            self.cloud_pub.publish(self._cloud.message(
+                stamp if stamp is not None else self.get_clock().now().to_msg()))
         finally:
-            self._lock.release()
-        msg = make_cloud(pts, self.p['tissue_frame'],
-                         stamp if stamp is not None else self.get_clock().now().to_msg())
-        self.cloud_pub.publish(msg)
+            self._cloud_lock.release()
 
     @contextlib.contextmanager
     def _solver_now(self):

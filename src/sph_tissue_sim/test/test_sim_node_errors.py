@@ -198,3 +198,50 @@ def test_multirate_rejected_pose_is_answered_zero_and_charged_as_zero(multirate)
     node._handle(pose((np.nan, 0.0, 0.0), t))
     assert np.all(node.sent[-1][1] == 0.0) and node.counts['rejected'] == 1
     assert np.all(node.haptic.renderer.observer._f == 0.0)   # E_in charges what the device held
+
+
+@pytest.fixture
+def live_multirate(ros_domain):
+    with make_node(haptic_mode='multirate', timing_mode='live') as n:
+        n.start()
+        try:
+            yield n
+        finally:
+            n.shutdown()
+
+
+def test_multirate_live_solver_thread_runs_nicer_than_the_answering_thread(live_multirate):
+    import os
+    import threading
+
+    node = live_multirate
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    solver = os.getpriority(os.PRIO_PROCESS, node._solver_thread.native_id)
+    assert solver == min(mine + node.p['solver_nice'], 19) and node.p['solver_nice'] == 10
+
+
+def test_multirate_live_pose_history_carries_poses_over_a_stall(live_multirate):
+    from sph_tissue_sim.sim_node import MULTIRATE_MIN_DEPTH
+
+    assert live_multirate.io_qos.depth >= MULTIRATE_MIN_DEPTH >= 10
+
+
+def test_multirate_live_cloud_is_packed_and_published_by_the_solver_thread(live_multirate):
+    import threading
+    import time
+
+    node = live_multirate
+    published = threading.Event()
+    threads = []
+
+    class Recorder:
+        def publish(self, msg):
+            threads.append((threading.current_thread().name, msg.width))
+            published.set()
+
+    node.cloud_pub = Recorder()
+    node._publish_cloud()                      # what the cloud timer calls on the executor thread
+    deadline = time.monotonic() + 30.0
+    while not published.wait(0.1) and time.monotonic() < deadline:
+        pass
+    assert threads == [('sim_solver', node.solver.n_particles)]

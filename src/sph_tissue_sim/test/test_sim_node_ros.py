@@ -493,10 +493,12 @@ def test_a_capsule_chosen_by_parameter_follows_the_stylus_orientation_and_is_pus
     assert f[0] / f[2] == pytest.approx(math.tan(math.radians(20.0)), rel=0.25)
 
 
-@pytest.mark.parametrize('step_thread', [None, False])
-def test_shipped_config_starts_the_liver_model(ros_domain, step_thread):
+@pytest.mark.parametrize('haptic_mode, step_thread', [(None, None), ('direct', None), ('direct', False)])
+def test_shipped_config_starts_the_liver_model(ros_domain, haptic_mode, step_thread):
     share = harness.INSTALL / 'sph_tissue_sim' / 'share' / 'sph_tissue_sim' / 'config'
     extra = {} if step_thread is None else {'step_thread': step_thread}
+    if haptic_mode is not None:
+        extra['haptic_mode'] = haptic_mode
     with harness.NodeProcess('sph_tissue_sim', 'sim_node', params_file=share / 'sim_node.yaml',
                              params={'n_particles': 500, 'particles_rate': 0.0,
                                      'qos_depth': 5, **extra}) as proc:
@@ -505,9 +507,12 @@ def test_shipped_config_starts_the_liver_model(ros_domain, step_thread):
         assert proc.stop() == 0
     assert re.search(r'numba warm-up \(compile or cache load\) and first step: [0-9.]+ s', out)
     assert 'scheme tlsph, mode local, material liver' in out and 'timing live' in out
-    if step_thread is None:
-        # the shipped default steps in a thread fed by a newest-pose inbox: the transport queue
-        # may be deeper without a backlog
+    if haptic_mode is None:
+        # the shipped multirate answers in microseconds: at least 10 poses carry over a stall
+        assert 'pose history depth' not in out and 'pose QoS best effort depth 10' in out
+    elif step_thread is None:
+        # direct steps in a thread fed by a newest-pose inbox: the transport queue may be deeper
+        # without a backlog
         assert 'pose history depth' not in out and 'pose QoS best effort depth 5' in out
     else:
         # stepping in the callback, a deeper pose history would be a backlog: forced to 1

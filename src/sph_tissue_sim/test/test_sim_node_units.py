@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from sph_tissue_sim.cloud import FIELD_SPECS, POINT_DTYPE, pack_points, unpack_points
+from sph_tissue_sim.cloud import FIELD_SPECS, POINT_DTYPE, CloudBuffer, unpack_points
 from sph_tissue_sim.core.errors import ConfigError, ModelError
 from sph_tissue_sim.mapping import DEFAULT_ROTATION, DeviceMapping, anchor_point, check_position
 from tissue_common.rotation import quaternion_matrix
@@ -85,22 +85,40 @@ def test_check_position_names_the_problem():
 
 
 # -- cloud ---------------------------------------------------------------------------------------------
+def random_particles(n: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n, 3))
+    return X + 0.01 * rng.normal(size=(n, 3)), X, rng.random(n) * 1e3, rng.integers(0, 5, n).astype(np.int8)
+
+
 def test_cloud_packing_round_trips_every_field():
-    rng = np.random.default_rng(0)
     n = 1000
-    pos = rng.normal(size=(n, 3))
-    disp, vm = rng.random(n), rng.random(n) * 1e3
-    region = rng.integers(0, 5, n).astype(np.int8)
-    pts = pack_points(pos, disp, vm, region)
-    back = unpack_points(pts.view(np.uint8).tobytes(), n)
-    assert np.array_equal(back['x'], pos[:, 0].astype(np.float32))
-    assert np.array_equal(back['z'], pos[:, 2].astype(np.float32))
-    assert np.array_equal(back['displacement'], disp.astype(np.float32))
+    x, X, vm, region = random_particles(n)
+    cloud = CloudBuffer(n, 'tissue')
+    cloud.pack(x, X, vm, region)
+    back = unpack_points(cloud.data, n)
+    assert np.array_equal(back['x'], x[:, 0].astype(np.float32))
+    assert np.array_equal(back['z'], x[:, 2].astype(np.float32))
+    assert np.allclose(back['displacement'], np.linalg.norm(x - X, axis=1), rtol=1e-6, atol=0)
     assert np.array_equal(back['von_mises'], vm.astype(np.float32))
     assert np.array_equal(back['region'], region.astype(np.uint8))
-    # reusing the buffer gives the same bytes
-    again = pack_points(pos, disp, vm, region, out=np.zeros(n, dtype=POINT_DTYPE))
-    assert again.tobytes() == pts.tobytes()
+    assert not np.frombuffer(cloud.data, np.uint8).reshape(n, 24)[:, 21:].any()  # padding stays zero
+
+
+def test_cloud_repacking_overwrites_the_same_buffer_in_place():
+    n = 50
+    cloud = CloudBuffer(n, 'tissue')
+    data = cloud.data
+    cloud.pack(*random_particles(n, 1))
+    x, X, vm, region = random_particles(n, 2)
+    points = cloud.pack(x, X, vm, region)
+    assert cloud.data is data and np.array_equal(points['y'], x[:, 1].astype(np.float32))
+
+
+def test_cloud_region_codes_are_clipped_to_a_byte():
+    x, X, vm, _ = random_particles(3)
+    cloud = CloudBuffer(3, 'tissue')
+    assert cloud.pack(x, X, vm, np.array([-1, 7, 300]))['region'].tolist() == [0, 7, 255]
 
 
 def test_cloud_field_table_matches_the_point_layout():
@@ -113,18 +131,22 @@ def test_cloud_field_table_matches_the_point_layout():
 
 def test_cloud_message_header_and_layout():
     pytest.importorskip('sensor_msgs')
-    from sph_tissue_sim.cloud import make_cloud
-
-    pts = pack_points(np.zeros((7, 3)), np.zeros(7), np.zeros(7), np.zeros(7, dtype=np.int8))
-    msg = make_cloud(pts, 'tissue')
+    cloud = CloudBuffer(7, 'tissue')
+    cloud.pack(np.zeros((7, 3)), np.zeros((7, 3)), np.zeros(7), np.zeros(7, dtype=np.int8))
+    msg = cloud.message()
     assert (msg.header.frame_id, msg.height, msg.width, msg.point_step) == ('tissue', 1, 7, 24)
     assert len(msg.data) == 7 * 24 and msg.row_step == 7 * 24 and not msg.is_bigendian
     assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'displacement', 'von_mises', 'region']
+    # later packs land in the message that is published
+    x, X, vm, region = random_particles(7)
+    cloud.pack(x, X, vm, region)
+    assert cloud.message() is msg
+    assert np.array_equal(unpack_points(msg.data, 7)['von_mises'], vm.astype(np.float32))
 
 
 def test_cloud_packing_rejects_inconsistent_arrays():
-    with pytest.raises(ValueError):
-        pack_points(np.zeros((5, 3)), np.zeros(4), np.zeros(5), np.zeros(5))
+    with pytest.raises(ValueError, match='do not match a cloud of 5 points'):
+        CloudBuffer(5, 'tissue').pack(np.zeros((5, 3)), np.zeros((5, 3)), np.zeros(4), np.zeros(5))
 
 
 # -- stamp clock ---------------------------------------------------------------------------------------

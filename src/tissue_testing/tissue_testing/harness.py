@@ -94,11 +94,12 @@ class NodeProcess:
     def __init__(self, pkg: str, exe: str, args: Iterable[str] = (), ros_args: Iterable[str] = (),
                  params_file: str | Path | None = None, params: Mapping[str, object] | None = None,
                  env: Mapping[str, str] | None = None, name: str | None = None,
-                 node_name: str | None = None) -> None:
+                 node_name: str | None = None, command: Iterable[str] | None = None) -> None:
         self.pkg, self.exe = pkg, exe
         self.name = name or exe
         self._tmp = tempfile.TemporaryDirectory(prefix=f'{self.name}_')
-        cmd = [str(executable(pkg, exe)), *args]
+        # ``command`` starts a node that is not installed (a benchmark's script) the same way
+        cmd = [*(command if command is not None else [str(executable(pkg, exe))]), *args]
         extra = list(ros_args)
         if params_file is not None:
             extra += ['--params-file', str(params_file)]
