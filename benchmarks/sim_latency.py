@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from tissue_testing import harness
 
@@ -63,6 +64,9 @@ def run(args) -> dict:
     params = {'model': args.model, 'n_particles': args.n_particles, 'mode': args.mode,
               'scheme': args.scheme, 'timing_mode': args.timing,
               'particles_rate': args.particles_rate, 'haptic_mode': args.haptic_mode}
+    for item in args.set:
+        name, _, value = item.partition('=')
+        params[name] = yaml.safe_load(value)
     if args.step_thread != 'default':
         params['step_thread'] = args.step_thread == 'on'
     if args.model == 'block':
@@ -231,6 +235,8 @@ def parser() -> argparse.ArgumentParser:
                     'in a worker thread (on) or in the subscription callback (off)')
     ap.add_argument('--switch-interval', type=float, default=1e-4,
                     help='[s] this process\'s GIL switch interval (Python default 0.005)')
+    ap.add_argument('--set', action='append', default=[], metavar='NAME=VALUE',
+                    help='any other sim_node parameter (YAML value; repeatable)')
     ap.add_argument('--peer', action='store_true',
                     help='time benchmarks/echo_node.py instead of sim_node: the same transport and '
                          'executor answering at once with no simulation (the floor of the round trip)')
