@@ -590,18 +590,11 @@ class SimNode(Node):
             return
         self._publish_cloud_once()
 
-    def _publish_cloud_once(self) -> None:
-        try:
-            self._publish_cloud_now()
-        except Exception:  # noqa: BLE001  (the picture is optional; the force loop must go on)
-            self._throttled('cloud', 'error', 'tissue/particles not published:\n'
-                            + traceback.format_exc())
-
     def _pack_cloud(self):
         s = self.solver
         self._cloud.pack(s.positions, s.X, s.von_mises(), s.region)
 
-    def _publish_cloud_now(self) -> None:
+    def _publish_cloud_once(self) -> None:
         # never wait for a step here: the timer runs on the executor thread, which must stay free
         # for poses and services; the stepping thread publishes the cloud after its step instead
         if not self._cloud_lock.acquire(blocking=False):
@@ -618,6 +611,9 @@ class SimNode(Node):
                 self._lock.release()
             self.cloud_pub.publish(self._cloud.message(
                 stamp if stamp is not None else self.get_clock().now().to_msg()))
+        except Exception:  # noqa: BLE001  (the picture is optional; the force loop must go on)
+            self._throttled('cloud', 'error', 'tissue/particles not published:\n'
+                            + traceback.format_exc())
         finally:
             self._cloud_lock.release()
 

@@ -245,3 +245,22 @@ def test_multirate_live_cloud_is_packed_and_published_by_the_solver_thread(live_
     while not published.wait(0.1) and time.monotonic() < deadline:
         pass
     assert threads == [('sim_solver', node.solver.n_particles)]
+
+
+def test_a_cloud_that_fails_to_publish_is_logged_and_the_next_one_goes_out(multirate):
+    node = multirate
+    press(node)
+    sent = []
+
+    class Flaky:
+        def publish(self, msg):
+            if not sent:
+                sent.append(None)
+                raise RuntimeError('transport gone')
+            sent.append(msg.width)
+
+    node.cloud_pub = Flaky()
+    node._publish_cloud_once()                 # raises inside: logged, never out of the node
+    node._publish_cloud_once()
+    assert sent == [None, node.solver.n_particles]
+    assert node._log_throttle.counts['cloud'] == 1
