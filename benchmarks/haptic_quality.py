@@ -13,9 +13,12 @@ ROS), two ways:
 
 Per bag and way, in steady contact (more than 20 frames after contact onset): per-frame |dF| p99 and
 max, the median force change on frames where the device moved by exactly one encoder tick as a share
-of the force, the ripple (|F| minus its 21-frame centred mean, rms), and E_in (the energy the hand
+of the force (``tick %``; ``still``: only the ticks that follow a frame without motion, the
+quantisation alone, where inside a motion the change is also the stiffness times the speed), the
+ripple (|F| minus its 21-frame centred mean, rms), and E_in (the energy the hand
 put in with each force held until the next pose) minimum and final. Also the quasi-static force at
-2, 4 and 6 mm on the block, renderer against direct. Writes ``haptic_quality.csv`` and
+2, 4 and 6 mm on the block, renderer against direct, and direct at the depth where the renderer's
+proxy rests (the coupling in series with the tissue). Writes ``haptic_quality.csv`` and
 ``haptic_quality.png`` (the press session's force, both ways) to ``--out``.
 
 ``--live`` adds the live half: ``sim_node`` started as ``ros2 run`` would, fed poses at 1 kHz along a
@@ -52,7 +55,7 @@ TICK = 5.5e-5           # [m] the Omni's encoder resolution (the bags reproduce 
 STEADY_AFTER = 20       # frames after contact onset before contact counts as steady
 RIPPLE_WINDOW = 21      # frames of the centred mean the ripple is measured against
 COLUMNS = ('bag', 'way', 'frames', 'steady_frames', 'dF_p99_mN', 'dF_max_mN', 'tick_change_pct',
-           'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
+           'still_tick_change_pct', 'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
 
 
 def golden_params() -> dict:
@@ -108,6 +111,9 @@ def quality(xs: np.ndarray, forces: np.ndarray) -> dict:
     dF = np.r_[0.0, np.linalg.norm(np.diff(forces, axis=0), axis=1)]
     moved = np.r_[0.0, np.linalg.norm(np.diff(xs, axis=0), axis=1)]
     tick = steady & (np.abs(moved - TICK) < 1e-3 * TICK)
+    # a tick after a still frame is the quantisation alone; inside a motion the change is also the
+    # rendered stiffness times the speed
+    still_tick = tick & np.r_[False, moved[:-1] == 0.0]
     e_in = -np.cumsum(np.r_[0.0, np.einsum('ij,ij->i', forces[:-1], np.diff(xs, axis=0))])
     mean = np.convolve(mag, np.ones(RIPPLE_WINDOW) / RIPPLE_WINDOW, 'same')
     some = steady.any()
@@ -117,6 +123,8 @@ def quality(xs: np.ndarray, forces: np.ndarray) -> dict:
         'dF_max_mN': float(dF[steady].max() * 1e3) if some else float('nan'),
         'tick_change_pct': float(np.median(dF[tick] / mag[tick]) * 100) if tick.any() else float('nan'),
         'ticks': int(tick.sum()),
+        'still_tick_change_pct': (float(np.median(dF[still_tick] / mag[still_tick]) * 100)
+                                  if still_tick.any() else float('nan')),
         'ripple_mN': float(np.sqrt(np.mean((mag - mean)[steady] ** 2)) * 1e3) if some else float('nan'),
         'E_in_min_uJ': float(e_in.min() * 1e6), 'E_in_final_uJ': float(e_in[-1] * 1e6),
         'peak_N': float(mag.max()),
@@ -131,16 +139,22 @@ def stiff_params(p: dict, factor: float = 10.0) -> dict:
             'eta_bulk': m.eta_bulk, 'rho': m.rho}
 
 
-def quasi_static(p: dict, depths=(0.002, 0.004, 0.006), hold: int = 1500) -> list[tuple]:
-    """Force after a slow press to each depth and a hold, direct and through the renderer."""
-    out = []
-    for depth in depths:
+def quasi_static(p: dict, depths=(0.002, 0.004, 0.006), hold: int = 1500,
+                 coupling: float = RendererConfig.coupling_stiffness) -> list[tuple]:
+    """Force after a slow press to each depth and a hold: direct, through the renderer, and direct
+    at the depth the renderer's proxy holds (``F / K_c`` short of the device: the coupling in series
+    with the tissue)."""
+    def press(depth: float, way: str) -> float:
         ramp = np.r_[np.linspace(0.0, depth, 2000), np.full(hold, depth)]
         device = np.zeros((ramp.size, 3))
         device[:, 1] = -ramp                      # device y (up) is tissue z in the default mapping
         stamps = np.arange(ramp.size) * 1_000_000
-        f = [np.linalg.norm(replay(p, stamps, device, way)[1][-1]) for way in ('direct', 'renderer')]
-        out.append((depth, f[0], f[1]))
+        return float(np.linalg.norm(replay(p, stamps, device, way)[1][-1]))
+
+    out = []
+    for depth in depths:
+        rendered = press(depth, 'renderer')
+        out.append((depth, press(depth, 'direct'), rendered, press(depth - rendered / coupling, 'direct')))
     return out
 
 
@@ -224,30 +238,31 @@ def main(argv=None) -> int:
     p = golden_params()
     args.out.mkdir(parents=True, exist_ok=True)
     rows, press = [], {}
-    print(f'{"bag":6} {"way":9} {"dF p99":>7} {"dF max":>7} {"tick %":>6} {"ripple":>6} '
-          f'{"E_in min":>9} {"E_in end":>9} {"peak":>6}   (mN, %, mN, uJ, uJ, N)')
+    print(f'{"bag":6} {"way":9} {"dF p99":>7} {"dF max":>7} {"tick %":>6} {"still":>6} {"ripple":>6} '
+          f'{"E_in min":>9} {"E_in end":>9} {"peak":>6}   (mN, %, %, mN, uJ, uJ, N)')
+
+    def row(bag: str, way: str, q: dict) -> None:
+        rows.append({'bag': bag, 'way': way, **q})
+        print(f'{bag:6} {way:9} {q["dF_p99_mN"]:7.1f} {q["dF_max_mN"]:7.1f} '
+              f'{q["tick_change_pct"]:6.2f} {q["still_tick_change_pct"]:6.2f} {q["ripple_mN"]:6.2f} '
+              f'{q["E_in_min_uJ"]:9.2f} {q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
+
     for name in args.bags.split(','):
         stamps, device = bag_poses(name)
         for way in ('direct', 'renderer'):
             xs, forces = replay(p, stamps, device, way, args.every)
             if name == 'press':
                 press[way] = (xs, forces)
-            q = quality(xs, forces)
-            rows.append({'bag': name, 'way': way, **q})
-            print(f'{name:6} {way:9} {q["dF_p99_mN"]:7.1f} {q["dF_max_mN"]:7.1f} '
-                  f'{q["tick_change_pct"]:6.2f} {q["ripple_mN"]:6.2f} {q["E_in_min_uJ"]:9.2f} '
-                  f'{q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
+            row(name, way, quality(xs, forces))
     stamps, device = bag_poses('poke')
     for way in ('direct', 'renderer'):
-        q = quality(*replay(stiff_params(p), stamps, device, way))
-        rows.append({'bag': 'poke E x10', 'way': way, **q})
-        print(f'{"poke, E x10":>6} {way:9} {q["dF_p99_mN"]:7.1f} {q["dF_max_mN"]:7.1f} '
-              f'{q["tick_change_pct"]:6.2f} {q["ripple_mN"]:6.2f} {q["E_in_min_uJ"]:9.2f} '
-              f'{q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
-    print('quasi-static force after a slow press and 1.5 s hold (block, top centre):')
-    for depth, direct, rendered in quasi_static(p):
+        row('poke E x10', way, quality(*replay(stiff_params(p), stamps, device, way)))
+    print('quasi-static force after a slow press and 1.5 s hold (block, top centre); last: direct at '
+          'the depth of the proxy (F / K_c short of the device):')
+    for depth, direct, rendered, at_proxy in quasi_static(p):
         print(f'  {depth * 1e3:.0f} mm: direct {direct:.4f} N, renderer {rendered:.4f} N '
-              f'({(rendered / direct - 1) * 100:+.1f} %)')
+              f'({(rendered / direct - 1) * 100:+.1f} %), direct at the proxy {at_proxy:.4f} N '
+              f'({(at_proxy / direct - 1) * 100:+.1f} %)')
     with open(args.out / 'haptic_quality.csv', 'w', newline='') as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
         w.writeheader()

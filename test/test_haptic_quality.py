@@ -35,6 +35,7 @@ def test_the_renderer_removes_the_tick_spikes_and_gives_no_energy_back_on_the_pr
     # through the renderer: per-frame change an order of magnitude smaller, never below zero energy
     assert rendered['dF_p99_mN'] < 6.0 and rendered['dF_max_mN'] < 8.0
     assert rendered['tick_change_pct'] < direct['tick_change_pct'] / 5
+    assert rendered['still_tick_change_pct'] < 1.0 < direct['still_tick_change_pct'] / 5
     assert rendered['E_in_min_uJ'] >= -1.0 and rendered['E_in_final_uJ'] > 0.0
     assert rendered['steady_frames'] > 1000
     assert 0.8 * direct['peak_N'] < rendered['peak_N'] < 1.1 * direct['peak_N']
@@ -47,3 +48,24 @@ def test_a_replay_through_the_renderer_is_bit_identical_when_repeated():
     a = hq.replay(p, stamps[:800], device[:800], 'renderer')[1]
     b = hq.replay(p, stamps[:800], device[:800], 'renderer')[1]
     assert np.array_equal(a, b) and np.abs(a).max() > 0.0
+
+
+def test_the_still_tick_share_counts_only_ticks_that_follow_a_still_frame():
+    """A held 0.2 N contact: three isolated ticks each add 2 mN, then a stroke at one tick per
+    frame adds 4 mN a frame. Every one-tick frame counts for the tick share; only the ticks after a
+    still frame (the three and the stroke's first) count for the still share."""
+    hq = _load()
+    steps = np.zeros(200)                     # encoder ticks moved on each frame
+    steps[[50, 100, 150]] = 1.0
+    steps[160:190] = 1.0
+    df = np.where(steps > 0.0, 0.002, 0.0)
+    df[160:190] = 0.004
+    z = -hq.TICK * np.cumsum(steps)
+    f = 0.2 + np.cumsum(df)
+    q = hq.quality(np.stack([0 * z, 0 * z, z], axis=1), np.stack([0 * f, 0 * f, f], axis=1))
+    ticks = np.flatnonzero(steps)
+    still = [50, 100, 150, 160]
+    assert q['ticks'] == ticks.size == 33
+    np.testing.assert_allclose(q['still_tick_change_pct'], np.median(df[still] / f[still]) * 100, rtol=1e-9)
+    np.testing.assert_allclose(q['tick_change_pct'], np.median(df[ticks] / f[ticks]) * 100, rtol=1e-9)
+    assert q['still_tick_change_pct'] < 1.0 < q['tick_change_pct']
