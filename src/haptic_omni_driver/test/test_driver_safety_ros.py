@@ -132,6 +132,9 @@ def test_force_step_is_rendered_no_faster_than_max_force_rate(rclpy_node):
         proc.wait_for_output(r'ready:', 30)
         harness.wait_for_matching(rclpy_node, pub)
         harness.wait_for_matching(rclpy_node, watch.sub)
+        # our reader matching the driver's writer does not mean the writer has matched us yet:
+        # a state before the step proves it has, so the zero force before the rise is seen
+        assert rclpy_node.spin_until(lambda: watch.msgs, 30), proc.output()
         with Sender(pub, (0.0, 0.0, 3.0)):           # far above the limit: clamped to 0.5 N
             assert rclpy_node.spin_until(lambda: any(
                 norm(m.commanded_force) >= target - 1e-9 for _, m in watch.msgs), 30), proc.output()
