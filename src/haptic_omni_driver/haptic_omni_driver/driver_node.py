@@ -18,6 +18,7 @@ with lockstep_timeout_action abort.
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -36,6 +37,7 @@ from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_
 from tissue_common.params import check_choice, declare_all
 from tissue_common.stamps import set_stamp, stamp_to_ns
 from tissue_common.throttle import EventThrottle
+from tissue_common.transport import shared_memory_warning
 from tissue_msgs.msg import DeviceState
 
 from .backends.base import Backend, Sample
@@ -191,6 +193,9 @@ class OmniDriver(Node):
             f'{self.safety.config.force_limit:g} N, watchdog {self.safety.config.watchdog_timeout:g}'
             f' s, max_force_rate {self.safety.config.max_force_rate:g} N/s, pose QoS {"reliable" if self._lockstep or self.p["reliable"] else "best effort"}'
             + (', lockstep' if self._lockstep else ''))
+        transport_warning = shared_memory_warning(os.environ)
+        if transport_warning:
+            self.get_logger().warn(transport_warning)
         if not b.has_device:
             self._servo_thread = threading.Thread(target=self._virtual_servo, daemon=True,
                                                   name='virtual_servo')

@@ -46,6 +46,11 @@ class StateWatch:
             DeviceState, 'omni/state', lambda m: self.msgs.append((time.monotonic(), m)),
             reliable_qos(1000))
 
+    def wait_for_first(self, node, proc, timeout: float = 30.0) -> None:
+        """Wait for a first state: then the driver's writer has matched this reader too (each side
+        matches on its own; a state published before the writer's side matched is lost)."""
+        assert node.spin_until(lambda: self.msgs, timeout), proc.output()
+
 
 # -- replay -------------------------------------------------------------------------------------
 def test_replay_publishes_exactly_the_bag_poses_in_order_with_stamps(rclpy_node, tmp_path):
@@ -150,7 +155,7 @@ def test_watchdog_zeroes_force_within_timeout_after_commands_stop(rclpy_node):
                  'watchdog_timeout': timeout, 'force_limit': 0.88}) as proc:
         proc.wait_for_output(r'ready:', 30)
         harness.wait_for_matching(rclpy_node, pub)
-        harness.wait_for_matching(rclpy_node, watch.sub)
+        watch.wait_for_first(rclpy_node, proc)
         results = []
         for _ in range(3):
             n_start = len(watch.msgs)
@@ -186,7 +191,7 @@ def test_clamp_nan_and_wrong_frame_over_ros(rclpy_node):
                  'force_limit': 0.5, 'watchdog_timeout': 0.05}) as proc:
         proc.wait_for_output(r'ready:', 30)
         harness.wait_for_matching(rclpy_node, pub)
-        harness.wait_for_matching(rclpy_node, watch.sub)
+        watch.wait_for_first(rclpy_node, proc)
         _send_forces(rclpy_node, pub, (3.0, 4.0, 0.0), 0.15)
         assert rclpy_node.spin_until(
             lambda: any(m.force_clamped and m.force_enabled for _, m in watch.msgs), 30.0), \
@@ -351,6 +356,18 @@ def test_scripted_publishes_the_script_at_rate_then_exits(rclpy_node):
     # at once, so a busy machine only stretches the span: no upper bound on it)
     stamps = np.array([stamp_ns(p.header) for p in poses]) * 1e-9
     assert stamps[-1] - stamps[0] >= 0.9 * (ref.shape[0] - 1) / 1000.0
+
+
+def test_a_driver_on_fast_dds_shared_memory_warns_that_a_dead_peer_can_stall_it(ros_domain):
+    env = {**harness.ros_env(ros_domain), 'FASTDDS_BUILTIN_TRANSPORTS': 'SHM',
+           'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}
+    with driver({'backend': 'scripted', 'exit_on_end': True, 'tremor_amplitude': 0.0,
+                 'approach_time': 0.1, 'press_time': 0.1, 'hold_time': 0.1, 'pull_time': 0.1,
+                 'release_time': 0.1, 'sweep_time': 0.1, 'return_time': 0.1}, env=env) as proc:
+        assert proc.wait(60) == 0
+        output = proc.output()
+    assert re.search(r'WARN.*Fast DDS shared-memory transport in use \(FASTDDS_BUILTIN_TRANSPORTS=SHM\)'
+                     r'.*set FASTDDS_BUILTIN_TRANSPORTS=UDPv4', output)
 
 
 def test_safety_parameters_change_at_run_time_and_bad_values_are_refused(rclpy_node):

@@ -62,6 +62,7 @@ def test_replies_stamped_zero_negative_future_or_old_are_rejected_and_counted(rc
         proc.wait_for_output(r'ready:', 30)
         harness.wait_for_matching(rclpy_node, pub)
         assert rclpy_node.spin_until(lambda: poses, 20), proc.output()
+        watch.wait_for_first(rclpy_node, proc)
         newest = poses[-1]
         pub.publish(wrench((0.1, 0, 0), newest))                        # a valid reply
         assert rclpy_node.spin_until(lambda: any(m.force_enabled for _, m in watch.msgs), 10)
@@ -131,10 +132,7 @@ def test_force_step_is_rendered_no_faster_than_max_force_rate(rclpy_node):
                  'state_rate': 200.0}) as proc:
         proc.wait_for_output(r'ready:', 30)
         harness.wait_for_matching(rclpy_node, pub)
-        harness.wait_for_matching(rclpy_node, watch.sub)
-        # our reader matching the driver's writer does not mean the writer has matched us yet:
-        # a state before the step proves it has, so the zero force before the rise is seen
-        assert rclpy_node.spin_until(lambda: watch.msgs, 30), proc.output()
+        watch.wait_for_first(rclpy_node, proc)   # so the zero force before the rise is seen
         with Sender(pub, (0.0, 0.0, 3.0)):           # far above the limit: clamped to 0.5 N
             assert rclpy_node.spin_until(lambda: any(
                 norm(m.commanded_force) >= target - 1e-9 for _, m in watch.msgs), 30), proc.output()
