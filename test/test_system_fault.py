@@ -5,8 +5,8 @@ The driver replays the long session at its recorded 1 kHz timing (a live device)
 live mode. Once the tool presses the tissue the sim process is killed (SIGKILL: no goodbye
 message). The driver must then report, on omni/state, watchdog_tripped with a zero commanded force,
 the trip happening when the newest command was watchdog_timeout old in the driver's running time
-(the driver measures command_age itself, so DDS latency to this test does not enter). A new sim_node is started and the
-loop must resume: force output re-enabled, watchdog cleared, and a non-zero force while in contact.
+(the driver measures command_age itself, so DDS latency to this test does not enter). A new
+sim_node is started and the loop must resume: force output re-enabled, watchdog cleared, and a non-zero force while in contact.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import time
 
 import pytest
 
+from tissue_common.stamps import stamp_to_ns
 from tissue_testing import harness
 from tissue_testing import system_graph as graph
 
@@ -35,7 +36,7 @@ def _norm(v) -> float:
 
 
 def _stamp_ns(state) -> int:
-    return state.header.stamp.sec * 1_000_000_000 + state.header.stamp.nanosec
+    return stamp_to_ns(state.header.stamp)
 
 
 def _stall(mon, t0_ns: int, t1_ns: int, period: float = 0.01) -> float:
