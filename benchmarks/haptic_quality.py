@@ -26,9 +26,13 @@ pressing path (``sim_latency.py``), on the 3670-, 50k- and 100k-particle livers,
 direct, idle and beside one busy process (``python3 -c 'while True: pass'``): pose-to-force latency
 p50/p99, the share of poses answered, and the solver's step rate; under each load it first times
 ``echo_node.py`` (the same transport answering at once, no simulation) with the same probe: the
-floor of the round trip on this machine. Writes ``haptic_quality_live.csv``.
+floor of the round trip on this machine. Writes ``haptic_quality_live.csv``. ``--live-repeats R``
+runs the live list R rounds (interleaved) and summarises each configuration's p99 over them
+(median, lowest, highest; ``haptic_quality_live_summary.csv``): one run's p99 is its slowest 1 %,
+which on a shared VM moves by a factor of two or more between runs of the same code.
 
 Usage: ``python benchmarks/haptic_quality.py [--bags press,pull,...] [--every K] [--live] [--out DIR]``
+``[--live-only] [--live-duration S] [--live-repeats R] [--live-modes multirate,direct]``
 """
 
 from __future__ import annotations
@@ -159,13 +163,18 @@ def quasi_static(p: dict, depths=(0.002, 0.004, 0.006), hold: int = 1500,
 
 
 LIVE_SIZES = (3670, 50000, 100000)
-LIVE_COLUMNS = ('particles', 'haptic_mode', 'load', 'poses_sent', 'replies', 'answered_pct',
+LIVE_COLUMNS = ('round', 'particles', 'haptic_mode', 'load', 'poses_sent', 'replies', 'answered_pct',
                 'rtt_median_ms', 'rtt_p99_ms', 'rtt_max_ms', 'solver_rate_hz', 'max_force_n')
 
 
-def live(sizes=LIVE_SIZES, modes=('multirate', 'direct'), duration: float = 10.0) -> list[dict]:
+def live(sizes=LIVE_SIZES, modes=('multirate', 'direct'), duration: float = 10.0,
+         repeats: int = 1) -> list[dict]:
     """The live graph's answers at 1 kHz: each size x mode x (idle, one busy process), and under
-    each load first the floor: ``echo_node.py`` (same transport, no simulation, particles 0)."""
+    each load first the floor: ``echo_node.py`` (same transport, no simulation, particles 0).
+
+    With ``repeats`` > 1 the whole list runs that many rounds, one configuration after the other in
+    each round, so that a slow spell of the shared machine hits every configuration alike (a run's
+    p99 is its slowest 1 %, which moves from run to run on a shared VM)."""
     import subprocess
 
     sys.path.insert(0, str(ROOT / 'benchmarks'))
@@ -174,25 +183,40 @@ def live(sizes=LIVE_SIZES, modes=('multirate', 'direct'), duration: float = 10.0
     runs = [(load, 0, 'echo') for load in ('idle', 'busy')]
     runs += [(load, n, mode) for n in sizes for mode in modes for load in ('idle', 'busy')]
     rows = []
-    for load, n, mode in runs:
-        busy = (subprocess.Popen([sys.executable, '-c', 'while True: pass'])
-                if load == 'busy' else None)
-        try:
-            argv = ['--peer'] if mode == 'echo' else ['--n-particles', str(n), '--haptic-mode', mode]
-            s = sim_latency.run(sim_latency.parser().parse_args(
-                [*argv, '--duration', str(duration), '--csv', '']))
-        finally:
-            if busy is not None:
-                busy.kill()
-                busy.wait()
-        row = {k: s.get(k) for k in LIVE_COLUMNS if k in s}
-        row.update(particles=max(s['particles'], 0), haptic_mode=mode, load=load,
-                   answered_pct=100.0 - s['no_reply_pct'])
-        rows.append(row)
-        print(f'{row["particles"]:>7} {mode:9} {load:5} {row["answered_pct"]:8.2f} '
-              f'{row["rtt_median_ms"]:7.3f} {row["rtt_p99_ms"]:7.3f} {row["rtt_max_ms"]:7.2f} '
-              f'{row["solver_rate_hz"]:8.1f} {row["max_force_n"]:6.3f}', flush=True)
+    for rnd in range(1, repeats + 1):
+        for load, n, mode in runs:
+            busy = (subprocess.Popen([sys.executable, '-c', 'while True: pass'])
+                    if load == 'busy' else None)
+            try:
+                argv = ['--peer'] if mode == 'echo' else ['--n-particles', str(n), '--haptic-mode', mode]
+                s = sim_latency.run(sim_latency.parser().parse_args(
+                    [*argv, '--duration', str(duration), '--csv', '']))
+            finally:
+                if busy is not None:
+                    busy.kill()
+                    busy.wait()
+            row = {k: s.get(k) for k in LIVE_COLUMNS if k in s}
+            row.update(round=rnd, particles=max(s['particles'], 0), haptic_mode=mode, load=load,
+                       answered_pct=100.0 - s['no_reply_pct'])
+            rows.append(row)
+            print(f'{rnd:>5} {row["particles"]:>7} {mode:9} {load:5} {row["answered_pct"]:8.2f} '
+                  f'{row["rtt_median_ms"]:7.3f} {row["rtt_p99_ms"]:7.3f} {row["rtt_max_ms"]:7.2f} '
+                  f'{row["solver_rate_hz"]:8.1f} {row["max_force_n"]:6.3f}', flush=True)
     return rows
+
+
+def live_summary(rows: list[dict]) -> list[dict]:
+    """Per configuration over its rounds: the median, lowest and highest p99 and the lowest share
+    of poses answered."""
+    out = []
+    for key in dict.fromkeys((r['particles'], r['haptic_mode'], r['load']) for r in rows):
+        runs = [r for r in rows if (r['particles'], r['haptic_mode'], r['load']) == key]
+        p99 = np.array([r['rtt_p99_ms'] for r in runs])
+        out.append({'particles': key[0], 'haptic_mode': key[1], 'load': key[2], 'runs': len(runs),
+                    'p99_median_ms': float(np.median(p99)), 'p99_min_ms': float(p99.min()),
+                    'p99_max_ms': float(p99.max()),
+                    'answered_min_pct': min(r['answered_pct'] for r in runs)})
+    return out
 
 
 def plot(path: Path, press: dict) -> None:
@@ -221,18 +245,33 @@ def main(argv=None) -> int:
                     '3670/50k/100k livers, idle and busy; about 15 minutes)')
     ap.add_argument('--live-only', action='store_true', help='only the live half')
     ap.add_argument('--live-duration', type=float, default=10.0, help='[s] of 1 kHz poses per live run')
+    ap.add_argument('--live-repeats', type=int, default=1, help='rounds of the live runs (a summary '
+                    'of each configuration\'s p99 over the rounds follows)')
+    ap.add_argument('--live-modes', default='multirate,direct', help='haptic modes of the live half')
     ap.add_argument('--out', type=Path, default=ROOT / 'benchmarks' / 'results')
     args = ap.parse_args(argv)
     if args.live or args.live_only:
         args.out.mkdir(parents=True, exist_ok=True)
         print(f'live, 1 kHz poses for {args.live_duration:g} s (first second left out):')
-        print(f'{"N":>7} {"mode":9} {"load":5} {"answered":>8} {"p50":>7} {"p99":>7} {"max":>7} '
-              f'{"solver":>8} {"|F|max":>6}   (%, ms, ms, ms, Hz, N)')
-        rows = live(duration=args.live_duration)
+        print(f'{"round":>5} {"N":>7} {"mode":9} {"load":5} {"answered":>8} {"p50":>7} {"p99":>7} '
+              f'{"max":>7} {"solver":>8} {"|F|max":>6}   (%, ms, ms, ms, Hz, N)')
+        rows = live(modes=tuple(args.live_modes.split(',')), duration=args.live_duration,
+                    repeats=max(1, args.live_repeats))
         with open(args.out / 'haptic_quality_live.csv', 'w', newline='') as fh:
             w = csv.DictWriter(fh, fieldnames=LIVE_COLUMNS)
             w.writeheader()
             w.writerows(rows)
+        if args.live_repeats > 1:
+            print(f'p99 over {args.live_repeats} rounds (ms: median [lowest, highest]; answered: '
+                  f'lowest %):')
+            summary = live_summary(rows)
+            with open(args.out / 'haptic_quality_live_summary.csv', 'w', newline='') as fh:
+                w = csv.DictWriter(fh, fieldnames=list(summary[0]))
+                w.writeheader()
+                w.writerows(summary)
+            for r in summary:
+                print(f'{r["particles"]:>7} {r["haptic_mode"]:9} {r["load"]:5} {r["p99_median_ms"]:7.3f} '
+                      f'[{r["p99_min_ms"]:.3f}, {r["p99_max_ms"]:.3f}] {r["answered_min_pct"]:8.2f}')
         if args.live_only:
             return 0
     p = golden_params()

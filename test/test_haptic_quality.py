@@ -69,3 +69,21 @@ def test_the_still_tick_share_counts_only_ticks_that_follow_a_still_frame():
     np.testing.assert_allclose(q['still_tick_change_pct'], np.median(df[still] / f[still]) * 100, rtol=1e-9)
     np.testing.assert_allclose(q['tick_change_pct'], np.median(df[ticks] / f[ticks]) * 100, rtol=1e-9)
     assert q['still_tick_change_pct'] < 1.0 < q['tick_change_pct']
+
+
+def test_the_live_summary_gives_each_configurations_p99_over_its_rounds():
+    """Rounds interleave the configurations; the summary groups them back: median, lowest and
+    highest p99 and the lowest share of poses answered, per (size, mode, load)."""
+    hq = _load()
+    rows = []
+    for rnd, (echo, small) in enumerate(((0.5, 0.9), (0.4, 3.1), (0.6, 1.2)), start=1):
+        rows.append({'round': rnd, 'particles': 0, 'haptic_mode': 'echo', 'load': 'idle',
+                     'rtt_p99_ms': echo, 'answered_pct': 100.0})
+        rows.append({'round': rnd, 'particles': 3671, 'haptic_mode': 'multirate', 'load': 'idle',
+                     'rtt_p99_ms': small, 'answered_pct': 100.0 - rnd / 10})
+    summary = hq.live_summary(rows)
+    assert [(r['particles'], r['runs']) for r in summary] == [(0, 3), (3671, 3)]
+    echo, small = summary
+    assert (echo['p99_median_ms'], echo['p99_min_ms'], echo['p99_max_ms']) == (0.5, 0.4, 0.6)
+    assert (small['p99_median_ms'], small['p99_min_ms'], small['p99_max_ms']) == (1.2, 0.9, 3.1)
+    assert small['answered_min_pct'] == 100.0 - 0.3
