@@ -17,57 +17,10 @@ import pytest
 from sph_tissue_sim.core.local_area import FAR_FIELD_MAX_STRAIN, boussinesq
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.factory import make_model
-from sph_tissue_sim.core.models import make_beam, make_block
+from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
-
-E_TEST = 5000.0      # Young's modulus of the test material [Pa] (liver order of magnitude)
-RHO = 1060.0         # density [kg/m^3]
-SPACING = 0.005      # particle spacing of the bar models [m]
-
-
-def _material(nu: float, tau: float) -> Material:
-    """Kelvin-Voigt material with Young's modulus E_TEST, Poisson ratio ``nu`` and retardation ``tau``.
-
-    ``Material.from_shear`` with ``eta_bulk=None`` gives the volumetric dashpot the same
-    retardation time as the shear one: eta_shear / G = eta_bulk / K = tau.
-    """
-    G = E_TEST / (2.0 * (1.0 + nu))
-    return Material.from_shear(G, nu, G * tau, None, rho=RHO)
-
-
-def _free_bar_under_end_tractions(nx: int, ny: int, nz: int, material: Material, sigma0: float,
-                                  **config) -> tuple[Solver, np.ndarray]:
-    """A free bar along x pulled by equal and opposite tractions ``sigma0`` on its two end faces.
-
-    The total force sigma0 * A (A = ny nz spacing^2, the cross-section the particles fill) is shared
-    equally by the particles of each end layer. No particle is fixed: the loads balance, so the bar
-    stays in place and its lateral faces are free (uniaxial stress). Returns the solver and a mask
-    of the interior particles (1.5 spacings away from both loaded ends), where the stress is uniform.
-    """
-    model = make_block(nx, ny, nz, spacing=SPACING, fix='none')
-    solver = Solver(model, material, SolverConfig(mode='global', max_substeps=100000, **config))
-    X = model.positions
-    left = np.flatnonzero(X[:, 0] < X[:, 0].min() + 1e-9)
-    right = np.flatnonzero(X[:, 0] > X[:, 0].max() - 1e-9)
-    total = sigma0 * ny * nz * SPACING ** 2
-    forces = np.zeros((len(left) + len(right), 3))
-    forces[:len(left), 0] = -total / len(left)
-    forces[len(left):, 0] = total / len(right)
-    solver.set_external_forces(np.concatenate([left, right]), forces)
-    interior = (X[:, 0] > X[:, 0].min() + 1.5 * SPACING) & (X[:, 0] < X[:, 0].max() - 1.5 * SPACING)
-    return solver, interior
-
-
-def _axial_strain(solver: Solver, mask: np.ndarray) -> float:
-    """Slope d u_x / d X of the particles in ``mask`` (least squares): the uniform axial strain."""
-    X = solver.model.positions[mask]
-    u = solver.positions[mask] - X
-    return float(np.polyfit(X[:, 0], u[:, 0], 1)[0])
-
-
-def _advance_to(solver: Solver, t_end: float, frame: float) -> None:
-    while solver.sim_time < t_end - 1e-12:
-        solver.step(None, min(frame, t_end - solver.sim_time))
+from sph_tissue_sim.validation.analytic import euler_bernoulli_f1, timoshenko_f1
+from sph_tissue_sim.validation.cases import E_TEST, RHO, cantilever_frequency, creep, uniaxial
 
 
 # ---------------------------------------------------------------------------------------------
@@ -86,16 +39,7 @@ def test_kelvin_voigt_creep_under_constant_traction_follows_sigma_over_e_times_o
     (elastic-wave) transients decay at rate omega^2 tau. Strain 1e-3 keeps the neo-Hookean spring
     linear to 0.1 %.
     """
-    nx, ny, nz, nu = 8, 4, 4, 0.45
-    omega = math.pi * math.sqrt(E_TEST / RHO) / (nx * SPACING)
-    tau = 12.0 / omega
-    sigma0 = 1e-3 * E_TEST
-    solver, interior = _free_bar_under_end_tractions(nx, ny, nz, _material(nu, tau), sigma0)
-    errors = {}
-    for t in (0.5 * tau, tau, 3.0 * tau):
-        _advance_to(solver, t, 5e-4)
-        exact = sigma0 / E_TEST * (1.0 - math.exp(-solver.sim_time / tau))
-        errors[t / tau] = _axial_strain(solver, interior) / exact - 1.0
+    errors = {t: measured / exact - 1.0 for t, measured, exact in creep()}
     print('creep relative error at t/tau:', {k: f'{v:+.4f}' for k, v in errors.items()})
     assert all(abs(e) < 0.02 for e in errors.values()), errors
 
@@ -108,16 +52,8 @@ def test_uniaxial_tension_recovers_youngs_modulus_and_poisson_ratio():
     is below 1e-3 of the static strain. The strain is the slope of the interior displacement field
     (uniform stress region, 1.5 spacings from the loaded ends).
     """
-    nu, tau = 0.45, 0.02
-    sigma0 = 1e-3 * E_TEST
-    solver, interior = _free_bar_under_end_tractions(12, 6, 6, _material(nu, tau), sigma0)
-    _advance_to(solver, 8.0 * tau, 1e-3)
-    eps = _axial_strain(solver, interior)
-    X = solver.model.positions[interior]
-    u = solver.positions[interior] - X
-    eps_lat = 0.5 * (np.polyfit(X[:, 1], u[:, 1], 1)[0] + np.polyfit(X[:, 2], u[:, 2], 1)[0])
-    E_meas = sigma0 / eps
-    nu_meas = -eps_lat / eps
+    nu = 0.45
+    E_meas, nu_meas = uniaxial(nu=nu)
     print(f'E error {E_meas / E_TEST - 1.0:+.4f}, nu measured {nu_meas:.4f} (exact {nu})')
     assert E_meas == pytest.approx(E_TEST, rel=0.05)
     assert nu_meas == pytest.approx(nu, rel=0.05)
@@ -159,106 +95,14 @@ def test_internal_forces_conserve_angular_momentum(hourglass):
     assert _angular_momentum_drift(hourglass) < 1e-12
 
 
-def _expm(M: np.ndarray) -> np.ndarray:
-    """Matrix exponential (scaling and squaring of a 24-term Taylor series; numpy only)."""
-    n_sq = max(0, int(math.ceil(math.log2(max(float(np.abs(M).sum(axis=1).max()), 1e-300)))) + 1)
-    B = M / 2.0 ** n_sq
-    out = np.eye(len(M))
-    term = np.eye(len(M))
-    for k in range(1, 25):
-        term = term @ B / k
-        out = out + term
-    for _ in range(n_sq):
-        out = out @ out
-    return out
-
-
-def _timoshenko_f1(length: float, height: float, width: float, E: float, nu: float, rho: float) -> float:
-    """First bending frequency [Hz] of a clamped-free Timoshenko beam (rectangular section).
-
-    Harmonic solutions w(x), psi(x) of  kappa G A (w'' - psi') + rho A omega^2 w = 0  and
-    E I psi'' + kappa G A (w' - psi) + rho I omega^2 psi = 0  with w = psi = 0 at the clamp and
-    E I psi' = kappa G A (w' - psi) = 0 at the free end; Cowper's shear coefficient
-    kappa = 10 (1 + nu) / (12 + 11 nu). The ODEs have constant coefficients, so the state at x = L
-    is exp(M L) times the state at the clamp, and omega is the lowest root of the 2 x 2 boundary
-    determinant (bisection). Tends to Euler-Bernoulli's 1.8751^2 / (2 pi L^2) sqrt(EI/(rho A)) for
-    slender beams (ratio 0.99993 at L/H = 100, 0.988 at 8, 0.955 at 4).
-    """
-    kappa = 10.0 * (1.0 + nu) / (12.0 + 11.0 * nu)
-    G = E / (2.0 * (1.0 + nu))
-    A, I = width * height, width * height ** 3 / 12.0
-    s_gA = kappa * G * A
-
-    def boundary_det(omega: float) -> float:
-        w2 = omega * omega
-        # state (w, w', psi, psi')
-        M = np.array([[0.0, 1.0, 0.0, 0.0],
-                      [-rho * w2 / (kappa * G), 0.0, 0.0, 1.0],
-                      [0.0, 0.0, 0.0, 1.0],
-                      [0.0, -s_gA / (E * I), s_gA / (E * I) - rho * w2 / E, 0.0]])
-        Y = _expm(M * length)[:, [1, 3]]       # unknown slopes w'(0), psi'(0)
-        return float(np.linalg.det(np.array([Y[3], Y[1] - Y[2]])))
-
-    f_eb = 1.8751 ** 2 / (2.0 * math.pi * length ** 2) * math.sqrt(E * I / (rho * A))
-    grid = np.linspace(0.3, 1.2, 200) * 2.0 * math.pi * f_eb
-    d = [boundary_det(w) for w in grid]
-    k = next(k for k in range(len(grid) - 1) if d[k] * d[k + 1] < 0.0)
-    lo, hi, d_lo = grid[k], grid[k + 1], d[k]
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        d_mid = boundary_det(mid)
-        if d_lo * d_mid <= 0.0:
-            hi = mid
-        else:
-            lo, d_lo = mid, d_mid
-    return 0.5 * (lo + hi) / (2.0 * math.pi)
-
-
-def _cantilever_frequency(n_across: int, slenderness: float, n_wide: int | None = None, nu: float = 0.3):
-    """First bending frequency (in z) of a clamped beam ``n_across`` particles tall and ``n_wide``
-    wide (default square): (measured, Euler-Bernoulli, Timoshenko) [Hz]."""
-    length = slenderness * n_across * 0.0025
-    model = make_beam(length, (n_wide or n_across) * 0.0025, n_across * 0.0025, 0.0025, fixed_layers=2)
-    L, H, W = model.info['length'], model.info['height'], model.info['width']
-    f_eb = 1.8751 ** 2 / (2.0 * math.pi * L ** 2) * math.sqrt(E_TEST * W * H ** 3 / 12.0 / (RHO * W * H))
-    # low viscosity: the mode's damping ratio tau * omega / 2 is 1e-4
-    solver = Solver(model, _material(nu, 1e-4 / (2 * math.pi * f_eb)),
-                    SolverConfig(mode='global', max_substeps=100000))
-    X = model.positions
-    # initial velocity in the shape of the first clamped-free mode (beta L = 1.8751)
-    b, s = 1.8751 / L, 0.7341
-    xi = np.clip(X[:, 0], 0.0, None)
-    phi = np.cosh(b * xi) - np.cos(b * xi) - s * (np.sinh(b * xi) - np.sin(b * xi))
-    phi_tip = np.cosh(b * L) - np.cos(b * L) - s * (np.sinh(b * L) - np.sin(b * L))
-    amplitude = 0.01 * L
-    free = ~model.fixed
-    solver.velocities[free, 2] = amplitude * 2.0 * math.pi * f_eb * phi[free] / phi_tip
-    tip = X[:, 0] > X[:, 0].max() - 1e-9
-    t, z = [], []
-    frame = 1.0 / (200.0 * f_eb)
-    while len(t) < 2 or _crossings(np.array(t), np.array(z)).size < 3:
-        solver.step(None, frame)
-        t.append(solver.sim_time)
-        z.append(float(np.mean(solver.positions[tip, 2] - X[tip, 2])))
-        assert solver.sim_time < 5.0 / f_eb, 'no oscillation'
-    tc = _crossings(np.array(t), np.array(z))
-    return 1.0 / (2.0 * np.mean(np.diff(tc))), f_eb, _timoshenko_f1(L, H, W, E_TEST, nu, RHO)
-
-
-def _crossings(t: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Times where ``z`` changes sign (linear interpolation), excluding the start at z = 0."""
-    k = np.flatnonzero(z[:-1] * z[1:] < 0.0)
-    return t[k] - z[k] * (t[k + 1] - t[k]) / (z[k + 1] - z[k])
-
-
 def test_timoshenko_reference_tends_to_euler_bernoulli_for_slender_beams():
     """The Timoshenko reference solver against its known limits: Euler-Bernoulli's
     1.8751^2 / (2 pi L^2) sqrt(EI / (rho A)) for a slender beam, and lower for a stubby one."""
     H = 0.01
     for slenderness, lo, hi in ((50.0, 0.999, 1.0), (4.0, 0.90, 0.99)):
         L = slenderness * H
-        f_eb = 1.8751 ** 2 / (2.0 * math.pi * L ** 2) * math.sqrt(E_TEST * H ** 2 / 12.0 / RHO)
-        assert lo <= _timoshenko_f1(L, H, H, E_TEST, 0.3, RHO) / f_eb <= hi
+        f_eb = euler_bernoulli_f1(L, H, E_TEST, RHO)
+        assert lo <= timoshenko_f1(L, H, H, E_TEST, 0.3, RHO) / f_eb <= hi
 
 
 @pytest.mark.slow
@@ -289,7 +133,7 @@ def test_cantilever_first_bending_frequency_is_within_10_percent_of_euler_bernou
       doubles the largest stiffness eigenvalue (CFL 0.3 blows up), gives nu = 0.475 in uniaxial
       tension, creep +2.6 % and +14 % indentation force.
     """
-    f, f_eb, f_t = _cantilever_frequency(10, 8.0, n_wide=4)
+    f, f_eb, f_t = cantilever_frequency(10, 8.0, n_wide=4)
     err = f / f_eb - 1.0
     print(f'cantilever: f1 = {f:.4f} Hz, Euler-Bernoulli {f_eb:.4f} Hz, error {err:+.4f} '
           f'(Timoshenko {f_t:.4f} Hz, {f / f_t - 1.0:+.4f})')
@@ -300,8 +144,8 @@ def test_cantilever_first_bending_frequency_is_within_10_percent_of_euler_bernou
 def test_cantilever_frequency_converges_towards_beam_theory_with_particles_across():
     """The bending error shrinks with resolution: 4 particles tall is clearly too soft (about
     -23 %), 8 tall is within 10 % of Euler-Bernoulli (about -8.4 %), at L/H = 8, 2 wide."""
-    f4, f_eb4, _ = _cantilever_frequency(4, 8.0, n_wide=2)
-    f8, f_eb8, _ = _cantilever_frequency(8, 8.0, n_wide=2)
+    f4, f_eb4, _ = cantilever_frequency(4, 8.0, n_wide=2)
+    f8, f_eb8, _ = cantilever_frequency(8, 8.0, n_wide=2)
     e4, e8 = f4 / f_eb4 - 1.0, f8 / f_eb8 - 1.0
     print(f'cantilever L/H = 8: 4 tall {e4:+.4f}, 8 tall {e8:+.4f} against Euler-Bernoulli')
     assert -0.30 < e4 < -0.15

@@ -1,0 +1,183 @@
+"""Set-ups that measure the solver against :mod:`.analytic` (each returns numbers, asserts nothing).
+
+The bar and beam models are small so that each case runs in seconds on two cores; the docstrings
+say why the geometry lets the closed-form answer apply.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..core.material import Material
+from ..core.models import TissueModel, make_beam, make_block
+from ..core.solver import Solver, SolverConfig
+from .analytic import CANTILEVER_BETA_L, creep_strain, euler_bernoulli_f1, timoshenko_f1
+
+E_TEST = 5000.0      # Young's modulus of the test material [Pa] (liver order of magnitude)
+RHO = 1060.0         # density [kg/m^3]
+SPACING = 0.005      # particle spacing of the bar models [m]
+BEAM_SPACING = 0.0025
+
+
+def kelvin_voigt(nu: float, tau: float) -> Material:
+    """Kelvin-Voigt material with Young's modulus E_TEST, Poisson ratio ``nu`` and retardation ``tau``.
+
+    ``Material.from_shear`` with ``eta_bulk=None`` gives the volumetric dashpot the same
+    retardation time as the shear one: eta_shear / G = eta_bulk / K = tau.
+    """
+    G = E_TEST / (2.0 * (1.0 + nu))
+    return Material.from_shear(G, nu, G * tau, None, rho=RHO)
+
+
+def free_bar_under_end_tractions(nx: int, ny: int, nz: int, material: Material, sigma0: float,
+                                 **config) -> tuple[Solver, np.ndarray]:
+    """A free bar along x pulled by equal and opposite tractions ``sigma0`` on its two end faces.
+
+    The total force sigma0 * A (A = ny nz spacing^2, the cross-section the particles fill) is shared
+    equally by the particles of each end layer. No particle is fixed: the loads balance, so the bar
+    stays in place and its lateral faces are free (uniaxial stress). Returns the solver and a mask
+    of the interior particles (1.5 spacings away from both loaded ends), where the stress is uniform.
+    """
+    model = make_block(nx, ny, nz, spacing=SPACING, fix='none')
+    solver = Solver(model, material, SolverConfig(mode='global', max_substeps=100000, **config))
+    X = model.positions
+    left = np.flatnonzero(X[:, 0] < X[:, 0].min() + 1e-9)
+    right = np.flatnonzero(X[:, 0] > X[:, 0].max() - 1e-9)
+    total = sigma0 * ny * nz * SPACING ** 2
+    forces = np.zeros((len(left) + len(right), 3))
+    forces[:len(left), 0] = -total / len(left)
+    forces[len(left):, 0] = total / len(right)
+    solver.set_external_forces(np.concatenate([left, right]), forces)
+    interior = (X[:, 0] > X[:, 0].min() + 1.5 * SPACING) & (X[:, 0] < X[:, 0].max() - 1.5 * SPACING)
+    return solver, interior
+
+
+def strain_slope(solver: Solver, mask: np.ndarray, axis: int) -> float:
+    """Slope d u_a / d X_a of the particles in ``mask`` (least squares): the uniform strain along
+    ``axis``."""
+    X = solver.model.positions[mask]
+    u = solver.positions[mask] - X
+    return float(np.polyfit(X[:, axis], u[:, axis], 1)[0])
+
+
+def advance_to(solver: Solver, t_end: float, frame: float) -> None:
+    """Step ``solver`` without a tool until its simulated time is ``t_end`` [s]."""
+    while solver.sim_time < t_end - 1e-12:
+        solver.step(None, min(frame, t_end - solver.sim_time))
+
+
+def creep(nx: int = 8, ny: int = 4, nz: int = 4, nu: float = 0.45,
+          times=(0.5, 1.0, 3.0)) -> list[tuple[float, float, float]]:
+    """Creep of a free bar under a constant end traction against eps(t) = sigma0/E (1 - exp(-t/tau)).
+
+    With both dashpots sharing the retardation time tau (eta_shear/G = eta_bulk/K = tau), the
+    Kelvin-Voigt law is sigma = C : (eps + tau deps/dt); under uniaxial stress sigma0 (lateral
+    faces free) C^-1 : sigma has axial component sigma0/E, so eps + tau deps/dt = sigma0/E. The
+    formula neglects inertia; a Kelvin-Voigt bar with fundamental angular frequency
+    omega = pi c_bar / L creeps at the rate 1/tau (1 + 1/(omega tau)^2 + ...), so tau is set to
+    12 / omega (0.7 % rate error) and the strain is compared from t = tau/2 on, after the fast
+    (elastic-wave) transients decay. Strain 1e-3 keeps the neo-Hookean spring linear to 0.1 %.
+
+    Returns ``(t / tau, measured strain, exact strain)`` at each of ``times`` (in units of tau).
+    """
+    omega = math.pi * math.sqrt(E_TEST / RHO) / (nx * SPACING)
+    tau = 12.0 / omega
+    sigma0 = 1e-3 * E_TEST
+    solver, interior = free_bar_under_end_tractions(nx, ny, nz, kelvin_voigt(nu, tau), sigma0)
+    out = []
+    for t in times:
+        advance_to(solver, t * tau, 5e-4)
+        out.append((t, strain_slope(solver, interior, 0),
+                    creep_strain(sigma0, E_TEST, tau, solver.sim_time)))
+    return out
+
+
+def uniaxial(nx: int = 12, ny: int = 6, nz: int = 6, nu: float = 0.45, tau: float = 0.02) -> tuple[float, float]:
+    """Static uniaxial stress on a free bar: (measured E [Pa], measured nu) from sigma0 = E eps_axial
+    and eps_lateral = -nu eps_axial (Hooke's law); exact ``E_TEST`` and ``nu``.
+
+    The viscosity (tau = 20 ms, about 1.5 fundamental periods of the 12 x 6 x 6 bar) only brings it
+    to rest: after 8 tau the transient is below 1e-3 of the static strain.
+    """
+    sigma0 = 1e-3 * E_TEST
+    solver, interior = free_bar_under_end_tractions(nx, ny, nz, kelvin_voigt(nu, tau), sigma0)
+    advance_to(solver, 8.0 * tau, 1e-3)
+    eps = strain_slope(solver, interior, 0)
+    eps_lat = 0.5 * (strain_slope(solver, interior, 1) + strain_slope(solver, interior, 2))
+    return sigma0 / eps, -eps_lat / eps
+
+
+def crossings(t: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Times where ``z`` changes sign (linear interpolation), excluding the start at z = 0."""
+    k = np.flatnonzero(z[:-1] * z[1:] < 0.0)
+    return t[k] - z[k] * (t[k + 1] - t[k]) / (z[k + 1] - z[k])
+
+
+def cantilever_frequency(n_across: int, slenderness: float, n_wide: int | None = None,
+                         nu: float = 0.3) -> tuple[float, float, float]:
+    """First bending frequency (in z) of a clamped beam ``n_across`` particles tall and ``n_wide``
+    wide (default square): (measured, Euler-Bernoulli, Timoshenko) [Hz].
+
+    The beam is clamped by two fixed particle layers, set swinging in its first mode shape with a
+    tip amplitude of 1 % of L; the period is the mean spacing of the tip displacement's zero
+    crossings. No tool, so the sub-steps follow the material's CFL bound only.
+    """
+    length = slenderness * n_across * BEAM_SPACING
+    model = make_beam(length, (n_wide or n_across) * BEAM_SPACING, n_across * BEAM_SPACING,
+                      BEAM_SPACING, fixed_layers=2)
+    L, H, W = model.info['length'], model.info['height'], model.info['width']
+    f_eb = euler_bernoulli_f1(L, H, E_TEST, RHO)
+    # low viscosity: the mode's damping ratio tau * omega / 2 is 1e-4
+    solver = Solver(model, kelvin_voigt(nu, 1e-4 / (2 * math.pi * f_eb)),
+                    SolverConfig(mode='global', max_substeps=100000))
+    X = model.positions
+    # initial velocity in the shape of the first clamped-free mode
+    b, s = CANTILEVER_BETA_L / L, 0.7341
+    xi = np.clip(X[:, 0], 0.0, None)
+    phi = np.cosh(b * xi) - np.cos(b * xi) - s * (np.sinh(b * xi) - np.sin(b * xi))
+    phi_tip = np.cosh(b * L) - np.cos(b * L) - s * (np.sinh(b * L) - np.sin(b * L))
+    free = ~model.fixed
+    solver.velocities[free, 2] = 0.01 * L * 2.0 * math.pi * f_eb * phi[free] / phi_tip
+    tip = X[:, 0] > X[:, 0].max() - 1e-9
+    t, z = [], []
+    frame = 1.0 / (200.0 * f_eb)
+    while len(t) < 2 or crossings(np.array(t), np.array(z)).size < 3:
+        solver.step(None, frame)
+        t.append(solver.sim_time)
+        z.append(float(np.mean(solver.positions[tip, 2] - X[tip, 2])))
+        if solver.sim_time > 5.0 / f_eb:
+            raise RuntimeError('the cantilever does not oscillate')
+    tc = crossings(np.array(t), np.array(z))
+    return 1.0 / (2.0 * np.mean(np.diff(tc))), f_eb, timoshenko_f1(L, H, W, E_TEST, nu, RHO)
+
+
+def press_curve(model: TissueModel, material: Material, config: SolverConfig, depth: float,
+                speed: float = 0.01, xy=(0.0, 0.0), dt: float = 1e-3) -> dict:
+    """Press the tool straight down into the top surface above ``xy`` to ``depth`` [m] at ``speed``
+    [m/s], one ``dt`` frame at a time, from first touch.
+
+    Returns per frame: ``depth`` [m] below first touch, ``normal`` (the force along +z) and
+    ``sideways`` (its horizontal norm) [N], and ``inside``: how many particle centres lie inside
+    the tool's sphere (pop-through: the tool has passed between them).
+    """
+    solver = Solver(model, material, config)
+    P = model.positions
+    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
+    # a hair off the lattice axis so that the first particle touched is unambiguous
+    start = np.array([xy[0] + 1e-3, xy[1] + 5e-4, P[column, 2].max() + solver.contact_reach])
+    frames = int(math.ceil(depth / (speed * dt)))
+    out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'inside')}
+    radius = solver.tool.radius
+    for k in range(frames):
+        d = min(depth, (k + 1) * speed * dt)
+        tip = start - np.array([0.0, 0.0, d])
+        res = solver.step(tip, dt)
+        f = res.force_raw
+        at = res.tool_segment[0] if res.tool_segment is not None else tip
+        out['depth'][k] = d
+        out['normal'][k] = f[2]
+        out['sideways'][k] = math.hypot(f[0], f[1])
+        out['inside'][k] = np.count_nonzero(np.linalg.norm(solver.positions - at, axis=1) < radius)
+    return out
