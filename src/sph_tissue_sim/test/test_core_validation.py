@@ -20,7 +20,8 @@ from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
 from sph_tissue_sim.validation.analytic import euler_bernoulli_f1, timoshenko_f1
-from sph_tissue_sim.validation.cases import E_TEST, RHO, cantilever_frequency, creep, uniaxial
+from sph_tissue_sim.validation.cases import (E_TEST, RHO, cantilever_frequency, creep, press_and_hold,
+                                             uniaxial)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -208,16 +209,13 @@ def test_random_poking_of_liver_for_10000_frames_stays_finite_and_bounded():
 
 
 # ---------------------------------------------------------------------------------------------
+_BLOCK = make_block(10, 10, 6, spacing=0.0075, fix='bottom')
+_SOFT = Material.from_shear(1800.0, 0.45, 3.0)
+
+
 def _press_and_hold(mode: str, depth: float, **config) -> np.ndarray:
     """Lower the tool 4 mm into the top of a bottom-fixed block over 0.4 s, hold 0.3 s; force [N]."""
-    model = make_block(10, 10, 6, spacing=0.0075, fix='bottom')
-    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode=mode, **config))
-    X = model.positions
-    start = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean() + 5e-4, X[:, 2].max() + solver.contact_reach])
-    res = None
-    for k in range(700):
-        res = solver.step(start - np.array([0.0, 0.0, depth * min(1.0, (k + 1) / 400.0)]), 1e-3)
-    return res.force
+    return press_and_hold(_BLOCK, _SOFT, SolverConfig(mode=mode, **config), depth, ramp=400, hold=300)
 
 
 @pytest.mark.parametrize('k1_min,far_field', [(1.0, 0.0), (3.0, 0.0), (1.0, 1.0)])
@@ -240,14 +238,8 @@ def test_local_area_contact_force_matches_global_at_same_indentation(k1_min, far
 def _press_liver(model, mode: str, depth: float, xy: tuple, **config) -> float:
     """Lower the tool ``depth`` into the liver's top surface above ``xy`` over 0.3 s, hold 0.1 s;
     returns the force norm [N]."""
-    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), SolverConfig(mode=mode, **config))
-    P = model.positions
-    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
-    start = np.array([xy[0] + 1e-3, xy[1] + 5e-4, P[column, 2].max() + solver.contact_reach])
-    res = None
-    for k in range(400):
-        res = solver.step(start - np.array([0.0, 0.0, depth * min(1.0, (k + 1) / 300.0)]), 1e-3)
-    return float(np.linalg.norm(res.force))
+    return float(np.linalg.norm(press_and_hold(model, _SOFT, SolverConfig(mode=mode, **config), depth,
+                                               xy=xy, ramp=300, hold=100)))
 
 
 def test_boussinesq_far_field_matches_the_half_space_solution():

@@ -153,14 +153,33 @@ def cantilever_frequency(n_across: int, slenderness: float, n_wide: int | None =
     return 1.0 / (2.0 * np.mean(np.diff(tc))), f_eb, timoshenko_f1(L, H, W, E_TEST, nu, RHO)
 
 
+def press_and_hold(model: TissueModel, material: Material, config: SolverConfig, depth: float,
+                   xy=None, ramp: int = 300, hold: int = 100, dt: float = 1e-3) -> np.ndarray:
+    """Lower the tool from first touch ``depth`` [m] into the top surface above ``xy`` (default: the
+    model's centre) over ``ramp`` frames and hold it ``hold`` frames; returns the force [N] sent
+    at the end (quasi-static when the hold is long against the retardation time)."""
+    solver = Solver(model, material, config)
+    P = model.positions
+    if xy is None:
+        xy = (P[:, 0].mean(), P[:, 1].mean())
+    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
+    start = np.array([xy[0] + 1e-3, xy[1] + 5e-4, P[column, 2].max() + solver.contact_reach])
+    res = None
+    for k in range(ramp + hold):
+        res = solver.step(start - np.array([0.0, 0.0, depth * min(1.0, (k + 1) / ramp)]), dt)
+    return res.force
+
+
 def press_curve(model: TissueModel, material: Material, config: SolverConfig, depth: float,
                 speed: float = 0.01, xy=(0.0, 0.0), dt: float = 1e-3) -> dict:
     """Press the tool straight down into the top surface above ``xy`` to ``depth`` [m] at ``speed``
     [m/s], one ``dt`` frame at a time, from first touch.
 
     Returns per frame: ``depth`` [m] below first touch, ``normal`` (the force along +z) and
-    ``sideways`` (its horizontal norm) [N], and ``inside``: how many particle centres lie inside
-    the tool's sphere (pop-through: the tool has passed between them).
+    ``sideways`` (its horizontal norm) [N], and ``over``: how many particle centres lie over the
+    tool (closer than its radius to its vertical axis and above its centre): tissue the tool has
+    passed under, i.e. popped through; ``slip``: how far the particle touched first has moved
+    sideways [m] (a straight press should carry it straight down).
     """
     solver = Solver(model, material, config)
     P = model.positions
@@ -168,8 +187,9 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
     # a hair off the lattice axis so that the first particle touched is unambiguous
     start = np.array([xy[0] + 1e-3, xy[1] + 5e-4, P[column, 2].max() + solver.contact_reach])
     frames = int(math.ceil(depth / (speed * dt)))
-    out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'inside')}
+    out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'over', 'slip')}
     radius = solver.tool.radius
+    first = int(np.argmin(np.linalg.norm(P - start, axis=1)))
     for k in range(frames):
         d = min(depth, (k + 1) * speed * dt)
         tip = start - np.array([0.0, 0.0, d])
@@ -179,5 +199,8 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
         out['depth'][k] = d
         out['normal'][k] = f[2]
         out['sideways'][k] = math.hypot(f[0], f[1])
-        out['inside'][k] = np.count_nonzero(np.linalg.norm(solver.positions - at, axis=1) < radius)
+        x = solver.positions
+        out['over'][k] = np.count_nonzero((np.hypot(x[:, 0] - at[0], x[:, 1] - at[1]) < radius)
+                                          & (x[:, 2] > at[2]))
+        out['slip'][k] = math.hypot(x[first, 0] - P[first, 0], x[first, 1] - P[first, 1])
     return out
