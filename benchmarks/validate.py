@@ -1,0 +1,262 @@
+#!/usr/bin/env python3
+"""Every physics check against its closed-form answer, in one command, with a report and plots.
+
+Runs the set-ups of :mod:`sph_tissue_sim.validation.cases` (core only, no ROS) and compares each
+with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
+
+* ``creep``: a free Kelvin-Voigt bar under constant end traction, eps(t) = sigma0/E (1 - exp(-t/tau));
+* ``uniaxial``: the same bar at rest, E and nu from Hooke's law;
+* ``cantilever``: first bending frequency of a clamped beam 4 / 8 / 10 particles tall (L/H = 8)
+  against Euler-Bernoulli (and Timoshenko, printed);
+* ``local_global``: the default liver (3670) pressed 2 / 4 / 10 mm at four places and held, the
+  local interaction area against the whole organ (global), defaults of ``SolverConfig``;
+* ``press``: the default tool pressed straight down into the default liver's top centre to 40 mm
+  at 10 mm/s, global and local: the force must rise with depth (no pop-through), no particle may
+  end up over the tool, the sideways force must stay small and the first-touched particle must not
+  slide from under the tool; Hertz's sphere-on-half-space curve is drawn where it applies
+  (depth < tool radius; the liver is no half-space, so it is not scored).
+
+Not yet here: Hertz on a block converged with spacing.
+
+Writes to ``--out`` (default ``benchmarks/results/validate``): ``validate.csv`` (one row per
+measure: measured, reference, error, target, met), ``validate.md`` (the same as a table, with the
+plots) and ``validate_<check>.png``. ``--quick`` runs small versions of every check (the test
+suite's smoke run; its numbers are not the validation's). ``--checks`` picks some.
+
+Usage: ``python benchmarks/validate.py [--out DIR] [--quick] [--checks creep,uniaxial,...]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sph_tissue_sim.core.factory import make_model
+from sph_tissue_sim.core.material import Material, liver_default
+from sph_tissue_sim.core.solver import SolverConfig
+from sph_tissue_sim.validation import cases
+from sph_tissue_sim.validation.analytic import hertz_force
+
+ROOT = Path(__file__).resolve().parents[1]
+CHECKS = ('creep', 'uniaxial', 'cantilever', 'local_global', 'press')
+COLUMNS = ('check', 'case', 'measured', 'reference', 'unit', 'error_pct', 'target', 'met')
+
+#: places on the liver's top (x, y) [m] and depths [m] of the local-vs-global presses
+LIVER_PLACES = ((0.0, 0.0), (0.03, 0.0), (-0.04, 0.01), (0.0, -0.03))
+LIVER_DEPTHS = (0.002, 0.004, 0.010)
+PRESS_REPORT_DEPTHS = (0.005, 0.010, 0.020, 0.030, 0.040)
+
+
+def row(check: str, case: str, measured: float, reference: float | None, unit: str, target: str,
+        met: bool | None) -> dict:
+    err = (measured / reference - 1.0) * 100.0 if reference not in (None, 0.0) else None
+    return {'check': check, 'case': case, 'measured': measured, 'reference': reference, 'unit': unit,
+            'error_pct': err, 'target': target, 'met': '' if met is None else ('yes' if met else 'no')}
+
+
+# ---------------------------------------------------------------------------------------------
+def check_creep(quick: bool, out: Path) -> list[dict]:
+    res = cases.creep()
+    rows = [row('creep', f't = {t:g} tau', m, e, 'strain', '|error| <= 2 %', abs(m / e - 1.0) <= 0.02)
+            for t, m, e in res]
+    fig, ax = _figure()
+    t, m, e = (np.array(v) for v in zip(*res))
+    tt = np.linspace(0.0, t.max(), 200)
+    ax.plot(tt, e[0] / (1.0 - math.exp(-t[0])) * (1.0 - np.exp(-tt)), 'k-', lw=1, label='Kelvin-Voigt')
+    ax.plot(t, m, 'o', color='#1f77b4', label='tlsph')
+    ax.set_xlabel('t / tau')
+    ax.set_ylabel('axial strain')
+    ax.set_title('creep of a free bar under constant traction')
+    _save(fig, ax, out / 'validate_creep.png')
+    return rows
+
+
+def check_uniaxial(quick: bool, out: Path) -> list[dict]:
+    nu = 0.45
+    E, nu_m = cases.uniaxial(nu=nu)
+    return [row('uniaxial', 'E', E, cases.E_TEST, 'Pa', '|error| <= 5 %', abs(E / cases.E_TEST - 1.0) <= 0.05),
+            row('uniaxial', 'nu', nu_m, nu, '-', '|error| <= 5 %', abs(nu_m / nu - 1.0) <= 0.05)]
+
+
+def check_cantilever(quick: bool, out: Path) -> list[dict]:
+    rows, pts = [], []
+    for n in ((4,) if quick else (4, 8, 10)):
+        f, f_eb, f_t = cases.cantilever_frequency(n, 8.0, n_wide=2 if n < 10 else 4)
+        target = '|error| <= 3 %' if n == 10 else 'reported'
+        met = abs(f / f_eb - 1.0) <= 0.03 if n == 10 else None
+        rows.append(row('cantilever', f'{n} across, f1 vs Euler-Bernoulli', f, f_eb, 'Hz', target, met))
+        rows.append(row('cantilever', f'{n} across, f1 vs Timoshenko', f, f_t, 'Hz', 'reported', None))
+        pts.append((n, f / f_eb - 1.0, f / f_t - 1.0))
+    fig, ax = _figure()
+    n, e_eb, e_t = (np.array(v) for v in zip(*pts))
+    ax.plot(n, 100 * e_eb, 'o-', label='vs Euler-Bernoulli')
+    ax.plot(n, 100 * e_t, 's--', label='vs Timoshenko')
+    ax.axhspan(-3, 3, color='0.9', label='target at 10 across')
+    ax.set_xlabel('particles across the bending direction')
+    ax.set_ylabel('first frequency error [%]')
+    ax.set_title('cantilever, L/H = 8')
+    _save(fig, ax, out / 'validate_cantilever.png')
+    return rows
+
+
+def check_local_global(quick: bool, out: Path) -> list[dict]:
+    n = 1289 if quick else 3670
+    model = make_model('liver', n_particles=n)
+    material = liver_default()
+    places = LIVER_PLACES[:1] if quick else LIVER_PLACES
+    depths = (0.004,) if quick else LIVER_DEPTHS
+    rows, bars = [], []
+    for xy in places:
+        for depth in depths:
+            f_g = float(np.linalg.norm(cases.press_and_hold(
+                model, material, SolverConfig(mode='global', parallel_min_particles=1), depth, xy=xy)))
+            f_l = float(np.linalg.norm(cases.press_and_hold(model, material, SolverConfig(mode='local'),
+                                                            depth, xy=xy)))
+            case = f'liver {n}, ({xy[0] * 1e3:.0f}, {xy[1] * 1e3:.0f}) mm, {depth * 1e3:.0f} mm deep'
+            rows.append(row('local_global', case, f_l, f_g, 'N', '|error| <= 5 %', abs(f_l / f_g - 1.0) <= 0.05))
+            bars.append((case.split(', ', 1)[1], 100.0 * (f_l / f_g - 1.0)))
+    fig, ax = _figure(height=4.5)
+    ax.barh(range(len(bars)), [b[1] for b in bars], color='#1f77b4')
+    ax.set_yticks(range(len(bars)), [b[0] for b in bars], fontsize=7)
+    ax.axvspan(-5, 5, color='0.9')
+    ax.set_xlabel('local force against global [%]')
+    ax.set_title(f'local interaction area vs the whole liver ({n} particles), defaults')
+    _save(fig, ax, out / 'validate_local_global.png', legend=False)
+    return rows
+
+
+def check_press(quick: bool, out: Path) -> list[dict]:
+    n, depth = (1289, 0.02) if quick else (3670, 0.04)
+    model = make_model('liver', n_particles=n)
+    material = liver_default()
+    modes = ('local',) if quick else ('global', 'local')
+    rows, curves = [], {}
+    for mode in modes:
+        config = SolverConfig(mode=mode, parallel_min_particles=1 if mode == 'global' else 10 ** 9)
+        c = cases.press_curve(model, material, config, depth)
+        curves[mode] = c
+        d, fz = c['depth'], c['normal']
+        peak = int(np.argmax(fz))
+        # monotonic: the force never falls below its running maximum by more than 2 %
+        drop = float(np.max(np.maximum.accumulate(fz) - fz))
+        rows.append(row('press', f'{mode}: largest fall of Fz below its running maximum', drop, None, 'N',
+                        '<= 2 % of the peak', drop <= 0.02 * fz[peak]))
+        rows.append(row('press', f'{mode}: depth of the largest Fz', d[peak] * 1e3, None, 'mm',
+                        f'the deepest ({depth * 1e3:.0f} mm)', d[peak] >= depth - 1e-9))
+        rows.append(row('press', f'{mode}: most particles over the tool', float(c['over'].max()), None, '-',
+                        '0', c['over'].max() == 0))
+        for dd in PRESS_REPORT_DEPTHS:
+            if dd > depth + 1e-12:
+                continue
+            k = int(np.argmin(np.abs(d - dd)))
+            side = c['sideways'][k] / max(fz[k], 1e-12)
+            rows.append(row('press', f'{mode}: Fz at {dd * 1e3:.0f} mm', fz[k], None, 'N', 'reported', None))
+            if abs(dd - 0.010) < 1e-9:
+                rows.append(row('press', f'{mode}: sideways / normal at 10 mm', c['sideways'][k] / fz[k]
+                                if fz[k] > 0 else math.inf, None, '-', '<= 0.10', 0 <= side <= 0.10))
+                rows.append(row('press', f'{mode}: slip of the first-touched particle at 10 mm',
+                                c['slip'][k] * 1e3, None, 'mm', '<= 1 mm', c['slip'][k] <= 1e-3))
+    fig, ax = _figure()
+    colours = {'global': '#d62728', 'local': '#1f77b4'}
+    for mode, c in curves.items():
+        ax.plot(c['depth'] * 1e3, c['normal'], color=colours[mode], lw=1.2, label=f'{mode}: normal')
+        ax.plot(c['depth'] * 1e3, c['sideways'], color=colours[mode], lw=0.8, ls='--', label=f'{mode}: sideways')
+    radius = SolverConfig().tool_radius
+    dh = np.linspace(0.0, radius, 100)
+    ax.plot(dh * 1e3, hertz_force(material.E, material.nu, radius, dh), 'k:', lw=1.2,
+            label='Hertz (half-space, d < R)')
+    ax.set_xlabel('tool depth below first touch [mm]')
+    ax.set_ylabel('force on the tool [N]')
+    ax.set_title(f'straight press into the liver ({n} particles), default tool')
+    _save(fig, ax, out / 'validate_press.png')
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+def _figure(height: float = 3.6):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    return plt.subplots(figsize=(7, height))
+
+
+def _save(fig, ax, path: Path, legend: bool = True) -> None:
+    import matplotlib.pyplot as plt
+    if legend:
+        ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return '-'
+    if isinstance(v, float):
+        return f'{v:.4g}'
+    return str(v)
+
+
+def report(rows: list[dict], path: Path, header: str, pngs: list[str]) -> None:
+    lines = [f'# Validation report', '', header, '',
+             '| check | case | measured | reference | unit | error [%] | target | met |',
+             '|---|---|---|---|---|---|---|---|']
+    for r in rows:
+        err = '-' if r['error_pct'] is None else f'{r["error_pct"]:+.2f}'
+        lines.append(f'| {r["check"]} | {r["case"]} | {_fmt(r["measured"])} | {_fmt(r["reference"])} | '
+                     f'{r["unit"]} | {err} | {r["target"]} | {r["met"] or "-"} |')
+    lines += [''] + [f'![{p}]({p})' for p in pngs]
+    path.write_text('\n'.join(lines) + '\n')
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--out', type=Path, default=ROOT / 'benchmarks' / 'results' / 'validate')
+    ap.add_argument('--quick', action='store_true', help='small versions of every check (smoke run)')
+    ap.add_argument('--checks', default=','.join(CHECKS), help='comma-separated subset of ' + ','.join(CHECKS))
+    args = ap.parse_args(argv)
+    chosen = [c.strip() for c in args.checks.split(',') if c.strip()]
+    unknown = sorted(set(chosen) - set(CHECKS))
+    if unknown:
+        ap.error(f'unknown checks {unknown}; choose from {",".join(CHECKS)}')
+    args.out.mkdir(parents=True, exist_ok=True)
+    runners = {'creep': check_creep, 'uniaxial': check_uniaxial, 'cantilever': check_cantilever,
+               'local_global': check_local_global, 'press': check_press}
+    rows, pngs = [], []
+    t_all = time.perf_counter()
+    for i, name in enumerate(chosen, start=1):
+        t0 = time.perf_counter()
+        print(f'[{i}/{len(chosen)}] {name} ...', flush=True)
+        got = runners[name](args.quick, args.out)
+        for r in got:
+            err = '' if r['error_pct'] is None else f' ({r["error_pct"]:+.2f} %)'
+            print(f'    {r["case"]}: {_fmt(r["measured"])} {r["unit"]}{err}  target {r["target"]}'
+                  f'{"  MET" if r["met"] == "yes" else "  MISSED" if r["met"] == "no" else ""}', flush=True)
+        rows += got
+        png = f'validate_{name}.png'
+        if (args.out / png).exists():
+            pngs.append(png)
+        print(f'    {time.perf_counter() - t0:.0f} s', flush=True)
+    with open(args.out / 'validate.csv', 'w', newline='') as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    met = sum(r['met'] == 'yes' for r in rows)
+    scored = sum(r['met'] in ('yes', 'no') for r in rows)
+    header = (f'{time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}, '
+              f'{"quick (smoke) run" if args.quick else "full run"}, {time.perf_counter() - t_all:.0f} s; '
+              f'targets met: {met} of {scored}.')
+    report(rows, args.out / 'validate.md', header, pngs)
+    print(f'targets met: {met} of {scored}; report: {args.out / "validate.md"}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
