@@ -8,6 +8,9 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
 * ``uniaxial``: the same bar at rest, E and nu from Hooke's law;
 * ``cantilever``: first bending frequency of a clamped beam 4 / 8 / 10 particles tall (L/H = 8)
   against Euler-Bernoulli (and Timoshenko, printed);
+* ``hertz``: a rigid 15 mm sphere pressed 1.5 mm into a bottom-fixed block 80 x 80 x 40 mm at
+  spacings 4 / 3 / 2.5 mm (global): log-log slope of force against depth (1.5) and force at 1.5 mm
+  against F = 4/3 E* sqrt(R) d^1.5, E* = E / (1 - nu^2): the convergence with spacing;
 * ``local_global``: the default liver (3670) pressed 2 / 4 / 10 mm at four places and held, the
   local interaction area against the whole organ (global), defaults of ``SolverConfig``;
 * ``press``: the default tool pressed straight down into the default liver's top centre to 40 mm
@@ -15,8 +18,6 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
   end up over the tool, the sideways force must stay small and the first-touched particle must not
   slide from under the tool; Hertz's sphere-on-half-space curve is drawn where it applies
   (depth < tool radius; the liver is no half-space, so it is not scored).
-
-Not yet here: Hertz on a block converged with spacing.
 
 Writes to ``--out`` (default ``benchmarks/results/validate``): ``validate.csv`` (one row per
 measure: measured, reference, error, target, met), ``validate.md`` (the same as a table, with the
@@ -38,13 +39,14 @@ from pathlib import Path
 import numpy as np
 
 from sph_tissue_sim.core.factory import make_model
-from sph_tissue_sim.core.material import Material, liver_default
+from sph_tissue_sim.core.material import liver_default
+from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import SolverConfig
 from sph_tissue_sim.validation import cases
 from sph_tissue_sim.validation.analytic import hertz_force
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKS = ('creep', 'uniaxial', 'cantilever', 'local_global', 'press')
+CHECKS = ('creep', 'uniaxial', 'cantilever', 'hertz', 'local_global', 'press')
 COLUMNS = ('check', 'case', 'measured', 'reference', 'unit', 'error_pct', 'target', 'met')
 
 #: places on the liver's top (x, y) [m] and depths [m] of the local-vs-global presses
@@ -102,6 +104,46 @@ def check_cantilever(quick: bool, out: Path) -> list[dict]:
     ax.set_ylabel('first frequency error [%]')
     ax.set_title('cantilever, L/H = 8')
     _save(fig, ax, out / 'validate_cantilever.png')
+    return rows
+
+
+HERTZ_BLOCK = (0.08, 0.08, 0.04)     # [m] wide and deep against the contact radius sqrt(R d)
+HERTZ_RADIUS = 0.015                 # [m] the sphere
+HERTZ_DEPTH = 0.0015                 # [m] deepest press (d / R = 0.1)
+HERTZ_SPACINGS = (0.004, 0.003, 0.0025)
+
+
+def check_hertz(quick: bool, out: Path) -> list[dict]:
+    """A rigid sphere pressed slowly into a bottom-fixed block (global mode): the log-log slope of
+    force against depth over d = R/30 ... R/10 and the force at R/10, against Hertz, per spacing."""
+    material = liver_default()
+    rows, curves = [], []
+    for s in ((0.005,) if quick else HERTZ_SPACINGS):
+        dims = [max(2, int(round(L / s))) for L in HERTZ_BLOCK]
+        model = make_block(*dims, spacing=s, fix='bottom')
+        config = SolverConfig(mode='global', tool_radius=HERTZ_RADIUS, parallel_min_particles=1)
+        c = cases.press_curve(model, material, config, HERTZ_DEPTH, speed=0.0025,
+                              xy=(model.positions[:, 0].mean(), model.positions[:, 1].mean()))
+        d, f = c['depth'], c['normal']
+        fit = (d >= HERTZ_DEPTH / 3) & (f > 0)
+        slope = float(np.polyfit(np.log(d[fit]), np.log(f[fit]), 1)[0]) if fit.sum() > 2 else math.nan
+        f_h = float(hertz_force(material.E, material.nu, HERTZ_RADIUS, d[-1]))
+        case = f'spacing {s * 1e3:g} mm ({model.n_particles} particles)'
+        rows.append(row('hertz', f'{case}: log-log slope', slope, 1.5, '-', '|slope - 1.5| <= 0.1',
+                        abs(slope - 1.5) <= 0.1))
+        rows.append(row('hertz', f'{case}: force at {d[-1] * 1e3:g} mm', float(f[-1]), f_h, 'N',
+                        '|error| <= 10 %', abs(f[-1] / f_h - 1.0) <= 0.10))
+        curves.append((s, d, f))
+    fig, ax = _figure()
+    for s, d, f in curves:
+        ax.plot(d * 1e3, f, lw=1.2, label=f'tlsph, spacing {s * 1e3:g} mm')
+    dh = np.linspace(0.0, HERTZ_DEPTH, 100)
+    ax.plot(dh * 1e3, hertz_force(material.E, material.nu, HERTZ_RADIUS, dh), 'k:', lw=1.5,
+            label='Hertz')
+    ax.set_xlabel('depth below first touch [mm]')
+    ax.set_ylabel('force [N]')
+    ax.set_title(f'sphere R = {HERTZ_RADIUS * 1e3:g} mm on a block, global')
+    _save(fig, ax, out / 'validate_hertz.png')
     return rows
 
 
@@ -228,7 +270,7 @@ def main(argv=None) -> int:
         ap.error(f'unknown checks {unknown}; choose from {",".join(CHECKS)}')
     args.out.mkdir(parents=True, exist_ok=True)
     runners = {'creep': check_creep, 'uniaxial': check_uniaxial, 'cantilever': check_cantilever,
-               'local_global': check_local_global, 'press': check_press}
+               'hertz': check_hertz, 'local_global': check_local_global, 'press': check_press}
     rows, pngs = [], []
     t_all = time.perf_counter()
     for i, name in enumerate(chosen, start=1):
