@@ -189,6 +189,7 @@ def check_press(quick: bool, out: Path) -> list[dict]:
         drop = float(np.max(np.maximum.accumulate(fz) - fz))
         rows.append(row('press', f'{mode}: largest fall of Fz below its running maximum', drop, None, 'N',
                         '<= 2 % of the peak', drop <= 0.02 * fz[peak]))
+        rows.append(row('press', f'{mode}: largest Fz', float(fz[peak]), None, 'N', 'reported', None))
         rows.append(row('press', f'{mode}: depth of the largest Fz', d[peak] * 1e3, None, 'mm',
                         f'the deepest ({depth * 1e3:.0f} mm)', d[peak] >= depth - 1e-9))
         rows.append(row('press', f'{mode}: most particles over the tool', float(c['over'].max()), None, '-',
