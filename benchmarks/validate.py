@@ -137,9 +137,7 @@ def check_hertz(quick: bool, out: Path) -> list[dict]:
     fig, ax = _figure()
     for s, d, f in curves:
         ax.plot(d * 1e3, f, lw=1.2, label=f'tlsph, spacing {s * 1e3:g} mm')
-    dh = np.linspace(0.0, HERTZ_DEPTH, 100)
-    ax.plot(dh * 1e3, hertz_force(material.E, material.nu, HERTZ_RADIUS, dh), 'k:', lw=1.5,
-            label='Hertz')
+    _plot_hertz(ax, material, HERTZ_RADIUS, HERTZ_DEPTH, 'Hertz')
     ax.set_xlabel('depth below first touch [mm]')
     ax.set_ylabel('force [N]')
     ax.set_title(f'sphere R = {HERTZ_RADIUS * 1e3:g} mm on a block, global')
@@ -198,11 +196,11 @@ def check_press(quick: bool, out: Path) -> list[dict]:
             if dd > depth + 1e-12:
                 continue
             k = int(np.argmin(np.abs(d - dd)))
-            side = c['sideways'][k] / max(fz[k], 1e-12)
+            side = c['sideways'][k] / fz[k] if fz[k] > 0 else math.inf
             rows.append(row('press', f'{mode}: Fz at {dd * 1e3:.0f} mm', fz[k], None, 'N', 'reported', None))
             if abs(dd - 0.010) < 1e-9:
-                rows.append(row('press', f'{mode}: sideways / normal at 10 mm', c['sideways'][k] / fz[k]
-                                if fz[k] > 0 else math.inf, None, '-', '<= 0.10', 0 <= side <= 0.10))
+                rows.append(row('press', f'{mode}: sideways / normal at 10 mm', side, None, '-', '<= 0.10',
+                                side <= 0.10))
                 rows.append(row('press', f'{mode}: slip of the first-touched particle at 10 mm',
                                 c['slip'][k] * 1e3, None, 'mm', '<= 1 mm', c['slip'][k] <= 1e-3))
     fig, ax = _figure()
@@ -211,9 +209,7 @@ def check_press(quick: bool, out: Path) -> list[dict]:
         ax.plot(c['depth'] * 1e3, c['normal'], color=colours[mode], lw=1.2, label=f'{mode}: normal')
         ax.plot(c['depth'] * 1e3, c['sideways'], color=colours[mode], lw=0.8, ls='--', label=f'{mode}: sideways')
     radius = SolverConfig().tool_radius
-    dh = np.linspace(0.0, radius, 100)
-    ax.plot(dh * 1e3, hertz_force(material.E, material.nu, radius, dh), 'k:', lw=1.2,
-            label='Hertz (half-space, d < R)')
+    _plot_hertz(ax, material, radius, radius, 'Hertz (half-space, d < R)')
     ax.set_xlabel('tool depth below first touch [mm]')
     ax.set_ylabel('force on the tool [N]')
     ax.set_title(f'straight press into the liver ({n} particles), default tool')
@@ -222,6 +218,12 @@ def check_press(quick: bool, out: Path) -> list[dict]:
 
 
 # ---------------------------------------------------------------------------------------------
+def _plot_hertz(ax, material, radius: float, depth: float, label: str) -> None:
+    """Hertz's force of a rigid sphere of ``radius`` on a half-space of ``material``, 0..depth."""
+    dh = np.linspace(0.0, depth, 100)
+    ax.plot(dh * 1e3, hertz_force(material.E, material.nu, radius, dh), 'k:', lw=1.3, label=label)
+
+
 def _figure(height: float = 3.6):
     import matplotlib
     matplotlib.use('Agg')
