@@ -10,7 +10,8 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
   against Euler-Bernoulli (and Timoshenko, printed);
 * ``hertz``: a rigid 15 mm sphere pressed 1.5 mm into a bottom-fixed block 80 x 80 x 40 mm at
   spacings 4 / 3 / 2.5 mm (global): log-log slope of force against depth (1.5) and force at 1.5 mm
-  against F = 4/3 E* sqrt(R) d^1.5, E* = E / (1 - nu^2): the convergence with spacing;
+  against F = 4/3 E* sqrt(R) d^1.5, E* = E / (1 - nu^2): the convergence with spacing; then blocks
+  2H x 2H x H (H = 40 / 60 / 80 mm, spacing 4 mm) extrapolated to the half-space (1 / H -> 0);
 * ``local_global``: the default liver (3670) pressed 2 / 4 / 10 mm at four places and held, the
   local interaction area against the whole organ (global), defaults of ``SolverConfig``;
 * ``press``: the default tool pressed straight down into the default liver's top centre to 40 mm
@@ -111,19 +112,29 @@ HERTZ_BLOCK = (0.08, 0.08, 0.04)     # [m] wide and deep against the contact rad
 HERTZ_RADIUS = 0.015                 # [m] the sphere
 HERTZ_DEPTH = 0.0015                 # [m] deepest press (d / R = 0.1)
 HERTZ_SPACINGS = (0.004, 0.003, 0.0025)
+#: depths [m] of the blocks (2 H wide) whose forces are extrapolated to the half-space (1 / H -> 0)
+HERTZ_DEPTHS = (0.04, 0.06, 0.08)
+HERTZ_DEPTH_SPACING = 0.004
+
+
+def _hertz_press(material, spacing: float, size) -> tuple[object, dict]:
+    dims = [max(2, int(round(L / spacing))) for L in size]
+    model = make_block(*dims, spacing=spacing, fix='bottom')
+    config = SolverConfig(mode='global', tool_radius=HERTZ_RADIUS, parallel_min_particles=1)
+    return model, cases.press_curve(model, material, config, HERTZ_DEPTH, speed=0.0025,
+                                    xy=(model.positions[:, 0].mean(), model.positions[:, 1].mean()))
 
 
 def check_hertz(quick: bool, out: Path) -> list[dict]:
     """A rigid sphere pressed slowly into a bottom-fixed block (global mode): the log-log slope of
-    force against depth over d = R/30 ... R/10 and the force at R/10, against Hertz, per spacing."""
+    force against depth over d = R/30 ... R/10 and the force at R/10, against Hertz, per spacing;
+    then the half-space limit: the force at R/10 on blocks 2H x 2H x H, extrapolated linearly in
+    1 / H to an infinitely deep block (a finite block on a fixed base is stiffer than a half-space,
+    by about 28 % at H = 8.5 contact radii)."""
     material = liver_default()
     rows, curves = [], []
     for s in ((0.005,) if quick else HERTZ_SPACINGS):
-        dims = [max(2, int(round(L / s))) for L in HERTZ_BLOCK]
-        model = make_block(*dims, spacing=s, fix='bottom')
-        config = SolverConfig(mode='global', tool_radius=HERTZ_RADIUS, parallel_min_particles=1)
-        c = cases.press_curve(model, material, config, HERTZ_DEPTH, speed=0.0025,
-                              xy=(model.positions[:, 0].mean(), model.positions[:, 1].mean()))
+        model, c = _hertz_press(material, s, HERTZ_BLOCK)
         d, f = c['depth'], c['normal']
         fit = (d >= HERTZ_DEPTH / 3) & (f > 0)
         slope = float(np.polyfit(np.log(d[fit]), np.log(f[fit]), 1)[0]) if fit.sum() > 2 else math.nan
@@ -142,6 +153,31 @@ def check_hertz(quick: bool, out: Path) -> list[dict]:
     ax.set_ylabel('force [N]')
     ax.set_title(f'sphere R = {HERTZ_RADIUS * 1e3:g} mm on a block, global')
     _save(fig, ax, out / 'validate_hertz.png')
+    depths = (0.03, 0.04) if quick else HERTZ_DEPTHS
+    spacing = 0.005 if quick else HERTZ_DEPTH_SPACING
+    f_end = []
+    for H in depths:
+        model, c = _hertz_press(material, spacing, (2 * H, 2 * H, H))
+        f_end.append(float(c['normal'][-1]))
+        rows.append(row('hertz', f'spacing {spacing * 1e3:g} mm, block {2 * H * 1e3:.0f} x {2 * H * 1e3:.0f} x '
+                        f'{H * 1e3:.0f} mm ({model.n_particles} particles): force at {HERTZ_DEPTH * 1e3:g} mm',
+                        f_end[-1], None, 'N', 'reported', None))
+    inv = 1.0 / np.array(depths)
+    slope, f_inf = np.polyfit(inv, f_end, 1)
+    f_h = float(hertz_force(material.E, material.nu, HERTZ_RADIUS, HERTZ_DEPTH))
+    rows.append(row('hertz', f'half-space limit (force at {HERTZ_DEPTH * 1e3:g} mm linear in 1 / H, '
+                    f'{len(depths)} blocks)', float(f_inf), f_h, 'N', '|error| <= 10 %',
+                    abs(f_inf / f_h - 1.0) <= 0.10))
+    fig, ax = _figure()
+    a = math.sqrt(HERTZ_RADIUS * HERTZ_DEPTH)
+    ax.plot(a * inv, f_end, 'o', label=f'tlsph, blocks 2H x 2H x H, spacing {spacing * 1e3:g} mm')
+    xs = np.linspace(0.0, a * inv.max(), 50)
+    ax.plot(xs, f_inf + slope * xs / a, '--', lw=1, label='linear in 1 / H')
+    ax.axhline(f_h, color='k', ls=':', lw=1.3, label='Hertz (half-space)')
+    ax.set_xlabel('contact radius / block depth  a / H')
+    ax.set_ylabel(f'force at {HERTZ_DEPTH * 1e3:g} mm [N]')
+    ax.set_title('towards the half-space')
+    _save(fig, ax, out / 'validate_hertz_depth.png')
     return rows
 
 
@@ -285,9 +321,7 @@ def main(argv=None) -> int:
             print(f'    {r["case"]}: {_fmt(r["measured"])} {r["unit"]}{err}  target {r["target"]}'
                   f'{"  MET" if r["met"] == "yes" else "  MISSED" if r["met"] == "no" else ""}', flush=True)
         rows += got
-        png = f'validate_{name}.png'
-        if (args.out / png).exists():
-            pngs.append(png)
+        pngs += sorted(p.name for p in args.out.glob(f'validate_{name}*.png'))
         print(f'    {time.perf_counter() - t0:.0f} s', flush=True)
     with open(args.out / 'validate.csv', 'w', newline='') as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
