@@ -14,6 +14,9 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
   2H x 2H x H (H = 40 / 60 / 80 mm, spacing 4 mm) extrapolated to the half-space (1 / H -> 0);
 * ``local_global``: the default liver (3670) pressed 2 / 4 / 10 mm at four places and held, the
   local interaction area against the whole organ (global), defaults of ``SolverConfig``;
+* ``drag``: the same liver pressed 4 mm on its flat top, then the tool dragged 20 mm sideways (+y)
+  at 20 mm/s: the largest frame-to-frame force change of the local area, as a share of Fz, against
+  the whole organ's (the local area must not add roughness: at most 1 % of Fz more);
 * ``press``: the default tool pressed straight down into the default liver's top centre to 40 mm
   at 10 mm/s, global and local: the force must rise with depth (no pop-through), no particle may
   end up over the tool, the sideways force must stay small and the first-touched particle must not
@@ -47,7 +50,7 @@ from sph_tissue_sim.validation import cases
 from sph_tissue_sim.validation.analytic import hertz_force
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKS = ('creep', 'uniaxial', 'cantilever', 'hertz', 'local_global', 'press')
+CHECKS = ('creep', 'uniaxial', 'cantilever', 'hertz', 'local_global', 'drag', 'press')
 COLUMNS = ('check', 'case', 'measured', 'reference', 'unit', 'error_pct', 'target', 'met')
 
 #: places on the liver's top (x, y) [m] and depths [m] of the local-vs-global presses
@@ -207,6 +210,42 @@ def check_local_global(quick: bool, out: Path) -> list[dict]:
     return rows
 
 
+def check_drag(quick: bool, out: Path) -> list[dict]:
+    """Press 4 mm into the liver's top 7 mm before its centre, then drag 20 mm along +y at 20 mm/s
+    (the top is flat there, so the tool stays in contact): the largest frame-to-frame force change
+    of the local area against the whole organ's."""
+    n, travel = (1289, 0.01) if quick else (3670, 0.02)
+    model = make_model('liver', n_particles=n)
+    material = liver_default()
+    got = {}
+    for mode in ('global', 'local'):
+        config = SolverConfig(mode=mode, parallel_min_particles=1 if mode == 'global' else 10 ** 9)
+        got[mode] = cases.drag(model, material, config, 0.004, travel, (1e-3, -7e-3), direction=(0.0, 1.0))
+    (jump_g, fz_g, f_g), (jump_l, fz_l, f_l) = got['global'], got['local']
+    case = f'liver {n}, 4 mm deep, {travel * 1e3:.0f} mm drag'
+    fig, ax = _figure()
+    for mode, f, colour in (('global', f_g, '#d62728'), ('local', f_l, '#1f77b4')):
+        ax.plot(np.linspace(0.0, travel, len(f)) * 1e3, f[:, 2], color=colour, lw=1.0, label=f'{mode}: Fz')
+    ax.set_xlabel('tool travel along the surface [mm]')
+    ax.set_ylabel('Fz [N]')
+    ax.set_title(f'dragging over the liver ({n} particles), 4 mm deep, 20 mm/s')
+    _save(fig, ax, out / 'validate_drag.png')
+    return [row('drag', f'{case}: global largest frame-to-frame change / mean Fz', jump_g / fz_g, None, '-',
+                'reported', None),
+            row('drag', f'{case}: local largest frame-to-frame change / mean Fz', jump_l / fz_l, None, '-',
+                'global\'s + 0.01', jump_l / fz_l <= jump_g / fz_g + 0.01),
+            row('drag', f'{case}: mean Fz, local against global', fz_l, fz_g, 'N', 'reported', None),
+            row('drag', f'{case}: ripple of Fz / mean Fz, local against global', _ripple(f_l[:, 2]) / fz_l,
+                _ripple(f_g[:, 2]) / fz_g, '-', 'reported', None)]
+
+
+def _ripple(f: np.ndarray, window: int = 51) -> float:
+    """rms of ``f`` minus its ``window``-frame centred mean (the roughness a slow drag adds)."""
+    mean = np.convolve(f, np.ones(window) / window, mode='valid')
+    half = window // 2
+    return float(np.sqrt(np.mean((f[half:len(f) - half] - mean) ** 2)))
+
+
 def check_press(quick: bool, out: Path) -> list[dict]:
     n, depth = (1289, 0.02) if quick else (3670, 0.04)
     model = make_model('liver', n_particles=n)
@@ -309,7 +348,8 @@ def main(argv=None) -> int:
         ap.error(f'unknown checks {unknown}; choose from {",".join(CHECKS)}')
     args.out.mkdir(parents=True, exist_ok=True)
     runners = {'creep': check_creep, 'uniaxial': check_uniaxial, 'cantilever': check_cantilever,
-               'hertz': check_hertz, 'local_global': check_local_global, 'press': check_press}
+               'hertz': check_hertz, 'local_global': check_local_global, 'drag': check_drag,
+               'press': check_press}
     rows, pngs = [], []
     t_all = time.perf_counter()
     for i, name in enumerate(chosen, start=1):

@@ -5,6 +5,7 @@ import numpy as np
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.validation.cases import drag
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 
@@ -13,14 +14,9 @@ def _press_then_pull(mode: str) -> tuple[float, float]:
     """Press 5 mm between surface particles of a bottom-fixed block, then drag 15 mm (two spacings)
     sideways at 20 mm/s. Returns (largest frame-to-frame force change during the drag [N], mean Fz)."""
     model = make_block(10, 10, 6, spacing=0.0075, fix='bottom')
-    solver = Solver(model, LIVER, SolverConfig(mode=mode))
     X = model.positions
-    start = np.array([X[:, 0].mean() - 0.01125, X[:, 1].mean() - 0.00375, X[:, 2].max() + solver.contact_reach])
-    path = [start - np.array([0.0, 0.0, 0.005 * min(1.0, (k + 1) / 250)]) for k in range(350)]
-    path += [path[-1] + np.array([0.015 * (k + 1) / 750, 0.0, 0.0]) for k in range(750)]
-    forces = np.array([solver.step(p, 1e-3).force_raw.copy() for p in path])
-    jumps = np.linalg.norm(np.diff(forces[349:], axis=0), axis=1)
-    return float(jumps.max()), float(forces[350:, 2].mean())
+    xy = (X[:, 0].mean() - 0.01125, X[:, 1].mean() - 0.00375)
+    return drag(model, LIVER, SolverConfig(mode=mode), 0.005, 0.015, xy)[:2]
 
 
 def test_local_area_force_changes_smoothly_while_the_tool_is_dragged_across_particles():

@@ -170,6 +170,31 @@ def press_and_hold(model: TissueModel, material: Material, config: SolverConfig,
     return res.force
 
 
+def drag(model: TissueModel, material: Material, config: SolverConfig, depth: float, travel: float,
+         xy, direction=(1.0, 0.0), speed: float = 0.02, press: int = 250, hold: int = 100,
+         dt: float = 1e-3) -> tuple[float, float, np.ndarray]:
+    """Press the tool ``depth`` [m] into the top surface above ``xy`` over ``press`` frames, hold
+    ``hold`` frames, then drag it ``travel`` [m] along the horizontal unit ``direction`` at
+    ``speed`` [m/s].
+
+    Returns (the largest frame-to-frame change of the force during the drag [N], the mean Fz of
+    the drag [N], the drag's forces (frames + 1, 3) from the last still frame on [N]): a smooth
+    force changes by the contact stiffness times the frame's travel.
+    """
+    solver = Solver(model, material, config)
+    P = model.positions
+    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
+    start = np.array([xy[0], xy[1], P[column, 2].max() + solver.contact_reach])
+    frames = int(round(travel / (speed * dt)))
+    path = [start - np.array([0.0, 0.0, depth * min(1.0, (k + 1) / press)]) for k in range(press + hold)]
+    step = np.array([direction[0], direction[1], 0.0]) * travel / frames
+    path += [path[-1] + step * (k + 1) for k in range(frames)]
+    forces = np.array([solver.step(p, dt).force_raw.copy() for p in path])
+    dragged = forces[press + hold - 1:]
+    jumps = np.linalg.norm(np.diff(dragged, axis=0), axis=1)
+    return float(jumps.max()), float(forces[press + hold:, 2].mean()), dragged
+
+
 def press_curve(model: TissueModel, material: Material, config: SolverConfig, depth: float,
                 speed: float = 0.01, xy=(0.0, 0.0), dt: float = 1e-3) -> dict:
     """Press the tool straight down into the top surface above ``xy`` to ``depth`` [m] at ``speed``
