@@ -153,6 +153,19 @@ def cantilever_frequency(n_across: int, slenderness: float, n_wide: int | None =
     return 1.0 / (2.0 * np.mean(np.diff(tc))), f_eb, timoshenko_f1(L, H, W, E_TEST, nu, RHO)
 
 
+#: [m] presses start this far off the lattice axis, so that the first particle touched is unambiguous
+NUDGE = (1e-3, 5e-4)
+
+
+def first_touch(model: TissueModel, reach: float, xy, nudge=(0.0, 0.0)) -> np.ndarray:
+    """Where the tool tip first touches the top of the model above ``xy`` [m]: ``reach`` (the
+    solver's contact distance) above the highest free particle within 1.5 spacings, moved sideways
+    by ``nudge``."""
+    P = model.positions
+    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
+    return np.array([xy[0] + nudge[0], xy[1] + nudge[1], P[column, 2].max() + reach])
+
+
 def press_and_hold(model: TissueModel, material: Material, config: SolverConfig, depth: float,
                    xy=None, ramp: int = 300, hold: int = 100, dt: float = 1e-3) -> np.ndarray:
     """Lower the tool from first touch ``depth`` [m] into the top surface above ``xy`` (default: the
@@ -162,8 +175,7 @@ def press_and_hold(model: TissueModel, material: Material, config: SolverConfig,
     P = model.positions
     if xy is None:
         xy = (P[:, 0].mean(), P[:, 1].mean())
-    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
-    start = np.array([xy[0] + 1e-3, xy[1] + 5e-4, P[column, 2].max() + solver.contact_reach])
+    start = first_touch(model, solver.contact_reach, xy, NUDGE)
     res = None
     for k in range(ramp + hold):
         res = solver.step(start - np.array([0.0, 0.0, depth * min(1.0, (k + 1) / ramp)]), dt)
@@ -182,9 +194,7 @@ def drag(model: TissueModel, material: Material, config: SolverConfig, depth: fl
     force changes by the contact stiffness times the frame's travel.
     """
     solver = Solver(model, material, config)
-    P = model.positions
-    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
-    start = np.array([xy[0], xy[1], P[column, 2].max() + solver.contact_reach])
+    start = first_touch(model, solver.contact_reach, xy)
     frames = int(round(travel / (speed * dt)))
     path = [start - np.array([0.0, 0.0, depth * min(1.0, (k + 1) / press)]) for k in range(press + hold)]
     step = np.array([direction[0], direction[1], 0.0]) * travel / frames
@@ -208,9 +218,7 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
     """
     solver = Solver(model, material, config)
     P = model.positions
-    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
-    # a hair off the lattice axis so that the first particle touched is unambiguous
-    start = np.array([xy[0] + 1e-3, xy[1] + 5e-4, P[column, 2].max() + solver.contact_reach])
+    start = first_touch(model, solver.contact_reach, xy, NUDGE)
     frames = int(math.ceil(depth / (speed * dt)))
     out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'over', 'slip')}
     radius = solver.tool.radius
