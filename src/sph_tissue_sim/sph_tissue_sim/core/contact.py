@@ -175,6 +175,22 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
     return best
 
 
+def first_moments(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float,
+                  volume: float) -> tuple:
+    """``(rows, d, cw, m)``: each reference pair's row ``i`` and ``d = X_j - X_i``, its weight
+    ``cw = V_j W_ij`` and the kernel-weighted first moment ``m_i = sum_j cw (X_j - X_i)`` (N, 3):
+    0 in the bulk, pointing into the material near the surface (0.24 spacings on a flat face)."""
+    from .kernel import kernel_w_array
+
+    n = len(X)
+    rows = np.repeat(np.arange(n), np.diff(offsets))
+    d = X[indices] - X[rows]
+    cw = volume * kernel_w_array(np.linalg.norm(d, axis=1), h)
+    # by bincount, one component at a time (an (nnz, 3, 3) temporary was 0.6 GB at 100k)
+    m = np.stack([np.bincount(rows, weights=cw * d[:, a], minlength=n) for a in range(3)], axis=1)
+    return rows, d, cw, m
+
+
 def surface_discs(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float, volume: float,
                   spacing: float, disc_fraction: float) -> tuple:
     """Contact surface geometry of the reference body: ``(X, offsets, indices, cw, Minv, N, disc)``.
@@ -193,13 +209,7 @@ def surface_discs(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: fl
         # ball model: contact_vector never reads cw, Minv or N (empty arrays keep the types)
         return (np.ascontiguousarray(X, dtype=np.float64), offsets, indices, np.zeros(0),
                 np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(n))
-    from .kernel import kernel_w_array
-
-    rows = np.repeat(np.arange(n), np.diff(offsets))
-    d = X[indices] - X[rows]
-    cw = volume * kernel_w_array(np.linalg.norm(d, axis=1), h)
-    # moments by bincount, one component at a time (an (nnz, 3, 3) temporary was 0.6 GB at 100k)
-    m = np.stack([np.bincount(rows, weights=cw * d[:, a], minlength=n) for a in range(3)], axis=1)
+    rows, d, cw, m = first_moments(X, offsets, indices, h, volume)
     mn = np.linalg.norm(m, axis=1)
     g = mn / spacing
     disc = disc_fraction * spacing * np.clip((g - 0.05) / 0.15, 0.0, 1.0)

@@ -5,7 +5,8 @@ Per sub-step ``s`` (the tool's segment moves linearly from ``tool.seg0`` to ``to
 
     internal_forces(scheme, ...)      acc of sets.sph (the scheme's overload, :mod:`.protocols`)
     acc += f_ext / m                  constant external loads
-    acc += contact / m                penalty contact with the tool; reaction summed (:mod:`.contact`)
+    acc += contact / m                penalty contact with the tool; reaction summed (:mod:`.contact`,
+                                      :mod:`.surface_contact`)
     advance(integrator, ...)          x, v of sets.sph (the integrator's overload, :mod:`.integrate`)
     move_layers(...)                  the transmission layers follow the contact (eqs. 20-21)
 
@@ -26,6 +27,7 @@ from numba import njit
 # the schemes and integrators register their overloads when imported
 from . import paper, springs, tlsph  # noqa: F401
 from .contact import contact_forces
+from .surface_contact import sample_contact_forces
 from .integrate import move_layers
 from .protocols import (STATUS_ABORTED, STATUS_FULL, STATUS_OK, FrameScheme, advance,
                         internal_forces)
@@ -90,6 +92,9 @@ def run_frame(scheme, integrator, body, motion, sets, tool, loads, first, n_sub,
             _segment_at(tool.seg0, tool.seg1, s, n_sub, seg)
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
             overlap = contact_forces(body, motion, sets.cand, sets.n_cand, tool, seg, seg_vel, rsum)
+            if tool.samples.w_val.shape[0] > 0:
+                overlap = max(overlap, sample_contact_forces(body, motion, sets.cand, sets.n_cand, seg,
+                                                             seg_vel, tool.samples, rsum))
             react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
         advance(integrator, body, motion, sets)
         move_layers(motion.x, motion.v, body.fixed, sets.layer, sets.layer_w, sets.n_layer,

@@ -90,6 +90,20 @@ class Sets(NamedTuple):
     contact: int
 
 
+class Samples(NamedTuple):
+    """Contact samples on the material's surface and their contact law (:mod:`.surface_contact`)."""
+
+    start: np.ndarray      # (N + 1,) particle i owns samples start[i] .. start[i + 1] - 1
+    w_start: np.ndarray    # (S + 1,) CSR of each sample's interpolation weights
+    w_idx: np.ndarray      # particles read
+    w_val: np.ndarray      # and their weights
+    offset: np.ndarray     # (S, 3) [m] added to the weighted sum
+    radius: float          # [m] the tool's radius
+    stiffness: float       # [N/m] penalty stiffness per sample
+    damping: float         # [N s/m] contact dashpot per sample
+    margin: float          # [m] a sample is never farther than this from its owning particle
+
+
 class ToolPath(NamedTuple):
     """The tool across one frame and the contact law (see :mod:`.contact`)."""
 
@@ -100,6 +114,7 @@ class ToolPath(NamedTuple):
     stiffness: float       # [N/m] penalty stiffness per particle
     damping: float         # [N s/m] contact dashpot per particle
     surf: tuple            # contact surface geometry (:func:`~.contact.surface_discs`)
+    samples: Samples       # contact samples (none: the particles' ball model alone)
 
 
 class Loads(NamedTuple):

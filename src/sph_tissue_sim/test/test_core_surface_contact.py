@@ -1,0 +1,112 @@
+"""Contact with samples on the material's surface (``contact_samples``, :mod:`.core.surface_contact`)."""
+
+import numpy as np
+import pytest
+
+from sph_tissue_sim.core.errors import ConfigError
+from sph_tissue_sim.core.material import Material
+from sph_tissue_sim.core.models import make_block
+from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.validation.cases import press_curve
+
+LIVER = Material.from_shear(1800.0, 0.45, 3.0)
+SPACING = 0.0075
+
+
+def _sample_positions(solver: Solver, x: np.ndarray) -> np.ndarray:
+    """Where the samples are for particle positions ``x`` (the kernel's interpolation, in numpy)."""
+    s = solver.samples
+    rows = np.repeat(np.arange(len(s.w_start) - 1), np.diff(s.w_start))
+    return s.offset + np.stack([np.bincount(rows, weights=s.w_val * x[s.w_idx, a], minlength=len(s.offset))
+                                for a in range(3)], axis=1)
+
+
+def _centre(model) -> tuple[float, float]:
+    """The middle of the block's top, between four surface particles (press_curve nudges the tool
+    1 mm off it)."""
+    X = model.positions
+    return float(X[:, 0].mean()), float(X[:, 1].mean())
+
+
+def _block_solver(mode: str = 'global', **config) -> Solver:
+    model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
+    return Solver(model, LIVER, SolverConfig(mode=mode, contact_samples=3, **config))
+
+
+def test_samples_sit_half_a_spacing_outside_a_flat_face_and_interpolate_with_a_partition_of_unity():
+    solver = _block_solver()
+    X = solver.X
+    s = solver.samples
+    owned = np.diff(s.start)
+    top = np.isclose(X[:, 2], X[:, 2].max())
+    centre = top & (np.abs(X[:, 0] - X[:, 0].mean()) < 1.6 * SPACING) & (np.abs(X[:, 1] - X[:, 1].mean()) < 1.6 * SPACING)
+    inner = np.all(np.abs(X - X.mean(axis=0)) < [2.6 * SPACING, 2.6 * SPACING, 0.6 * SPACING], axis=1)
+    assert np.all(owned[centre] == 9)                  # 3 x 3 on each surface particle's patch
+    assert np.all(owned[inner] == 0)                   # none in the bulk
+    rows = np.repeat(np.arange(len(s.w_start) - 1), np.diff(s.w_start))
+    assert np.bincount(rows, weights=s.w_val) == pytest.approx(1.0, abs=1e-12)
+    assert s.w_val.min() >= 0.0
+    Y = _sample_positions(solver, X)
+    mine = np.concatenate([np.arange(s.start[i], s.start[i + 1]) for i in np.flatnonzero(centre)])
+    assert Y[mine, 2] == pytest.approx(X[:, 2].max() + 0.5 * SPACING, abs=1e-12)
+    # the samples of a face tile it on a grid of spacing / 3
+    xs = np.unique(np.round(Y[mine, 0] / (SPACING / 3.0), 6))
+    assert np.diff(xs) == pytest.approx(1.0)
+
+
+def test_the_samples_move_with_a_translated_body():
+    solver = _block_solver()
+    shift = np.array([0.003, -0.002, 0.001])
+    moved = _sample_positions(solver, solver.X + shift)
+    assert moved - _sample_positions(solver, solver.X) == pytest.approx(np.broadcast_to(shift, moved.shape))
+
+
+def test_the_tool_touches_the_material_surface_half_a_spacing_above_the_particles():
+    """What the point cloud shows is what the hand feels: contact starts at the surface, half a
+    spacing above the particle centres (the ball model touched a whole spacing above them)."""
+    X = make_block(8, 8, 5, spacing=SPACING, fix='bottom').positions
+    above = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean() + 5e-4, X[:, 2].max()])
+    for gap, touching in ((2e-4, False), (-5e-4, True)):
+        solver = _block_solver()
+        assert solver.contact_reach == pytest.approx(solver.tool.radius + 0.5 * SPACING)
+        tip = above + [0.0, 0.0, solver.tool.radius + 0.5 * SPACING + gap]
+        fz = solver.step(tip, 1e-3).force[2]
+        assert (fz > 0.0) == touching, (gap, fz)
+
+
+def test_a_straight_press_between_surface_particles_pushes_them_straight_down():
+    """A frictionless tool pressed straight down on a flat face, between four surface particles:
+    the surface under it goes down with it (the particle nearest the tool stays under it) and the
+    force on the tool has almost no sideways part. As balls, the particles were pushed apart."""
+    model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
+    curve = press_curve(model, LIVER, SolverConfig(mode='global', contact_samples=3), 0.006, speed=0.02,
+                        xy=_centre(model))
+    side = curve['sideways'][-1] / curve['normal'][-1]
+    print(f'at 6 mm: Fz {curve["normal"][-1]:.3f} N, sideways/normal {side:.3f}, '
+          f'slip {curve["slip"][-1] * 1e3:.2f} mm')
+    assert curve['normal'][-1] > 0.1
+    assert side < 0.05
+    assert curve['slip'][-1] < 1e-3
+
+
+@pytest.mark.parametrize('mode', ['global', 'local'])
+def test_pressing_twice_the_tool_radius_deep_the_force_keeps_rising_and_no_particle_passes_over(mode):
+    """Pop-through: with particles as balls, a tool pressed about 1.5 radii between surface
+    particles pushed them apart and slipped between them (the force fell to nothing). The samples
+    are the material between the particles: the force rises with depth all the way."""
+    model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
+    curve = press_curve(model, LIVER, SolverConfig(mode=mode, contact_samples=3, far_field=1.0), 0.010,
+                        speed=0.02, xy=_centre(model))
+    fz = curve['normal']
+    fall = np.max(np.maximum.accumulate(fz) - fz)
+    print(f'{mode}: Fz at 5 / 10 mm {fz[len(fz) // 2 - 1]:.3f} / {fz[-1]:.3f} N, largest fall {fall:.4f} N')
+    assert fz[-1] > 1.5 * fz[len(fz) // 2 - 1] > 0.0
+    assert fall < 0.02 * fz.max()
+    assert curve['over'].max() == 0
+
+
+def test_surface_discs_and_samples_are_exclusive():
+    with pytest.raises(ConfigError, match='contact_disc'):
+        SolverConfig(contact_samples=3, contact_disc=0.5).validate()
+    with pytest.raises(ConfigError, match='contact_samples'):
+        SolverConfig(contact_samples=6).validate()
