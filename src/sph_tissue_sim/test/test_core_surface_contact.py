@@ -110,3 +110,23 @@ def test_surface_discs_and_samples_are_exclusive():
         SolverConfig(contact_samples=3, contact_disc=0.5).validate()
     with pytest.raises(ConfigError, match='contact_samples'):
         SolverConfig(contact_samples=6).validate()
+
+
+def test_a_shaft_laid_on_the_surface_presses_it_along_its_length():
+    """The samples meet any tool shape through its segment: a capsule lying flat, lowered 2 mm into
+    the surface, is pushed straight up, harder than its tip alone would be."""
+    from press import rotation_y
+
+    forces = {}
+    for shape in ('sphere', 'capsule'):
+        solver = _block_solver(tool_shape=shape, tool_length=0.03)
+        X = solver.X
+        rot = rotation_y(np.pi / 2)                 # the shaft along +x
+        tip = np.array([X[:, 0].mean() - 0.015, X[:, 1].mean() + 5e-4, X[:, 2].max() + solver.contact_reach])
+        for k in range(300):
+            res = solver.step(tip - [0.0, 0.0, 0.002 * min(1.0, (k + 1) / 200)], 1e-3, rot)
+        forces[shape] = res.force
+    print({k: np.round(v, 4) for k, v in forces.items()})
+    f = forces['capsule']
+    assert f[2] > 2.0 * forces['sphere'][2] > 0.0
+    assert np.hypot(f[0], f[1]) < 0.1 * f[2]
