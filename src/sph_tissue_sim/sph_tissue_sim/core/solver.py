@@ -126,9 +126,11 @@ class SolverConfig:
             3671-particle liver (3, with ``far_field`` 1, pressed straight down at the top of the
             dome) the force rises monotonically to 3.7 N at 31 mm (particles: 0.39 N at 10 mm, then
             falling to nothing), the pressed surface slips 1.2 mm instead of 6.4 mm at 10 mm, and
-            local mode is within 5 % of global at 9 of 12 presses (0 of 12 as balls). The samples
-            are 9 times stiffer per area and the explicit step needs about 4x the sub-steps: a local
-            step costs about 2.6 ms instead of 0.45 ms, too slow for a 1 kHz loop on this liver.
+            local mode is within 5 % of global at 9 of 12 presses (2 of 12 as balls). But the
+            surface, interpolated over a kernel width, makes the tool a blunter indenter (Hertz
+            block: +36 % at 2.5 mm spacing), the samples are 9 times stiffer per area and the
+            explicit step needs about 4x the sub-steps: a local step costs about 2.6 ms instead of
+            0.45 ms, too slow for a 1 kHz loop on this liver.
         max_tool_speed: the simulated tool follows the requested tool pose at most this fast
             [m/s]: a frame moves its tip, and the far end of a shaft, by at most about
             ``max_tool_speed * dt`` towards the request (a
