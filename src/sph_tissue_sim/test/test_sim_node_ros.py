@@ -90,7 +90,9 @@ def test_metrics_follow_the_solver_steps_with_sane_content(probe):
     assert last.step_wall_time > 0.0 and last.kinetic_energy >= 0.0
     assert last.n_interaction > 0 and len(last.n_layer) == 2
     assert last.haptic_mode == SimMetrics.HAPTIC_MULTIRATE
-    assert last.coupling_stretch > 0.0 and last.model_age > 0.0 and last.added_damping >= 0.0
+    # the stretch is the renderer's at the newest answered pose: on a busy machine the solver may
+    # not yet have handed it a model in contact (then 0), so only its sign is the node's to keep
+    assert last.coupling_stretch >= 0.0 and last.model_age > 0.0 and last.added_damping >= 0.0
     assert last.energy_in >= last.energy_in_min and math.isfinite(last.solver_rate)
     sim_times = [m.sim_time for m in mine]
     assert all(b > a for a, b in zip(sim_times, sim_times[1:]))
