@@ -63,10 +63,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                 'solver'),
     'k1_gain': (0.5, '[1/N] k1 = k1_gain * f_ext (paper eq. 18: 0.5); Dr = k1 h', (0.0, 100.0),
                 False, 'solver'),
-    'k1_min': (1.0, 'lower clamp of k1 (keeps the area non-empty without force)', (0.01, 100.0),
+    'k1_min': (1.75, 'lower clamp of k1 (keeps the area non-empty without force)', (0.01, 100.0),
                False, 'solver'),
     'k1_max': (6.0, 'upper clamp of k1', (0.01, 100.0), False, 'solver'),
-    'n_layers': (2, 'transmission layers N (paper eqs. 20-21)', (0, 8), False, 'solver'),
+    'n_layers': (1, 'transmission layers N (paper eqs. 20-21)', (0, 8), False, 'solver'),
     'tool_shape': ('sphere', 'sphere (a probe tip at the stylus tip) | capsule (a shaft of tool_length '
                              'from the stylus tip along the stylus axis, rounded at both ends)',
                    tuple(TOOLS), False, 'solver'),

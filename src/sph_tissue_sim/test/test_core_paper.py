@@ -208,7 +208,7 @@ def test_pressing_the_block_pushes_the_tool_up_with_the_same_order_of_force_as_t
 
 
 def test_local_mode_solves_the_area_and_pushes_the_tool_up():
-    solver = Solver(make_block(8, 8, 5, spacing=0.0075), LIVER, SolverConfig(scheme='paper', mode='local'))
+    solver = Solver(make_block(12, 12, 6, spacing=0.0075), LIVER, SolverConfig(scheme='paper', mode='local'))
     res = press(solver, 0.002, frames=40)
     assert res.contact_index >= 0 and res.n_interaction > 0 and res.n_layer.sum() > 0
     assert res.n_active < solver.n_particles // 2

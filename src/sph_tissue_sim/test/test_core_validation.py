@@ -218,19 +218,22 @@ def _press_and_hold(mode: str, depth: float, **config) -> np.ndarray:
     return press_and_hold(_BLOCK, _SOFT, SolverConfig(mode=mode, **config), depth, ramp=400, hold=300)
 
 
-@pytest.mark.parametrize('k1_min,far_field', [(1.0, 0.0), (3.0, 0.0), (1.0, 1.0)])
-def test_local_area_contact_force_matches_global_at_same_indentation(k1_min, far_field):
+@pytest.mark.parametrize('k1_min,far_field,n_layers', [(1.0, 0.0, 2), (3.0, 0.0, 2), (1.0, 1.0, 2),
+                                                       (1.75, 1.0, 1)])
+def test_local_area_contact_force_matches_global_at_same_indentation(k1_min, far_field, n_layers):
     """Quasi-static press: the local-area model gives the global model's force within 10 %.
 
     The block is pressed 4 mm by the tool over 0.4 s and held 0.3 s (the retardation time is
     1.7 ms, so the hold is quasi-static). ``k1_min`` bounds the interaction radius Dr = k1 h from
     below; the paper's k1 = f/2 (f in N) gives k1 < 1 at these forces. ``far_field`` 0 is the
-    paper's still region beyond the layers, 1 (the default) the half-space response.
+    paper's still region beyond the layers, 1 the half-space response; the last case is the
+    default (k1_min 1.75, one layer, far field).
     """
     f_global = _press_and_hold('global', 0.004, k1_min=k1_min)
-    f_local = _press_and_hold('local', 0.004, k1_min=k1_min, far_field=far_field)
+    f_local = _press_and_hold('local', 0.004, k1_min=k1_min, far_field=far_field, n_layers=n_layers)
     err = f_local[2] / f_global[2] - 1.0
-    print(f'k1_min {k1_min}, far_field {far_field}: global {f_global[2]:.4f} N, local {f_local[2]:.4f} N, error {err:+.4f}')
+    print(f'k1_min {k1_min}, far_field {far_field}, {n_layers} layers: global {f_global[2]:.4f} N, '
+          f'local {f_local[2]:.4f} N, error {err:+.4f}')
     assert f_global[2] > 0.1
     assert abs(err) < 0.10
 
@@ -278,28 +281,28 @@ def test_local_area_force_on_the_liver_matches_global():
     """The 3671-particle liver pressed 2, 4 and 10 mm at four places, local against global.
 
     With the paper's still region (far_field 0) the area is stiffer than the whole organ, the more
-    so the smaller it is; k1_min = 3 (Dr >= 3h beyond the touched patch, 0.7-1.9 ms per frame)
-    keeps it within 10 % everywhere (measured: at most +8.6 %). The default (far_field 1 at
-    k1_min 1: the still neighbours follow the half-space response to the contact force, 0.2-0.6 ms
-    per frame) is within 10 % at 4 and 10 mm everywhere (measured -7.6 ... +3.3 %); at 2 mm, a
-    third of a particle spacing, -14 ... +6 % (printed, not asserted). far_field 0 at k1_min 1
-    gives up to +24 % (printed). Global runs use numba threads when there are two (bit-identical
-    to serial, only faster).
+    so the smaller it is: k1_min 1 with two layers (the defaults before 2026-11-26) gives up to
+    +24 % (printed); k1_min = 3 with two layers (Dr >= 3h beyond the touched patch, 0.7-1.9 ms per
+    frame) keeps it within 10 % everywhere (measured: at most +8.6 %). The default (far_field 1:
+    the still neighbours follow the half-space response to the contact force; k1_min 1.75, one
+    layer) is within 7 % at every depth (measured -5.1 ... +1.7 %, the worst at 4 mm on the
+    thinnest lobe). Global runs use numba threads when there are two (bit-identical to serial,
+    only faster).
     """
     model = make_model('liver', n_particles=3670)
     worst_k3, worst_ff = 0.0, 0.0
     for xy, depth in _LIVER_PRESSES:
         f_global = _press_liver(model, 'global', depth, xy, parallel_min_particles=1)
-        err_k3 = _press_liver(model, 'local', depth, xy, k1_min=3.0, far_field=0.0) / f_global - 1.0
+        err_k3 = _press_liver(model, 'local', depth, xy, k1_min=3.0, far_field=0.0, n_layers=2) / f_global - 1.0
         err_ff = _press_liver(model, 'local', depth, xy) / f_global - 1.0
         msg = (f'liver at {xy} m, {depth * 1e3:.0f} mm: global {f_global:.4f} N, local k1_min 3 '
                f'far_field 0 {err_k3:+.3f}, default {err_ff:+.3f}')
         if xy == (0.0, 0.0):
-            msg += f', far_field 0 {_press_liver(model, "local", depth, xy, far_field=0.0) / f_global - 1.0:+.3f}'
+            old = _press_liver(model, 'local', depth, xy, k1_min=1.0, far_field=0.0, n_layers=2)
+            msg += f', k1_min 1 far_field 0 two layers {old / f_global - 1.0:+.3f}'
         print(msg)
         assert f_global > 0.02
         worst_k3 = max(worst_k3, abs(err_k3))
-        if depth >= 0.004:
-            worst_ff = max(worst_ff, abs(err_ff))
+        worst_ff = max(worst_ff, abs(err_ff))
     assert worst_k3 < 0.10
-    assert worst_ff < 0.10
+    assert worst_ff < 0.07

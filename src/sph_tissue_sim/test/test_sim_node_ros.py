@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 
+from sph_tissue_sim.params import SIM_PARAMS
 from tissue_testing import harness
 from press import tilted_shaft_press
 from sim_probe import (N_BLOCK, START_TIMEOUT, T0_NS, SimProbe, call_reset, finite_and_bounded,
@@ -88,7 +89,7 @@ def test_metrics_follow_the_solver_steps_with_sane_content(probe):
     assert 0.0 < last.max_displacement < 0.01
     assert last.substeps >= 1 and 0.0 < last.substep_dt <= 0.001
     assert last.step_wall_time > 0.0 and last.kinetic_energy >= 0.0
-    assert last.n_interaction > 0 and len(last.n_layer) == 2
+    assert last.n_interaction > 0 and len(last.n_layer) == SIM_PARAMS['n_layers'][0]
     assert last.haptic_mode == SimMetrics.HAPTIC_MULTIRATE
     # the stretch is the renderer's at the newest answered pose: on a busy machine the solver may
     # not yet have handed it a model in contact (then 0), so only its sign is the node's to keep
@@ -140,9 +141,15 @@ def test_reset_in_contact_returns_tissue_to_rest_and_force_stays_bounded(probe, 
     assert res.success and res.n_particles == N_BLOCK
     assert res.sim_time == pytest.approx(sim_time, rel=1e-9)
     assert 'reset' in res.message
-    # the stylus is still 4 mm deep: the next steps start from the undeformed tissue
+    # the stylus is still 4 mm deep: the next steps start from the undeformed tissue, and the force
+    # comes back once the solver thread has stepped there (held poses until it has: its first step
+    # may take longer than a few poses on a busy machine)
     t1 = t0 + 100_000_000
-    forces = probe.run_path(np.repeat(path[-1:], 20, axis=0), t1)
+    forces = []
+    for k in range(3000):
+        forces.append(force_of(probe.exchange(path[-1], t1 + k * 1_000_000)))
+        if forces[-1][1] > 0.0 and k >= 19:
+            break
     assert finite_and_bounded(forces, FORCE_LIMIT)
     assert forces[-1][1] > 0.0
     assert probe.node.spin_until(lambda: any(stamp_ns(m.header) >= t1 for m in probe.metrics), 10.0)
