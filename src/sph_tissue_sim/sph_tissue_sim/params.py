@@ -93,8 +93,9 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                            'steadier at free surfaces)', (12, 14), False, 'solver'),
     'far_field': (1.0, 'local mode: still particles next to the solved ones follow this times the '
                        'elastic half-space (Boussinesq) response to the contact force (1, the '
-                       'default: local force within 5 % of global at 7 of 12 presses on the liver); '
-                       '0 = held still as in the paper (stiffer than the whole organ, up to +24 %)',
+                       'default: with the default area, local force within 5 % of global at 11 of '
+                       '12 presses on the liver); 0 = held still as in the paper (stiffer than the '
+                       'whole organ, up to +24 %)',
                   (0.0, 2.0), False,
                   'solver'),
     'parallel_min_particles': (0, 'tlsph: use numba threads (NUMBA_NUM_THREADS) when at least this '

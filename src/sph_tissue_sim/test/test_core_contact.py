@@ -1,7 +1,6 @@
 """Contact: the force felt while the tool slides over the surface, and the surface-disc option."""
 
 import numpy as np
-import pytest
 
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
@@ -11,32 +10,30 @@ from sph_tissue_sim.validation.cases import drag
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 
 
-def _press_then_pull(mode: str, **config) -> tuple[float, float]:
+def _press_then_pull(mode: str) -> tuple[float, float]:
     """Press 5 mm between surface particles of a bottom-fixed block, then drag 15 mm (two spacings)
     sideways at 20 mm/s. Returns (largest frame-to-frame force change during the drag [N], mean Fz)."""
     model = make_block(10, 10, 6, spacing=0.0075, fix='bottom')
     X = model.positions
     xy = (X[:, 0].mean() - 0.01125, X[:, 1].mean() - 0.00375)
-    return drag(model, LIVER, SolverConfig(mode=mode, **config), 0.005, 0.015, xy)[:2]
+    return drag(model, LIVER, SolverConfig(mode=mode), 0.005, 0.015, xy)[:2]
 
 
-@pytest.mark.parametrize('far_field,bound', [(0.0, 0.1), (1.0, 0.15)])
-def test_local_area_force_changes_smoothly_while_the_tool_is_dragged_across_particles(far_field, bound):
+def test_local_area_force_changes_smoothly_while_the_tool_is_dragged_across_particles():
     """Dragging at 20 mm/s moves the tool 0.02 mm per frame, 1/375 of a spacing: the force is a
     smooth function of the tool position, so a frame may change it by a few per cent of Fz, as in
     the global model. When the local area was re-centred on a new contact particle, the force
     jumped by 0.17 N (half of Fz) in one frame: a buzz on the device.
 
     The largest change is the frame where the 5 mm tool passes between two surface particles of
-    this coarse lattice (7.5 mm): 12 mN in the global model, 16 mN in the local area with the
-    paper's still region, 27 mN (10 % of Fz) with the far field (the default), whose softer
-    surroundings let the particles part more suddenly."""
+    this coarse lattice (7.5 mm): 12 mN in the global model, 22 mN (8 % of Fz) in the local area
+    (defaults; with k1_min 1 and two layers: 16 mN held still, 27 mN with the far field)."""
     jump_global, fz_global = _press_then_pull('global')
-    jump_local, fz_local = _press_then_pull('local', far_field=far_field)
-    print(f'max force jump while dragging: global {jump_global:.4f} N, local (far_field {far_field}) '
-          f'{jump_local:.4f} N (Fz {fz_global:.3f} / {fz_local:.3f} N)')
+    jump_local, fz_local = _press_then_pull('local')
+    print(f'max force jump while dragging: global {jump_global:.4f} N, local {jump_local:.4f} N '
+          f'(Fz {fz_global:.3f} / {fz_local:.3f} N)')
     assert fz_local > 0.1 and fz_global > 0.1
-    assert jump_local < bound * fz_local
+    assert jump_local < 0.1 * fz_local
     assert jump_local < 3.0 * jump_global + 0.005
 
 

@@ -146,12 +146,12 @@ class SolverConfig:
             elastic half-space (Boussinesq) response to the contact force (1, the default) instead
             of staying at rest (0: the paper's still region). Holding them still makes the area
             stiffer than the whole organ: on the 3671-particle liver pressed 2/4/10 mm at four
-            places the local force is within 5 % of global at 7 of 12 presses with 1 (-13.7 ...
-            +6.2 %, the worst at 2 mm on the thinnest lobe, where the half-space is too soft),
-            at 2 of 12 with 0 (-6.7 ... +23.7 %), at the same cost per frame. Dragging over the
-            liver's top, the largest frame-to-frame force change is 6.4 % of Fz with 1 (global
-            6.2 %); over a coarse block (7.5 mm spacing) the tool's passage between particles
-            jumps 10 % of Fz with 1, 5 % with 0 (global 4 %).
+            places, with k1_min 1 and two layers, the local force is within 5 % of global at 7 of
+            12 presses with 1 (-13.7 ... +6.2 %, the worst at 2 mm on the thinnest lobe, where
+            the half-space is too soft), at 2 of 12 with 0 (-6.7 ... +23.7 %), at the same cost
+            per frame; with the default area (see ``n_layers``) at 11 of 12. Dragging over a
+            coarse block (7.5 mm spacing), the tool's passage between particles changes the force
+            by 8 % of Fz with the defaults (global 4 %).
     """
 
     scheme: str = 'tlsph'
