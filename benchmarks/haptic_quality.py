@@ -14,7 +14,9 @@ ROS), two ways:
 Per bag and way, in steady contact (more than 20 frames after contact onset): per-frame |dF| p99 and
 max, the median force change on frames where the device moved by exactly one encoder tick as a share
 of the force (``tick %``; ``still``: only the ticks that follow a frame without motion, the
-quantisation alone, where inside a motion the change is also the stiffness times the speed), the
+quantisation alone, where inside a motion the change is also the stiffness times the speed;
+``smooth``: the tick share of the force's centred 11-frame mean, what a force without any
+quantisation artefact would show along the same motion: the floor of ``tick %``), the
 ripple (|F| minus its 21-frame centred mean, rms), and E_in (the energy the hand
 put in with each force held until the next pose) minimum and final. Also the quasi-static force at
 2, 4 and 6 mm on the block, renderer against direct, and direct at the depth where the renderer's
@@ -33,6 +35,8 @@ which on a shared VM moves by a factor of two or more between runs of the same c
 
 Usage: ``python benchmarks/haptic_quality.py [--bags press,pull,...] [--every K] [--live] [--out DIR]``
 ``[--live-only] [--live-duration S] [--live-repeats R] [--live-modes multirate,direct]``
+``[--coupling-stiffness K_c]`` (the coupling trades the quasi-static force against smoothness and
+passivity: benchmarks/README.md)
 """
 
 from __future__ import annotations
@@ -58,8 +62,9 @@ BAGS = ('press', 'pull', 'sweep', 'poke', 'long')
 TICK = 5.5e-5           # [m] the Omni's encoder resolution (the bags reproduce it)
 STEADY_AFTER = 20       # frames after contact onset before contact counts as steady
 RIPPLE_WINDOW = 21      # frames of the centred mean the ripple is measured against
+SMOOTH_WINDOW = 11      # frames of the centred mean whose tick share is the floor of ``tick %``
 COLUMNS = ('bag', 'way', 'frames', 'steady_frames', 'dF_p99_mN', 'dF_max_mN', 'tick_change_pct',
-           'still_tick_change_pct', 'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
+           'still_tick_change_pct', 'smooth_tick_change_pct', 'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
 
 
 def golden_params() -> dict:
@@ -120,6 +125,10 @@ def quality(xs: np.ndarray, forces: np.ndarray) -> dict:
     still_tick = tick & np.r_[False, moved[:-1] == 0.0]
     e_in = -np.cumsum(np.r_[0.0, np.einsum('ij,ij->i', forces[:-1], np.diff(xs, axis=0))])
     mean = np.convolve(mag, np.ones(RIPPLE_WINDOW) / RIPPLE_WINDOW, 'same')
+    smooth = np.stack([np.convolve(f, np.ones(SMOOTH_WINDOW) / SMOOTH_WINDOW, 'same') for f in forces.T],
+                      axis=1)
+    smooth_dF = np.r_[0.0, np.linalg.norm(np.diff(smooth, axis=0), axis=1)]
+    smooth_mag = np.linalg.norm(smooth, axis=1)
     some = steady.any()
     return {
         'frames': mag.size, 'steady_frames': int(steady.sum()),
@@ -127,6 +136,8 @@ def quality(xs: np.ndarray, forces: np.ndarray) -> dict:
         'dF_max_mN': float(dF[steady].max() * 1e3) if some else float('nan'),
         'tick_change_pct': float(np.median(dF[tick] / mag[tick]) * 100) if tick.any() else float('nan'),
         'ticks': int(tick.sum()),
+        'smooth_tick_change_pct': (float(np.median(smooth_dF[tick] / smooth_mag[tick]) * 100)
+                                   if tick.any() else float('nan')),
         'still_tick_change_pct': (float(np.median(dF[still_tick] / mag[still_tick]) * 100)
                                   if still_tick.any() else float('nan')),
         'ripple_mN': float(np.sqrt(np.mean((mag - mean)[steady] ** 2)) * 1e3) if some else float('nan'),
@@ -144,7 +155,7 @@ def stiff_params(p: dict, factor: float = 10.0) -> dict:
 
 
 def quasi_static(p: dict, depths=(0.002, 0.004, 0.006), hold: int = 1500,
-                 coupling: float = RendererConfig.coupling_stiffness) -> list[tuple]:
+                 config: RendererConfig | None = None) -> list[tuple]:
     """Force after a slow press to each depth and a hold: direct, through the renderer, and direct
     at the depth the renderer's proxy holds (``F / K_c`` short of the device: the coupling in series
     with the tissue)."""
@@ -153,8 +164,9 @@ def quasi_static(p: dict, depths=(0.002, 0.004, 0.006), hold: int = 1500,
         device = np.zeros((ramp.size, 3))
         device[:, 1] = -ramp                      # device y (up) is tissue z in the default mapping
         stamps = np.arange(ramp.size) * 1_000_000
-        return float(np.linalg.norm(replay(p, stamps, device, way)[1][-1]))
+        return float(np.linalg.norm(replay(p, stamps, device, way, config=config)[1][-1]))
 
+    coupling = (config or RendererConfig()).coupling_stiffness
     out = []
     for depth in depths:
         rendered = press(depth, 'renderer')
@@ -248,6 +260,8 @@ def main(argv=None) -> int:
     ap.add_argument('--live-repeats', type=int, default=1, help='rounds of the live runs (a summary '
                     'of each configuration\'s p99 over the rounds follows)')
     ap.add_argument('--live-modes', default='multirate,direct', help='haptic modes of the live half')
+    ap.add_argument('--coupling-stiffness', type=float, default=RendererConfig.coupling_stiffness,
+                    help='[N/m] the renderer\'s K_c (default: the renderer\'s)')
     ap.add_argument('--out', type=Path, default=ROOT / 'benchmarks' / 'results')
     args = ap.parse_args(argv)
     if args.live or args.live_only:
@@ -275,30 +289,32 @@ def main(argv=None) -> int:
         if args.live_only:
             return 0
     p = golden_params()
+    config = RendererConfig(force_limit=p['force_limit'], coupling_stiffness=args.coupling_stiffness)
     args.out.mkdir(parents=True, exist_ok=True)
     rows, press = [], {}
-    print(f'{"bag":6} {"way":9} {"dF p99":>7} {"dF max":>7} {"tick %":>6} {"still":>6} {"ripple":>6} '
-          f'{"E_in min":>9} {"E_in end":>9} {"peak":>6}   (mN, %, %, mN, uJ, uJ, N)')
+    print(f'{"bag":6} {"way":9} {"dF p99":>7} {"dF max":>7} {"tick %":>6} {"still":>6} {"smooth":>6} '
+          f'{"ripple":>6} {"E_in min":>9} {"E_in end":>9} {"peak":>6}   (mN, %, %, %, mN, uJ, uJ, N)')
 
     def row(bag: str, way: str, q: dict) -> None:
         rows.append({'bag': bag, 'way': way, **q})
         print(f'{bag:6} {way:9} {q["dF_p99_mN"]:7.1f} {q["dF_max_mN"]:7.1f} '
-              f'{q["tick_change_pct"]:6.2f} {q["still_tick_change_pct"]:6.2f} {q["ripple_mN"]:6.2f} '
+              f'{q["tick_change_pct"]:6.2f} {q["still_tick_change_pct"]:6.2f} '
+              f'{q["smooth_tick_change_pct"]:6.2f} {q["ripple_mN"]:6.2f} '
               f'{q["E_in_min_uJ"]:9.2f} {q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
 
     for name in args.bags.split(','):
         stamps, device = bag_poses(name)
         for way in ('direct', 'renderer'):
-            xs, forces = replay(p, stamps, device, way, args.every)
+            xs, forces = replay(p, stamps, device, way, args.every, config)
             if name == 'press':
                 press[way] = (xs, forces)
             row(name, way, quality(xs, forces))
     stamps, device = bag_poses('poke')
     for way in ('direct', 'renderer'):
-        row('poke E x10', way, quality(*replay(stiff_params(p), stamps, device, way)))
+        row('poke E x10', way, quality(*replay(stiff_params(p), stamps, device, way, config=config)))
     print('quasi-static force after a slow press and 1.5 s hold (block, top centre); last: direct at '
           'the depth of the proxy (F / K_c short of the device):')
-    for depth, direct, rendered, at_proxy in quasi_static(p):
+    for depth, direct, rendered, at_proxy in quasi_static(p, config=config):
         print(f'  {depth * 1e3:.0f} mm: direct {direct:.4f} N, renderer {rendered:.4f} N '
               f'({(rendered / direct - 1) * 100:+.1f} %), direct at the proxy {at_proxy:.4f} N '
               f'({(at_proxy / direct - 1) * 100:+.1f} %)')
