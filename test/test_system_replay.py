@@ -9,6 +9,7 @@ the largest difference against the stated tolerance of 1e-9 N when they are not.
 
 from __future__ import annotations
 
+import json
 import math
 import struct
 import time
@@ -111,5 +112,8 @@ def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clea
     if report is not None:
         assert (report / 'index.html').is_file(), viz.output()[-2000:]
         assert list(report.glob('*.png'))
+        # every stream of a lockstep replay runs on the bag's clock from its first message
+        summary = json.loads((report / 'summary.json').read_text())
+        assert summary['backwards_stamps'] == {'metrics': 0, 'particles': 0, 'pose': 0, 'force': 0}
     print(f'{name}: {len(pose_stamps)} poses replayed in lockstep in {replay_s:.2f} s, peak golden '
           f'force {peak:.3f} N, max diff {worst:.1e} N')

@@ -52,6 +52,7 @@ import traceback
 
 import numpy as np
 import rclpy
+from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
@@ -609,8 +610,11 @@ class SimNode(Node):
                 stamp = self._last_stamp
             finally:
                 self._lock.release()
-            self.cloud_pub.publish(self._cloud.message(
-                stamp if stamp is not None else self.get_clock().now().to_msg()))
+            if stamp is None:
+                # lockstep time is the poses' stamps (a bag's, often long past): before the first
+                # pose it has none yet, and a wall-clock stamp would make the replay's go backwards
+                stamp = Time() if self.lockstep else self.get_clock().now().to_msg()
+            self.cloud_pub.publish(self._cloud.message(stamp))
         except Exception:  # noqa: BLE001  (the picture is optional; the force loop must go on)
             self._throttled('cloud', 'error', 'tissue/particles not published:\n'
                             + traceback.format_exc())

@@ -247,6 +247,23 @@ def test_multirate_live_cloud_is_packed_and_published_by_the_solver_thread(live_
     assert threads == [('sim_solver', node.solver.n_particles)]
 
 
+def test_lockstep_clouds_carry_the_simulation_clock_from_the_start(any_node):
+    """Before the first pose a lockstep cloud has stamp zero (no simulated time yet), never the
+    wall clock, so that the replay's older stamps do not run backwards; then the last pose's."""
+    node = any_node
+    stamps = []
+
+    class Recorder:
+        def publish(self, msg):
+            stamps.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+
+    node.cloud_pub = Recorder()
+    node._publish_cloud_once()
+    last = press(node) - 1_000_000             # the last pose's stamp
+    node._publish_cloud_once()
+    assert stamps == [0, last]
+
+
 def test_a_cloud_that_fails_to_publish_is_logged_and_the_next_one_goes_out(multirate):
     node = multirate
     press(node)

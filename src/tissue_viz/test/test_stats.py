@@ -265,6 +265,16 @@ def test_backwards_stamps_are_counted_per_topic_but_equal_stamps_are_not():
                                                         'force': 0}
 
 
+def test_a_clock_that_restarts_earlier_counts_as_one_backwards_stamp_not_one_per_message():
+    # the sim's clouds before a lockstep replay's first pose, then the bag's (older) stamps
+    order = StampOrder()
+    wall = [1_800_000_000 * 10**9 + k * MS for k in range(5)]
+    bag = [1_700_000_000 * 10**9 + k * MS for k in range(1000)]
+    checks = [order.check(s) for s in wall + bag]
+    assert order.backwards == 1
+    assert checks.count(False) == 1 and checks[len(wall)] is False
+
+
 def test_active_particles_force_and_displacement_come_from_the_latest_metrics():
     stats = VizStats(window=5.0)
     stats.on_metrics(0.0, 0, 1e-4, (3.0, 4.0, 0.0), 0.002, n_interaction=100, n_layer=[40, 20],

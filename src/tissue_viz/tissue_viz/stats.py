@@ -280,19 +280,23 @@ class LatencyMatcher:
 
 
 class StampOrder:
-    """Counts header stamps that go backwards on one topic (equal stamps are not out of order)."""
+    """Counts header stamps that go backwards on one topic (equal stamps are not out of order).
+
+    A backwards stamp counts once and restarts the order from it: a publisher whose clock was reset
+    (a replay started again, a simulation reset) is one event, not a fault on every later message.
+    """
 
     def __init__(self) -> None:
         self.last: int | None = None
         self.backwards = 0
 
     def check(self, stamp_ns: int) -> bool:
-        """True if ``stamp_ns`` is not older than the newest stamp seen so far."""
-        if self.last is not None and stamp_ns < self.last:
+        """True if ``stamp_ns`` is not older than the previous stamp on the topic."""
+        ok = self.last is None or stamp_ns >= self.last
+        if not ok:
             self.backwards += 1
-            return False
         self.last = stamp_ns
-        return True
+        return ok
 
 
 @dataclass
