@@ -77,7 +77,7 @@ def make_backend(p: dict) -> Backend:
                  'tremor_amplitude', 'quantisation', 'seed')
         cfg = ScriptConfig(**{n: (list(p[n]) if isinstance(p[n], (list, tuple, np.ndarray))
                                   else p[n]) for n in names})
-        return ScriptedBackend(cfg, p['publish_rate'], p['loop'])
+        return ScriptedBackend(cfg, p['publish_rate'], p['loop'], p['exit_on_end'])
     if kind == 'openhaptics':
         from .backends.openhaptics import OpenHapticsBackend
 

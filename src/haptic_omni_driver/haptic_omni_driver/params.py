@@ -46,7 +46,7 @@ DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
                            None, False),
     'loop': (False, 'replay/scripted: start again at the end', None, True),
     'exit_on_end': (False, 'replay/scripted (loop false): exit with code 0 at the end instead of '
-                           'idling', None, True),
+                           'idling (replay) or resting at the last point (scripted)', None, True),
     'wait_for_subscribers': (0, 'replay/scripted: wait for this many omni/pose subscribers before '
                                 'starting',
                              (0, 100), True),

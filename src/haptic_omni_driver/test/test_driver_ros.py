@@ -358,6 +358,33 @@ def test_scripted_publishes_the_script_at_rate_then_exits(rclpy_node):
     assert stamps[-1] - stamps[0] >= 0.9 * (ref.shape[0] - 1) / 1000.0
 
 
+def test_scripted_without_loop_says_the_script_ended_and_keeps_publishing_the_resting_stylus(
+        rclpy_node):
+    """The README's plain ``backend:=scripted`` (no loop, no exit_on_end): one line at the end of
+    the one pass, then the stylus at rest, still published, the process still alive."""
+    from geometry_msgs.msg import PoseStamped
+
+    from haptic_omni_driver.backends.scripted import ScriptConfig, generate_trajectory
+
+    times = dict(approach_time=0.1, press_time=0.1, hold_time=0.1, pull_time=0.1,
+                 release_time=0.1, sweep_time=0.1, return_time=0.1)
+    poses = []
+    # reliable, with a history deeper than the test: every pose arrives however busy the machine
+    rclpy_node.create_subscription(PoseStamped, 'omni/pose', poses.append, reliable_qos(5000))
+    with driver({'backend': 'scripted', 'tremor_amplitude': 0.0, 'wait_for_subscribers': 1,
+                 'reliable': True, 'qos_depth': 5000, **times}) as proc:
+        proc.wait_for_output(r'script finished: \d+ poses, one pass of [\d.]+ s; the stylus now '
+                             r'rests at its last point', timeout=60)
+        n = int(re.search(r'script finished: (\d+) poses', proc.output()).group(1))
+        assert rclpy_node.spin_until(lambda: len(poses) >= n + 200, 30), 'no poses after the script'
+        assert proc.alive()
+    _, ref, _, _ = generate_trajectory(ScriptConfig(tremor_amplitude=0.0, **times), 1000.0)
+    got = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in poses])
+    assert n == len(ref) and np.abs(got[:n] - ref).max() < 1e-9
+    assert np.all(got[n:] == ref[-1])                      # at rest: the script's last point
+    assert 'pass(es)' not in proc.output()
+
+
 def test_a_driver_on_fast_dds_shared_memory_warns_that_a_dead_peer_can_stall_it(ros_domain):
     env = {**harness.ros_env(ros_domain), 'FASTDDS_BUILTIN_TRANSPORTS': 'SHM',
            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'SUBNET'}

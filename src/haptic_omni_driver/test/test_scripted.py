@@ -85,6 +85,68 @@ def test_sample_script_holds_last_point_after_end():
     assert pos[0] == pytest.approx(segs[-1].end)
 
 
+SHORT = dict(approach_time=0.02, press_time=0.02, hold_time=0.02, pull_time=0.02, release_time=0.02,
+             sweep_time=0.02, return_time=0.02, tremor_amplitude=0.0)
+
+
+class PlaySink:
+    """Records what a backend sends; stops it ``after`` samples past the end of the script."""
+
+    def __init__(self, after: int = 50) -> None:
+        self.samples, self.finished, self.after = [], [], after
+        self.backend = None
+
+    def wait_for_subscribers(self) -> bool:
+        return True
+
+    def on_sample(self, sample) -> None:
+        self.samples.append(sample)
+        if self.finished and len(self.samples) >= self.finished[0][0] + self.after:
+            self.backend.stop(timeout=0.0)
+
+    def on_finished(self, summary: str, code: int) -> None:
+        self.finished.append((len(self.samples), summary, code))
+
+
+def play(backend, sink: PlaySink) -> PlaySink:
+    from threading import Timer
+    sink.backend = backend
+    guard = Timer(30.0, backend.stop, kwargs={'timeout': 0.0})     # never hang the suite
+    guard.start()
+    try:
+        backend.run(sink)
+    finally:
+        guard.cancel()
+    return sink
+
+
+def test_without_loop_the_stylus_rests_at_the_last_point_and_the_driver_says_so_once():
+    from haptic_omni_driver.backends.scripted import ScriptedBackend
+
+    cfg = ScriptConfig(**SHORT)
+    sink = play(ScriptedBackend(cfg, rate=2000.0, loop=False), PlaySink(after=50))
+    _, ref, _, _ = generate_trajectory(cfg, 2000.0)
+    n, summary, code = sink.finished[0]
+    assert len(sink.finished) == 1 and code == 0 and n == len(ref)
+    # one pass, not two: the last sample of the script is at t == duration (regression)
+    assert 'one pass' in summary and 'pass(es)' not in summary and 'rests at its last point' in summary
+    got = np.array([smp.position for smp in sink.samples])
+    assert np.abs(got[:n] - ref).max() < 1e-12
+    assert len(got) >= n + 50 and np.all(got[n:] == ref[-1])        # still publishing, at rest
+    assert {smp.phase for smp in sink.samples[n:]} == {'rest'}
+
+
+def test_with_exit_on_end_the_script_ends_after_its_last_sample():
+    from haptic_omni_driver.backends.scripted import ScriptedBackend
+
+    cfg = ScriptConfig(**SHORT)
+    sink = play(ScriptedBackend(cfg, rate=2000.0, loop=False, exit_on_end=True), PlaySink())
+    _, ref, _, _ = generate_trajectory(cfg, 2000.0)
+    assert len(sink.samples) == len(ref)
+    assert sink.finished == [(len(ref), f'script finished: {len(ref)} poses, one pass of '
+                                         f'{script_duration(build_script(cfg)):.2f} s', 0)]
+
+
 @pytest.mark.parametrize('kw', [dict(press_depth=-0.001), dict(hold_time=0.0),
                                 dict(press_axis=[0, 0, 0]), dict(target=[0, 0]),
                                 dict(tremor_band=(12.0, 8.0))])

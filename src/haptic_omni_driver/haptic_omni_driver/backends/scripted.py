@@ -217,12 +217,17 @@ def generate_trajectory(cfg: ScriptConfig, rate: float = 1000.0, loops: int = 1)
 
 
 class ScriptedBackend(Backend):
-    """Plays the script in real time at ``rate`` Hz (wall clock stamps), optionally looping."""
+    """Plays the script in real time at ``rate`` Hz (wall clock stamps).
+
+    With ``loop`` the script starts again at its end. Without, the stylus then rests at the
+    script's last point and the driver keeps publishing it, as a device held still does (the graph
+    stays live and says so in one log line), unless ``exit_on_end``: then the driver ends there.
+    """
 
     name = 'scripted'
 
     def __init__(self, cfg: ScriptConfig, rate: float = 1000.0, loop: bool = True,
-                 clock_ns=time.time_ns) -> None:
+                 exit_on_end: bool = False, clock_ns=time.time_ns) -> None:
         super().__init__()
         if not (np.isfinite(rate) and 1.0 <= rate <= 10000.0):
             raise ConfigError(f'rate must be in [1, 10000] Hz, got {rate}')
@@ -231,6 +236,7 @@ class ScriptedBackend(Backend):
         self.duration = script_duration(self.segments)
         self.rate = rate
         self.loop = loop
+        self.exit_on_end = exit_on_end
         self.clock_ns = clock_ns
         self.source = f'script(seed={cfg.seed}, {self.duration:.2f} s)'
 
@@ -240,18 +246,21 @@ class ScriptedBackend(Backend):
         period = 1.0 / self.rate
         t0 = time.monotonic()
         k = 0
-        loops = 0
+        ended = False
         while not self.stopping:
             t = k * period
-            if not self.loop and t > self.duration + 1e-9:
-                break
+            if not self.loop and not ended and t > self.duration + 1e-9:
+                ended = True
+                sink.on_finished(self.summary(k), 0)
+                if self.exit_on_end:
+                    return
+            # past the end (no loop) the script holds its last point: the hand at rest
             ts = np.mod(t, self.duration) if self.loop else t
             pos, buttons, phases = sample_script(self.segments, ts)
             p = pos[0] + tremor(t, self.cfg.tremor_amplitude, self.cfg.tremor_band, self.cfg.seed)[0]
             p = quantise(p, self.cfg.quantisation)
             sink.on_sample(Sample(self.clock_ns(), p, buttons=(bool(buttons[0]), False),
-                                  phase=phases[0]))
-            loops = int(t // self.duration)
+                                  phase='rest' if ended else phases[0]))
             k += 1
             # Absolute deadlines: no drift, and a late tick is not followed by a burst.
             delay = t0 + k * period - time.monotonic()
@@ -259,10 +268,14 @@ class ScriptedBackend(Backend):
                 self._stop.wait(delay)
             elif delay < -0.1:
                 t0 = time.monotonic() - k * period
-        if self.stopping:
-            return  # shut down from outside: no summary
-        sink.on_finished(f'script finished: {k} poses, {loops + 1} pass(es) of {self.duration:.2f} s',
-                         0)
+
+    def summary(self, poses: int) -> str:
+        """The line logged when the script (one pass, ``poses`` samples) has been played."""
+        text = f'script finished: {poses} poses, one pass of {self.duration:.2f} s'
+        if self.exit_on_end:
+            return text
+        return (text + '; the stylus now rests at its last point and the driver keeps publishing '
+                'it (loop:=true repeats the script, exit_on_end:=true ends the driver here)')
 
 
 def script_messages(cfg: ScriptConfig, rate: float = 1000.0, t0_ns: int = 1_700_000_000_000_000_000,
