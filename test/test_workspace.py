@@ -45,7 +45,7 @@ def test_every_console_script_is_installed_where_ros2_run_looks(pkg):
         harness.executable(pkg, exe)
 
 
-@pytest.mark.parametrize('pkg', PACKAGES + ('tissue_msgs',))
+@pytest.mark.parametrize('pkg', PACKAGES + ('tissue_msgs', 'crtk_msgs'))
 def test_package_is_registered_in_the_ament_index(pkg):
     from ament_index_python.packages import get_package_share_directory
 

@@ -6,6 +6,12 @@ Publishes ``omni/pose`` (geometry_msgs/PoseStamped, stylus tip in ``omni_base``,
 safety chain (:mod:`haptic_omni_driver.safety`) before it reaches the device. Backends (parameter
 ``backend``): ``openhaptics`` (libHD), ``replay`` (rosbag2 MCAP bag), ``scripted`` (synthetic motion).
 
+With ``crtk`` (the default) it also speaks the CRTK names a dVRK graph uses, beside ``omni/pose``
+(so ``/omni/measured_cp`` at the root namespace, ``/<ns>/omni/measured_cp`` in one): ``measured_cp``,
+``measured_cv`` (the tracking filter's velocity), ``measured_js`` (OpenHaptics joint and gimbal
+angles), ``servo_cf`` (a force setpoint through the same safety chain), ``operating_state`` and
+``state_command`` (:mod:`haptic_omni_driver.crtk`: only ENABLED renders force).
+
 Force commands are not dispatched by the executor: the servo tick takes them straight from the DDS
 reader before it evaluates the watchdog, and dates each one by its DDS reception time. A command that
 has arrived is therefore never missed, nor counted old, because the executor thread (or the GIL) was
@@ -26,12 +32,16 @@ import time
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped, WrenchStamped
+from crtk_msgs.msg import OperatingState as CrtkOperatingState
+from crtk_msgs.msg import StringStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from tissue_common.estimator import TrackingFilter
 from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_until_stopped,
                                       stop_on_signals)
 from tissue_common.params import check_choice, declare_all
@@ -41,6 +51,7 @@ from tissue_common.transport import shared_memory_warning
 from tissue_msgs.msg import DeviceState
 
 from .backends.base import Backend, Sample
+from .crtk import OperatingStateMachine
 from .errors import ConfigError, DriverError
 from .params import DRIVER_PARAMS
 from .safety import ForceSafety, SafetyConfig
@@ -147,12 +158,44 @@ class OmniDriver(Node):
         self._servo_thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._t_start = time.monotonic()
+        self._setup_crtk(p, qos)
+
+    def _setup_crtk(self, p: dict, qos: QoSProfile) -> None:
+        """The CRTK names beside omni/pose (relative: in the node's namespace, like it)."""
+        self.op_state = OperatingStateMachine(p['start_state'])
+        self.safety.allow_output(self.op_state.current.renders_force, self._now_clocks()[0])
+        #: next setpoint (message, message info) from servo_cf, None when empty; tests inject
+        self._take_setpoint = lambda: None
+        self.servo_cf_sub = None
+        if not p['crtk']:
+            return
+        self._velocity = TrackingFilter(p['velocity_cutoff'])
+        self._last_sample_ns: int | None = None
+        self._crtk_period_ns = int(round(1e9 / p['crtk_rate']))
+        self._next_crtk_ns: int | None = None
+        self.cp_pub = self.create_publisher(PoseStamped, 'omni/measured_cp', qos)
+        self.cv_pub = self.create_publisher(TwistStamped, 'omni/measured_cv', qos)
+        self.js_pub = (self.create_publisher(JointState, 'omni/measured_js', qos)
+                       if self.backend.joint_names else None)
+        self._cv_msg = TwistStamped()
+        self._cv_msg.header.frame_id = p['frame_id']
+        self._js_msg = JointState(name=list(self.backend.joint_names))
+        # the state now and on every change; a late subscriber gets the last one (transient local)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.op_pub = self.create_publisher(CrtkOperatingState, 'omni/operating_state', latched)
+        self.create_subscription(StringStamped, 'omni/state_command', self._on_state_command, 10)
+        # taken by the servo tick like omni/force_feedback, hidden from the executor
+        self.servo_cf_sub = self.create_subscription(WrenchStamped, 'omni/servo_cf',
+                                                     lambda _msg: None, qos)
+        self._take_setpoint = self._take_setpoint_from_reader
+        self._publish_operating_state()
 
     @property
     def subscriptions(self):
         """Subscriptions the executor dispatches: all but the force commands (see take_commands)."""
-        force_sub = getattr(self, 'force_sub', None)
-        return (sub for sub in super().subscriptions if sub is not force_sub)
+        taken = (getattr(self, 'force_sub', None), getattr(self, 'servo_cf_sub', None))
+        return (sub for sub in super().subscriptions if sub not in taken)
 
     # -- parameters ----------------------------------------------------------------------------
     @staticmethod
@@ -243,9 +286,60 @@ class OmniDriver(Node):
             q.x, q.y, q.z, q.w = (float(v) for v in sample.orientation)
             self.pose_pub.publish(msg)
         self.n_poses += 1
+        if self.p['crtk']:
+            self._publish_measured(sample)
         if sample.buttons is not None and sample.buttons != self._buttons:
             self._buttons = sample.buttons
             self._publish_state()
+
+    def _publish_measured(self, sample: Sample) -> None:
+        """CRTK measured_cp / measured_cv / measured_js of a sample, at ``crtk_rate``.
+
+        The velocity filter takes every sample; the messages go out when due by the samples' own
+        stamps (a replay's clock), and at once after a stamp that went backwards (a loop)."""
+        stamp = sample.stamp_ns
+        dt = 0.0 if self._last_sample_ns is None else (stamp - self._last_sample_ns) * 1e-9
+        self._last_sample_ns = stamp
+        _, v = self._velocity.update(sample.position, dt)
+        due, period = self._next_crtk_ns, self._crtk_period_ns
+        if due is not None and due - period <= stamp < due:
+            return
+        # on the schedule's ticks (the mean rate is crtk_rate); anew after a gap or a loop
+        on_time = due is not None and stamp < due + period
+        self._next_crtk_ns = (due if on_time else stamp) + period
+        self.cp_pub.publish(sample.raw if sample.raw is not None else self._pose_msg)
+        cv = self._cv_msg
+        set_stamp(cv.header.stamp, stamp)
+        cv.twist.linear.x, cv.twist.linear.y, cv.twist.linear.z = (float(c) for c in v)
+        self.cv_pub.publish(cv)
+        if self.js_pub is not None and sample.joints is not None:
+            js = self._js_msg
+            set_stamp(js.header.stamp, stamp)
+            js.position = [float(a) for a in sample.joints]
+            self.js_pub.publish(js)
+
+    def _on_state_command(self, msg: StringStamped) -> None:
+        """A CRTK state_command: enable, disable, pause, resume, home, unhome."""
+        old = self.op_state.current
+        new, why = self.op_state.command(msg.string, homed_now=bool(self.backend.calibrated))
+        self.safety.allow_output(new.renders_force, self._now_clocks()[0])
+        if why:
+            self.get_logger().warn(f'state_command {msg.string!r}: {why}')
+        if new != old:
+            self.get_logger().info(f'operating state {old.state} -> {new.state}'
+                                   + ('' if new.renders_force else ': no force is rendered'))
+        self._publish_operating_state()
+        self._publish_state()
+
+    def _publish_operating_state(self) -> None:
+        if not self.p['crtk']:
+            return
+        s = self.op_state.current
+        msg = CrtkOperatingState(state=s.state, is_homed=bool(s.is_homed and self.backend.calibrated),
+                                 is_busy=s.is_busy)
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.p['frame_id']
+        self.op_pub.publish(msg)
 
     def servo(self) -> np.ndarray:
         """One safety tick: the force the device renders now; state published on flag changes.
@@ -323,6 +417,9 @@ class OmniDriver(Node):
             self.get_logger().info(summary)
         else:
             self.get_logger().error(summary)
+            self.op_state.fault(summary)
+            self.safety.allow_output(False, self._now_clocks()[0])
+            self._publish_operating_state()
         if exit_code != 0 or self.p['exit_on_end']:
             self.exit_code = exit_code
             self.finished.set()
@@ -341,24 +438,31 @@ class OmniDriver(Node):
         with self._take_lock:
             now, wall_ns = self._now_clocks()
             since, self._last_take = self._last_take, now
-            while (taken := self._take()) is not None:
-                msg, info = taken
-                self._on_command(msg, received_at(info, now, wall_ns, since), now)
+            # replies to poses, then CRTK setpoints (servo_cf), which answer none
+            for take, answers_pose in ((self._take, True), (self._take_setpoint, False)):
+                while (taken := take()) is not None:
+                    msg, info = taken
+                    self._on_command(msg, received_at(info, now, wall_ns, since), now, answers_pose)
         return now
 
     def _take_from_reader(self):
         with self.force_sub.handle:
             return self.force_sub.handle.take_message(WrenchStamped, False)
 
-    def _on_command(self, msg: WrenchStamped, received: float, now: float) -> None:
+    def _take_setpoint_from_reader(self):
+        with self.servo_cf_sub.handle:
+            return self.servo_cf_sub.handle.take_message(WrenchStamped, False)
+
+    def _on_command(self, msg: WrenchStamped, received: float, now: float,
+                    answers_pose: bool = True) -> None:
         self.n_commands += 1
         f = msg.wrench.force
         stamp_ns = stamp_to_ns(msg.header.stamp)
         result = self.safety.command((f.x, f.y, f.z), msg.header.frame_id, received,
-                                     stamp_ns * 1e-9)
+                                     stamp_ns * 1e-9, answers_pose)
         if not result.accepted:
             self._log_rejection(result.reason, msg, now)
-        if self._lockstep:
+        if self._lockstep and answers_pose:
             with self._reply_cond:
                 if len(self._replies) > 10000:
                     self._replies.clear()
@@ -410,7 +514,8 @@ class OmniDriver(Node):
         else:
             d.level, d.message = DiagnosticStatus.OK, 'ok'
         d.values = [KeyValue(key=k, value=str(v)) for k, v in (
-            ('backend', self.backend.name), ('poses published', self.n_poses),
+            ('backend', self.backend.name), ('operating state', self.op_state.current.state),
+            ('poses published', self.n_poses),
             ('mean pose rate [Hz]', f'{self.n_poses / elapsed:.1f}'),
             ('force commands', self.n_commands), ('rejected commands', status.rejected_commands),
             *((f'rejected ({reason})', n) for reason, n in sorted(

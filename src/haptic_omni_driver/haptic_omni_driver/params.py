@@ -50,6 +50,16 @@ DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
     'wait_for_subscribers': (0, 'replay/scripted: wait for this many omni/pose subscribers before '
                                 'starting',
                              (0, 100), True),
+    # -- CRTK -----------------------------------------------------------------------------------
+    'crtk': (True, 'also offer the CRTK interface: measured_cp, measured_cv, measured_js '
+                   '(openhaptics), servo_cf, operating_state, state_command', None, True),
+    'crtk_rate': (500.0, '[Hz] CRTK: measured_cp / measured_cv / measured_js rate (at most the '
+                         'device\'s)', (1.0, 2000.0), True),
+    'velocity_cutoff': (30.0, '[Hz] CRTK: cut-off of the tracking filter behind measured_cv (the '
+                              'simulator\'s renderer uses the same filter)', (1.0, 200.0), True),
+    'start_state': ('ENABLED', 'CRTK operating state at start: ENABLED (renders force as soon as '
+                               'commands come) | DISABLED (waits for an enable on state_command)',
+                    ('ENABLED', 'DISABLED'), True),
     # -- replay ---------------------------------------------------------------------------------
     'bag': ('', 'replay: rosbag2 bag folder (metadata.yaml + .mcap)', None, True),
     'pose_topic_in_bag': ('/omni/pose', 'replay: PoseStamped topic name inside the bag', None, True),

@@ -21,6 +21,10 @@ output DeviceState reports) passes through :class:`ForceSafety`, in this order:
    is always applied at once;
 6. final clamp of the output to the current ``force_limit`` (a lowered limit applies at once).
 
+Above the chain, the device's operating state (:mod:`haptic_omni_driver.crtk`) may hold the output
+at zero (:meth:`ForceSafety.allow_output`: a disabled or paused device renders no force); allowed
+again, the output ramps up from zero as after a watchdog trip.
+
 Times are seconds on one monotonic clock chosen by the caller. A command's time is when it was
 *received*, not when it was processed: the watchdog then measures the command's true age even when
 the process handles it late. The class is thread-safe: commands and outputs may come from different
@@ -145,6 +149,7 @@ class ForceSafety:
         self._stalled = 0.0               # [s] of the newest command's age the process was stalled
         self._ramp = 0.0
         self._rate_limited = False
+        self._allowed = True              # the operating state lets the device render force
         self.trip_count = 0
         self.rate_limited_count = 0       # outputs held back by max_force_rate
 
@@ -154,18 +159,31 @@ class ForceSafety:
         with self._lock:
             self.config = config
 
+    def allow_output(self, allowed: bool, now: float) -> None:
+        """Let the device render force (True) or hold its output at zero (False), from ``now``.
+
+        Allowed again, the force ramps up from zero over ``ramp_time``."""
+        with self._lock:
+            if allowed and not self._allowed:
+                self._enable_time = now
+            self._allowed = bool(allowed)
+
     def note_pose(self, stamp: float) -> None:
         """Record the stamp [s] of the newest pose, before it is published (stale-reply check)."""
         with self._lock:
             self._newest_pose_stamp = stamp
 
     # -- commands ------------------------------------------------------------------------------
-    def command(self, force, frame_id: str, now: float, stamp: float | None = None) -> CommandResult:
-        """Offer a force command [N] in ``frame_id`` received at ``now``; ``stamp`` = its header stamp."""
+    def command(self, force, frame_id: str, now: float, stamp: float | None = None,
+                answers_pose: bool = True) -> CommandResult:
+        """Offer a force command [N] in ``frame_id`` received at ``now``; ``stamp`` = its header stamp.
+
+        ``answers_pose`` False: a setpoint that answers no pose (CRTK ``servo_cf``), which skips
+        the stale-reply check; every other step applies."""
         vec = np.asarray(force, dtype=float).reshape(-1)
         cfg = self.config
         with self._lock:
-            reason = self._rejection(vec, frame_id, stamp, cfg)
+            reason = self._rejection(vec, frame_id, stamp, cfg, answers_pose)
             if reason:
                 self._rejected[reason] = self._rejected.get(reason, 0) + 1
                 return CommandResult(False, reason)
@@ -182,13 +200,13 @@ class ForceSafety:
             return CommandResult(True, '', clamped)
 
     def _rejection(self, vec: np.ndarray, frame_id: str, stamp: float | None,
-                   cfg: SafetyConfig) -> str:
+                   cfg: SafetyConfig, answers_pose: bool = True) -> str:
         """Why a command must be rejected ('' if it may pass)."""
         if vec.shape != (3,) or not np.all(np.isfinite(vec)):
             return 'nan'
         if frame_id != cfg.frame_id and not (cfg.accept_empty_frame and frame_id == ''):
             return 'frame'
-        if cfg.max_command_lag > 0.0:
+        if cfg.max_command_lag > 0.0 and answers_pose:
             return self._stamp_problem(stamp, cfg.max_command_lag)
         return ''
 
@@ -216,7 +234,7 @@ class ForceSafety:
 
     def _ramped_command(self, now: float, cfg: SafetyConfig) -> np.ndarray:
         """Watchdog and enable ramp: the force wanted at ``now`` before the rate limit."""
-        if not self._enabled:
+        if not self._enabled or not self._allowed:
             self._ramp = 0.0
             return np.zeros(3)
         if not self._tripped and self._silence(now) > cfg.watchdog_timeout:
@@ -258,6 +276,7 @@ class ForceSafety:
         """Snapshot for DeviceState (``commanded_force`` is the last :meth:`output`)."""
         with self._lock:
             age = -1.0 if self._last_cmd_time is None else max(0.0, now - self._last_cmd_time)
-            return SafetyStatus(self._enabled and not self._tripped, self._clamped, self._tripped,
+            return SafetyStatus(self._enabled and self._allowed and not self._tripped, self._clamped,
+                                self._tripped,
                                 self._output.copy(), age, sum(self._rejected.values()), self._ramp,
                                 self._rate_limited, dict(self._rejected))

@@ -191,3 +191,71 @@ def test_reception_time_is_mapped_and_bounded_to_the_take_interval(recv_ns, sinc
 
     info = {'received_timestamp': recv_ns}
     assert received_at(info, 0.010, WALL0 + 10_000_000, since) == pytest.approx(expected, abs=1e-12)
+
+
+# -- CRTK: servo_cf setpoints and state_command ----------------------------------------------------
+class FakeSetpoints(FakeReader):
+    """servo_cf's reader: setpoints arrive at given times (force_feedback stays with FakeReader)."""
+
+    def __init__(self, node):
+        self.now = 0.0
+        self.pending = []
+        node._take_setpoint = self.take
+
+
+def test_a_servo_cf_setpoint_passes_the_chain_without_answering_a_pose(make_driver):
+    """A CRTK client stamps its setpoint with its own clock, newer than the newest pose: on
+    omni/force_feedback that is a reply from the future (rejected), on servo_cf it is accepted,
+    clamped to force_limit, and a NaN is still refused."""
+    from haptic_omni_driver.backends.base import Sample
+
+    node = make_driver(max_command_lag=0.05, force_limit=0.5)
+    replies, setpoints = FakeReader(node), FakeSetpoints(node)
+    node._now_clocks = lambda: (replies.now, WALL0 + round(replies.now * 1e9))
+    pose_ns = WALL0 + 10_000_000
+    node.on_sample(Sample(pose_ns, np.zeros(3)))
+    replies.arrive(0.0, force=(0.3, 0, 0), stamp_ns=pose_ns + 2_000_000)
+    setpoints.arrive(0.0, force=(0.0, 0.0, float('nan')), stamp_ns=pose_ns + 2_000_000)
+    setpoints.arrive(0.0, force=(0.0, 0.9, 0.0), stamp_ns=pose_ns + 2_000_000)
+    force = replies.tick(node, 0.001)
+    st = node.safety.status(0.001)
+    assert force == pytest.approx([0.0, 0.5, 0.0])               # the setpoint, clamped
+    assert st.rejected_by_reason == {'future': 1, 'nan': 1} and st.force_clamped
+
+
+def test_disable_on_state_command_zeroes_the_force_and_enable_ramps_it_back(make_driver):
+    from crtk_msgs.msg import StringStamped
+
+    node = make_driver(ramp_time=0.1)
+    dds = FakeReader(node)
+    for k in range(5):
+        dds.arrive(k * 0.001)
+        force = dds.tick(node, k * 0.001)
+    assert force[0] == pytest.approx(0.3 * 0.04)                 # ramping up
+    node._on_state_command(StringStamped(string='disable'))
+    assert node.op_state.current.state == 'DISABLED'
+    for k in range(5, 60):
+        dds.arrive(k * 0.001)
+        assert not np.any(dds.tick(node, k * 0.001)), k           # commands keep coming: zero
+    node._on_state_command(StringStamped(string='pause'))         # not from DISABLED
+    assert node.op_state.current.state == 'DISABLED'
+    dds.now = 0.060
+    node._on_state_command(StringStamped(string='enable'))
+    for k in range(60, 111):
+        dds.arrive(k * 0.001)
+        force = dds.tick(node, k * 0.001)
+    assert node.op_state.current.state == 'ENABLED'
+    assert force[0] == pytest.approx(0.3 * 0.5)                   # 50 ms into a new 0.1 s ramp
+
+
+def test_a_driver_can_start_disabled_and_renders_nothing_until_enabled(make_driver):
+    from crtk_msgs.msg import StringStamped
+
+    node = make_driver(start_state='DISABLED')
+    dds = FakeReader(node)
+    for k in range(20):
+        dds.arrive(k * 0.001)
+        assert not np.any(dds.tick(node, k * 0.001))
+    node._on_state_command(StringStamped(string='enable'))
+    dds.arrive(0.020)
+    assert dds.tick(node, 0.020)[0] == pytest.approx(0.3)

@@ -232,12 +232,20 @@ def test_fake_libhd_round_trip_pose_out_force_in(rclpy_node, tmp_path):
                FAKEHD_FORCE_LOG=str(force_log))
     poses, watch = [], StateWatch(rclpy_node)
     best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)  # live QoS
+    from sensor_msgs.msg import JointState
+
+    joints = []
     rclpy_node.create_subscription(PoseStamped, 'omni/pose', poses.append, best_effort)
+    rclpy_node.create_subscription(JointState, 'omni/measured_js', joints.append, best_effort)
     pub = rclpy_node.create_publisher(WrenchStamped, 'omni/force_feedback', best_effort)
     with driver({'backend': 'openhaptics', 'library': str(lib), 'ramp_time': 0.05,
                  'watchdog_timeout': 0.02}, env=env) as proc:
         proc.wait_for_output(r'ready: backend openhaptics, source FAKE-00042', 30)
-        assert rclpy_node.spin_until(lambda: len(poses) >= 20, 10), proc.output()
+        assert rclpy_node.spin_until(lambda: len(poses) >= 20 and len(joints) >= 5, 10), proc.output()
+        js = joints[-1]                 # CRTK measured_js: the fake's joint and gimbal angles
+        assert list(js.name) == ['waist', 'shoulder', 'elbow', 'wrist1', 'wrist2', 'wrist3']
+        assert list(js.position) == pytest.approx([0.020, -0.0155, 0.00725, 0.1, 0.2, 0.3],
+                                                  abs=1e-12)
         p = poses[-1]
         assert p.header.frame_id == 'omni_base'
         assert (p.pose.position.x, p.pose.position.y, p.pose.position.z) == pytest.approx(
@@ -383,6 +391,84 @@ def test_scripted_without_loop_says_the_script_ended_and_keeps_publishing_the_re
     assert n == len(ref) and np.abs(got[:n] - ref).max() < 1e-9
     assert np.all(got[n:] == ref[-1])                      # at rest: the script's last point
     assert 'pass(es)' not in proc.output()
+
+
+def test_crtk_measured_cp_is_the_pose_at_crtk_rate_and_measured_cv_its_velocity(rclpy_node,
+                                                                                tmp_path):
+    """A bag moving at 1 m/s (x = k mm every 1 ms): measured_cp repeats every second pose (the
+    default 500 Hz), measured_cv settles on the bag's 1 m/s; no joint angles, so no measured_js."""
+    from geometry_msgs.msg import PoseStamped, TwistStamped
+
+    make_pose_bag(tmp_path / 'b', n=400)
+    poses, cps, cvs = [], [], []
+    for topic, kind, sink in (('omni/pose', PoseStamped, poses), ('omni/measured_cp', PoseStamped, cps),
+                              ('omni/measured_cv', TwistStamped, cvs)):
+        rclpy_node.create_subscription(kind, topic, sink.append, reliable_qos(5000))
+    with driver({'backend': 'replay', 'bag': str(tmp_path / 'b'), 'reliable': True,
+                 'qos_depth': 5000, 'wait_for_subscribers': 1, 'exit_on_end': True,
+                 'rate': 0.5}) as proc:
+        assert rclpy_node.spin_until(lambda: not proc.alive(), 60), proc.output()
+        assert proc.wait(5) == 0
+        assert rclpy_node.spin_until(lambda: len(poses) >= 400 and len(cps) >= 150, 10)
+        assert rclpy_node.get_publishers_info_by_topic('/omni/measured_js') == []
+    t0 = stamp_ns(poses[0].header)
+    late = [c for c in cps if stamp_ns(c.header) - t0 >= 100_000_000]      # all matched by then
+    assert len(late) == 150
+    assert all((stamp_ns(c.header) - t0) % 2_000_000 == 0 for c in late)
+    assert all(c.pose.position.x == pytest.approx((stamp_ns(c.header) - t0) * 1e-9, abs=1e-12)
+               for c in late)
+    settled = [c.twist.linear for c in cvs if stamp_ns(c.header) - t0 >= 100_000_000]
+    assert settled and all(v.x == pytest.approx(1.0, abs=1e-6) and v.y == v.z == 0.0 for v in settled)
+
+
+def test_crtk_state_command_disables_the_force_and_servo_cf_reaches_the_device(rclpy_node):
+    """operating_state is latched; a servo_cf setpoint passes the safety chain to the device until
+    state_command disables it (then nothing is rendered though setpoints keep coming); a command
+    that does not apply is refused with a line that says why."""
+    from crtk_msgs.msg import OperatingState, StringStamped
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    states = []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    rclpy_node.create_subscription(OperatingState, 'omni/operating_state', states.append, latched)
+    command = rclpy_node.create_publisher(StringStamped, 'omni/state_command', 10)
+    setpoint = rclpy_node.create_publisher(WrenchStamped, 'omni/servo_cf', reliable_qos())
+    watch = StateWatch(rclpy_node)
+    with driver({'backend': 'scripted', 'tremor_amplitude': 0.0, 'loop': True, 'reliable': True,
+                 'ramp_time': 0.05, 'watchdog_timeout': 0.05}) as proc:
+        assert rclpy_node.spin_until(lambda: states and watch.msgs, 30), proc.output()
+        assert (states[-1].state, states[-1].is_homed, states[-1].is_busy) == ('ENABLED', True, False)
+        harness.wait_for_matching(rclpy_node, setpoint)
+        harness.wait_for_matching(rclpy_node, command)
+
+        def send_until(pred, timeout=20.0):
+            msg = WrenchStamped()
+            msg.header.frame_id = 'omni_base'
+            msg.wrench.force.y = 0.2
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                setpoint.publish(msg)
+                rclpy_node.spin_until(lambda: False, 0.002)
+                if pred():
+                    return True
+            return False
+
+        def rendered(y):
+            return watch.msgs[-1][1].commanded_force.y == pytest.approx(y)
+
+        assert send_until(lambda: rendered(0.2)), proc.output()
+        command.publish(StringStamped(string='disable'))
+        assert send_until(lambda: states[-1].state == 'DISABLED' and rendered(0.0)
+                          and not watch.msgs[-1][1].force_enabled), proc.output()
+        n = len(watch.msgs)
+        assert send_until(lambda: len(watch.msgs) >= n + 20)
+        assert all(m.commanded_force.y == 0.0 for _, m in watch.msgs[n:])
+        command.publish(StringStamped(string='resume'))
+        proc.wait_for_output(r"state_command 'resume': 'resume' does not apply in state DISABLED", 10)
+        command.publish(StringStamped(string='enable'))
+        assert send_until(lambda: states[-1].state == 'ENABLED' and rendered(0.2)), proc.output()
 
 
 def test_a_driver_on_fast_dds_shared_memory_warns_that_a_dead_peer_can_stall_it(ros_domain):

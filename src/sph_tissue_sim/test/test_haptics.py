@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from sph_tissue_sim.haptics.coupling import ContactModel, VirtualCoupling
-from sph_tissue_sim.haptics.estimator import TrackingFilter
+from tissue_common.estimator import TrackingFilter
 from sph_tissue_sim.haptics.passivity import PassivityController, PassivityObserver
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
 

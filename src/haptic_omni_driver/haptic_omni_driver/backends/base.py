@@ -27,6 +27,8 @@ class Sample:
         buttons: (button1, button2) or None when the source has no button information.
         raw: serialized PoseStamped (CDR) to publish as-is (replay keeps bag bytes identical).
         phase: name of the script phase (scripted backend), for logs.
+        joints: joint and gimbal angles [rad] in :attr:`Backend.joint_names` order, where the
+            source has them (OpenHaptics), else None.
     """
 
     stamp_ns: int
@@ -35,6 +37,7 @@ class Sample:
     buttons: tuple[bool, bool] | None = None
     raw: bytes | None = None
     phase: str = ''
+    joints: np.ndarray | None = None
 
 
 class BackendSink(Protocol):
@@ -66,6 +69,8 @@ class Backend(abc.ABC):
     name: str = ''
     #: True if the backend renders forces itself (servo in its own loop); False = virtual device
     has_device: bool = False
+    #: names of :attr:`Sample.joints` (CRTK measured_js); empty: the source has no joint angles
+    joint_names: tuple[str, ...] = ()
 
     def __init__(self) -> None:
         self.source = ''

@@ -31,6 +31,8 @@ HD_TIMER_ERROR = 0x0304
 HD_CURRENT_BUTTONS = 0x2000
 HD_CURRENT_POSITION = 0x2050
 HD_CURRENT_TRANSFORM = 0x2052
+HD_CURRENT_JOINT_ANGLES = 0x2100
+HD_CURRENT_GIMBAL_ANGLES = 0x2150
 HD_DEVICE_MODEL_TYPE = 0x2501
 HD_DEVICE_SERIAL_NUMBER = 0x2504
 HD_CALIBRATION_STYLE = 0x2555
@@ -124,6 +126,9 @@ class OpenHapticsBackend(Backend):
 
     name = 'openhaptics'
     has_device = True
+    #: HD_CURRENT_JOINT_ANGLES (base, upper arm, forearm) then HD_CURRENT_GIMBAL_ANGLES, as the
+    #: ROS 1 phantom_omni driver named them
+    joint_names = ('waist', 'shoulder', 'elbow', 'wrist1', 'wrist2', 'wrist3')
 
     def __init__(self, library: str = 'libHD.so', device_name: str = '',
                  require_calibration: bool = False, clock_ns=time.time_ns) -> None:
@@ -140,6 +145,8 @@ class OpenHapticsBackend(Backend):
         self.frames = 0
         self.calibration_status = HD_CALIBRATION_OK
         self._transform = (ctypes.c_double * 16)()
+        self._joints = (ctypes.c_double * 3)()
+        self._gimbal = (ctypes.c_double * 3)()
         self._buttons = ctypes.c_int(0)
         self._force = (ctypes.c_double * 3)()
         self._done = threading.Event()
@@ -195,6 +202,8 @@ class OpenHapticsBackend(Backend):
             lib, hhd = self.lib, self.hhd
             lib.hdBeginFrame(hhd)
             lib.hdGetDoublev(HD_CURRENT_TRANSFORM, self._transform)
+            lib.hdGetDoublev(HD_CURRENT_JOINT_ANGLES, self._joints)
+            lib.hdGetDoublev(HD_CURRENT_GIMBAL_ANGLES, self._gimbal)
             lib.hdGetIntegerv(HD_CURRENT_BUTTONS, ctypes.byref(self._buttons))
             force = self._sink.servo() if self._sink is not None else np.zeros(3)
             if not self._force_on and np.any(force != 0.0):
@@ -218,7 +227,8 @@ class OpenHapticsBackend(Backend):
             if self._sink is not None:
                 self._sink.on_sample(Sample(self.clock_ns(), pos, quat,
                                             (bool(b & HD_DEVICE_BUTTON_1),
-                                             bool(b & HD_DEVICE_BUTTON_2))))
+                                             bool(b & HD_DEVICE_BUTTON_2)),
+                                            joints=np.r_[self._joints[:], self._gimbal[:]]))
         except Exception as exc:  # noqa: BLE001 - never let an exception cross into C
             self._fatal = f'servo callback failed: {exc}'
             self._done.set()

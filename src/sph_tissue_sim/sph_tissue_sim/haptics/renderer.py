@@ -24,7 +24,7 @@ import numpy as np
 from tissue_common.force import HARD_FORCE_LIMIT, clamp_norm
 
 from .coupling import ContactModel, VirtualCoupling
-from .estimator import TrackingFilter
+from tissue_common.estimator import TrackingFilter
 from .passivity import PassivityController, PassivityObserver
 
 #: the contact model's stiffness may reach this many times the coupling's: it linearises the tissue
@@ -49,7 +49,7 @@ class RendererConfig:
 
     Attributes:
         velocity_cutoff: cut-off of the position/velocity tracking filter [Hz] (see
-            :mod:`.estimator`); lower is smoother but overshoots more where the hand turns
+            :mod:`tissue_common.estimator`); lower is smoother but overshoots more where the hand turns
             (which is active).
         coupling_stiffness: ``K_c`` of the virtual coupling [N/m]; the hand never feels more.
             Default 700 N/m, what a PHANTOM Omni renders (about 0.7 N/mm).

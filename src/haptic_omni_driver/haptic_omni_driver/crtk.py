@@ -1,0 +1,91 @@
+"""The CRTK operating state of the device (no rclpy).
+
+The Collaborative Robotics Toolkit (CRTK, the names the dVRK and sawSensablePhantom use) gives a
+device four meta-states and six commands, sent as strings on ``state_command``:
+
+    DISABLED --enable--> ENABLED --pause--> PAUSED --resume--> ENABLED
+    any state --disable--> DISABLED;   a device failure --> FAULT --disable--> DISABLED
+
+``home`` and ``unhome`` set ``is_homed`` (they are accepted in any state but FAULT). Only ENABLED
+renders force: in every other state the safety chain outputs zero and, back in ENABLED, ramps up
+again from zero. A command that does not apply to the current state changes nothing and says why
+(CRTK devices ignore it with a warning). For the Omni, homed means calibrated: the OpenHaptics
+backend reports its calibration; replay and scripted sources are always homed.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+STATES = ('DISABLED', 'ENABLED', 'PAUSED', 'FAULT')
+COMMANDS = ('enable', 'disable', 'pause', 'resume', 'home', 'unhome')
+#: command -> (states it applies in, state it leads to; None = unchanged)
+TRANSITIONS = {
+    'enable': (('DISABLED', 'ENABLED'), 'ENABLED'),
+    'disable': (STATES, 'DISABLED'),
+    'pause': (('ENABLED', 'PAUSED'), 'PAUSED'),
+    'resume': (('PAUSED', 'ENABLED'), 'ENABLED'),
+    'home': (('DISABLED', 'ENABLED', 'PAUSED'), None),
+    'unhome': (('DISABLED', 'ENABLED', 'PAUSED'), None),
+}
+
+
+@dataclass(frozen=True)
+class OperatingState:
+    """One snapshot, as ``crtk_msgs/OperatingState`` carries it."""
+
+    state: str
+    is_homed: bool
+    is_busy: bool = False
+
+    @property
+    def renders_force(self) -> bool:
+        return self.state == 'ENABLED'
+
+
+class OperatingStateMachine:
+    """The device's CRTK state; thread-safe (commands from the executor, faults from a backend)."""
+
+    def __init__(self, start: str = 'ENABLED', homed: bool = True) -> None:
+        if start not in ('DISABLED', 'ENABLED'):
+            raise ValueError(f'a device starts DISABLED or ENABLED, not {start!r}')
+        self._lock = threading.Lock()
+        self._state = OperatingState(start, homed)
+        self.fault_reason = ''
+
+    @property
+    def current(self) -> OperatingState:
+        with self._lock:
+            return self._state
+
+    def command(self, text: str, homed_now: bool = True) -> tuple[OperatingState, str]:
+        """Apply a ``state_command`` string; returns (the state after, '' or why nothing changed).
+
+        ``homed_now``: what homing finds (the device's calibration) for ``home``."""
+        cmd = text.strip().lower()
+        with self._lock:
+            old = self._state
+            if cmd not in TRANSITIONS:
+                return old, f'unknown command {text!r} (one of {", ".join(COMMANDS)})'
+            valid_in, to = TRANSITIONS[cmd]
+            if old.state not in valid_in:
+                return old, f'{cmd!r} does not apply in state {old.state}'
+            homed = old.is_homed
+            if cmd == 'home':
+                homed = homed_now
+            elif cmd == 'unhome':
+                homed = False
+            if cmd == 'disable':
+                self.fault_reason = ''
+            self._state = OperatingState(to or old.state, homed)
+            if cmd == 'home' and not homed_now:
+                return self._state, 'homing did not succeed (the device is not calibrated)'
+            return self._state, ''
+
+    def fault(self, reason: str) -> OperatingState:
+        """The device failed: FAULT until ``disable``."""
+        with self._lock:
+            self.fault_reason = reason
+            self._state = OperatingState('FAULT', self._state.is_homed)
+            return self._state
