@@ -42,6 +42,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from tissue_common.estimator import TrackingFilter
+from tissue_common.frames import STYLUS_FRAME, TfBroadcaster, Transform
 from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_until_stopped,
                                       stop_on_signals)
 from tissue_common.params import check_choice, declare_all
@@ -189,6 +190,8 @@ class OmniDriver(Node):
         self.servo_cf_sub = self.create_subscription(WrenchStamped, 'omni/servo_cf',
                                                      lambda _msg: None, qos)
         self._take_setpoint = self._take_setpoint_from_reader
+        # the stylus tip as a frame (omni_base -> omni_stylus) where tf2 is installed
+        self.tf = TfBroadcaster(self, static=False)
         self._publish_operating_state()
 
     @property
@@ -317,6 +320,9 @@ class OmniDriver(Node):
             set_stamp(js.header.stamp, stamp)
             js.position = [float(a) for a in sample.joints]
             self.js_pub.publish(js)
+        if self.tf.available:
+            tip = Transform(self.p['frame_id'], STYLUS_FRAME, sample.position, sample.orientation)
+            self.tf.send([tip.to_msg(cv.header.stamp)])
 
     def _on_state_command(self, msg: StringStamped) -> None:
         """A CRTK state_command: enable, disable, pause, resume, home, unhome."""

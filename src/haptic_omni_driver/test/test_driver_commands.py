@@ -7,6 +7,7 @@ thread (or the GIL) was busy. That was the spurious 20 ms trip on a clean 1 kHz 
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -259,3 +260,24 @@ def test_a_driver_can_start_disabled_and_renders_nothing_until_enabled(make_driv
     node._on_state_command(StringStamped(string='enable'))
     dds.arrive(0.020)
     assert dds.tick(node, 0.020)[0] == pytest.approx(0.3)
+
+
+def test_the_stylus_frame_is_the_pose_sent_with_measured_cp(make_driver):
+    """Where tf2 is installed the driver sends omni_base -> omni_stylus beside measured_cp: the
+    pose itself, at crtk_rate (here a recorder stands in for /tf)."""
+    import types
+
+    from haptic_omni_driver.backends.base import Sample
+
+    node = make_driver(crtk_rate=500.0)
+    sent = []
+    node.tf = types.SimpleNamespace(available=True, send=sent.extend)
+    q = np.array([0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)])
+    for k in range(4):
+        node.on_sample(Sample(WALL0 + k * 1_000_000, np.array([0.01 * k, 0.02, -0.03]), q))
+    assert [stamp.header.stamp.nanosec for stamp in sent] == [0, 2_000_000]
+    tip = sent[-1]
+    assert (tip.header.frame_id, tip.child_frame_id) == ('omni_base', 'omni_stylus')
+    t, r = tip.transform.translation, tip.transform.rotation
+    assert (t.x, t.y, t.z) == pytest.approx((0.02, 0.02, -0.03))
+    assert (r.x, r.y, r.z, r.w) == pytest.approx(tuple(q))

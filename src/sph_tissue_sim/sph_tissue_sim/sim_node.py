@@ -53,13 +53,14 @@ import traceback
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped, WrenchStamped
+from geometry_msgs.msg import PoseStamped, TransformStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from tissue_common.force import clamp_norm
+from tissue_common.frames import TfBroadcaster, Transform
 from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_until_stopped,
                                       stop_on_signals)
 from tissue_common.params import declare_all
@@ -208,6 +209,18 @@ class SimNode(Node):
             PointCloud2, 'tissue/particles',
             QoSProfile(depth=2, history=HistoryPolicy.KEEP_LAST,
                        reliability=ReliabilityPolicy.RELIABLE))
+        # where the device sits in the tissue scene: latched, and on /tf_static where tf2 is installed
+        self.frame_pub = self.create_publisher(
+            TransformStamped, 'tissue/device_frame',
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.tf_static = TfBroadcaster(self, static=True)
+        if self.mapping.scale != 1.0:
+            self.get_logger().warn(
+                f'workspace_scale {self.mapping.scale:g}: the {p["device_frame"]} frame on '
+                f'tissue/device_frame and /tf_static has the map\'s rotation and origin only (a '
+                f'transform cannot scale), so a stylus drawn through it sits at its unscaled offset')
+        self._publish_device_frame()
         self.reset_srv = self.create_service(ResetTissue, 'tissue/reset', self._on_reset)
         self.cloud_timer = None
         self._set_cloud_timer(p['particles_rate'])
@@ -221,6 +234,13 @@ class SimNode(Node):
                               p['anchor'])
         return DeviceMapping.build(p['rotation'], p['translation'], p['workspace_scale'],
                                    p['force_scale'], anchor)
+
+    def _publish_device_frame(self) -> None:
+        m = self.mapping
+        frame = Transform.from_matrix(self.p['tissue_frame'], self.p['device_frame'], m.rotation,
+                                      m.origin).to_msg(self.get_clock().now().to_msg())
+        self.frame_pub.publish(frame)
+        self.tf_static.send([frame])
 
     def _set_cloud_timer(self, rate: float) -> None:
         if self.cloud_timer is not None:
@@ -717,6 +737,8 @@ class SimNode(Node):
             self.p = new
         if 'particles_rate' in changed:
             self._set_cloud_timer(new['particles_rate'])
+        if 'device_frame' in changed:
+            self._publish_device_frame()
         what = ('solver rebuilt, tissue at rest' if solver is not None else
                 'material swapped' if material is not None else 'applied')
         self.get_logger().info(f'parameters {sorted(changed)} changed: {what}; now '

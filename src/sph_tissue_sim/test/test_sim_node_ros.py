@@ -112,6 +112,34 @@ def test_metrics_follow_the_solver_steps_with_sane_content(probe):
     assert sim_times[-1] <= len(path) * 1e-3 + 1e-9
 
 
+def test_the_device_frame_is_latched_and_maps_the_device_where_the_simulation_does(rclpy_node,
+                                                                                   live_sim):
+    """tissue/device_frame: the tissue <- omni_base transform (also /tf_static where tf2 exists),
+    equal to the node's own device map, for a subscriber that joins at any time."""
+    from geometry_msgs.msg import TransformStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    from sph_tissue_sim import params as sim_params
+    from sph_tissue_sim.sim_node import SimNode, make_solver
+    from sim_probe import BLOCK
+    from tissue_common.frames import from_msg
+
+    got = []
+    rclpy_node.create_subscription(TransformStamped, 'tissue/device_frame', got.append, QoSProfile(
+        depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    assert rclpy_node.spin_until(lambda: got, 30), live_sim.output()
+    tr = from_msg(got[-1])
+    assert (tr.parent, tr.child) == ('tissue', 'omni_base')
+    p = {name: spec[0] for name, spec in SIM_PARAMS.items()} | BLOCK
+    solver = make_solver(sim_params.build_model(p), sim_params.build_material(p),
+                         sim_params.build_config(p), p['nominal_dt'])
+    mapping = SimNode._make_mapping(p, solver)
+    for point in ([0.0, 0.0, 0.0], [0.01, -0.004, 0.02], [-0.03, 0.05, 0.0]):
+        assert tr.apply(point) == pytest.approx(mapping.to_tissue(point), abs=1e-12)
+    # the default map: the device's up (y) is the tissue's up (z)
+    assert tr.apply([0.0, 0.01, 0.0]) - tr.apply([0.0, 0.0, 0.0]) == pytest.approx([0, 0, 0.01])
+
+
 def test_particle_cloud_fields_and_count_match_the_model(probe):
     from sensor_msgs.msg import PointField
 

@@ -59,6 +59,19 @@ def test_tissue_force_up_is_device_force_up_scaled_by_force_scale():
     assert m.force_to_device([0.0, -2.0, 0.0]) == pytest.approx([0.0, 0.0, 1.0])
 
 
+@pytest.mark.parametrize('quaternion', [DEFAULT_ROTATION, (0.1, -0.3, 0.2, 0.9)])
+def test_the_device_frame_transform_is_the_device_map_at_unit_scale(quaternion):
+    """What sim_node publishes as tissue <- omni_base (tissue/device_frame, /tf_static) maps every
+    device point where the simulation puts it."""
+    from tissue_common.frames import Transform
+
+    m = DeviceMapping.build(quaternion, [0.004, -0.002, 0.01], 1.0, 1.0, np.array([0.0, 0.0, 0.05]))
+    tr = Transform.from_matrix('tissue', 'omni_base', m.rotation, m.origin)
+    rng = np.random.default_rng(3)
+    for p in rng.uniform(-0.1, 0.1, size=(20, 3)):
+        assert tr.apply(p) == pytest.approx(m.to_tissue(p), abs=1e-15)
+
+
 def test_mapping_refuses_bad_translation_and_scales():
     with pytest.raises(ConfigError, match='translation'):
         DeviceMapping.build(DEFAULT_ROTATION, [0, math.inf, 0], 1.0, 1.0, anchor=[0, 0, 0])
