@@ -3,13 +3,19 @@
 
 Starts, as separate processes from their installed executables (what ``ros2 run`` starts) on a
 private ROS_DOMAIN_ID: ``tissue_viz viz_node``, ``sph_tissue_sim sim_node`` and
-``haptic_omni_driver omni_driver`` replaying a bundled bag. Shows one live line: bag progress, the
-force sent to the device, pose->force latency, haptic rate and the simulation step time. At the end
-of the bag the nodes are stopped (SIGINT, as Ctrl-C) and the viz report folder is printed.
+``haptic_omni_driver omni_driver`` replaying a bundled bag (or playing its script, or the device).
+Shows one live line: progress, the force sent to the device, pose->force latency, haptic rate and
+the simulation step time. At the end of the bag (the script; Ctrl-C for a device) the nodes are
+stopped (SIGINT, as Ctrl-C) and the viz report folder is printed.
+
+The same choices as ``ros2 launch sph_tissue_sim bringup.launch.py`` (for installs without the
+launch packages): backend, bag, model, tool, timing, and one YAML per node.
 
 Usage (``bash scripts/demo.sh`` sets up the workspace and runs this)::
 
-    python scripts/demo_run.py [--bag bags/long] [--mode timed|lockstep] [--rate 1.0]
+    python scripts/demo_run.py [--backend replay|scripted|openhaptics] [--bag bags/long]
+        [--timing timed|lockstep] [--rate 1.0] [--model liver] [--tool sphere|capsule]
+        [--driver-params F.yaml] [--sim-params F.yaml] [--viz-params F.yaml]
 """
 
 from __future__ import annotations
@@ -45,10 +51,19 @@ def _fmt_line(mon: graph.Monitor, t_prev: tuple, step_ms: float | None) -> tuple
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--backend', choices=('replay', 'scripted', 'openhaptics'), default='replay',
+                    help='omni_driver backend: replay a bag (default), play the scripted session '
+                         'once, or the device (until Ctrl-C)')
     ap.add_argument('--bag', type=Path, default=ROOT / 'bags' / 'long', help='bag folder to replay')
-    ap.add_argument('--mode', choices=('timed', 'lockstep'), default='timed',
+    ap.add_argument('--timing', '--mode', dest='mode', choices=('timed', 'lockstep'), default='timed',
                     help='timed: the recorded 1 kHz timing, sim in live mode (default); lockstep: '
-                         'each pose waits for its force, sim in lockstep mode (deterministic)')
+                         'each pose waits for its force, sim in lockstep mode (deterministic; replay '
+                         'only)')
+    ap.add_argument('--model', default=None, help='sim_node model (liver, block, beam, mesh)')
+    ap.add_argument('--tool', default=None, help='sim_node tool_shape (sphere, capsule)')
+    for node in ('driver', 'sim', 'viz'):
+        ap.add_argument(f'--{node}-params', type=Path, default=None,
+                        help=f'a ROS 2 params YAML for the {node} node (the options above override it)')
     ap.add_argument('--rate', type=float, default=1.0, help='timed replay speed factor')
     ap.add_argument('--report-dir', type=Path, default=None,
                     help='report folder (default reports/demo_<date_time>)')
@@ -65,25 +80,45 @@ def main(argv=None) -> int:
 
     from haptic_omni_driver import bagio
 
+    if args.mode == 'lockstep' and args.backend != 'replay':
+        print('demo: error: --timing lockstep needs --backend replay (a live source cannot wait '
+              'for each force)', file=sys.stderr)
+        return 2
+    for path in (args.driver_params, args.sim_params, args.viz_params):
+        if path is not None and not path.is_file():
+            print(f'demo: error: no params file {path}', file=sys.stderr)
+            return 2
     bag = args.bag.resolve()
-    try:
-        topics = bagio.bag_topics(bag)
-    except Exception as exc:  # noqa: BLE001
-        print(f'demo: error: {exc}', file=sys.stderr)
-        return 1
-    n_total = next((t.count for t in topics.values() if t.name.lstrip('/') == 'omni/pose'), 0)
+    n_total = 0
+    if args.backend == 'replay':
+        try:
+            topics = bagio.bag_topics(bag)
+        except Exception as exc:  # noqa: BLE001
+            print(f'demo: error: {exc}', file=sys.stderr)
+            return 1
+        n_total = next((t.count for t in topics.values() if t.name.lstrip('/') == 'omni/pose'), 0)
     report_dir = (args.report_dir or ROOT / 'reports' / time.strftime('demo_%Y%m%d_%H%M%S')).resolve()
     env = harness.ros_env(args.domain)
     tty = sys.stdout.isatty() and os.environ.get('CI', '').lower() not in ('1', 'true', 'yes')
-    print(f'demo: bag {bag} ({n_total} poses), replay {args.mode}, ROS_DOMAIN_ID '
-          f'{env["ROS_DOMAIN_ID"]}', flush=True)
+    source = (f'bag {bag} ({n_total} poses), replay {args.mode}' if args.backend == 'replay'
+              else f'backend {args.backend}')
+    print(f'demo: {source}, ROS_DOMAIN_ID {env["ROS_DOMAIN_ID"]}', flush=True)
 
     sim_mode = 'lockstep' if args.mode == 'lockstep' else 'live'
-    viz = graph.viz(report_dir, env=env, params={'report_title': f'Demo: {bag.name} ({args.mode})',
-                                                 'summary_period': 5.0})
-    sim = graph.sim(sim_mode, env=env, golden=args.golden)
+    title = f'{bag.name} ({args.mode})' if args.backend == 'replay' else args.backend
+    viz = graph.viz(report_dir, env=env, params={'report_title': f'Demo: {title}',
+                                                 'summary_period': 5.0},
+                    params_file=args.viz_params)
+    sim_params = {k: v for k, v in (('model', args.model), ('tool_shape', args.tool)) if v}
+    sim = graph.sim(sim_mode, env=env, golden=args.golden, params=sim_params,
+                    params_file=args.sim_params)
     # pose subscribers to wait for: sim, viz and this script's monitor
-    drv = graph.driver_replay(bag, args.mode, env=env, rate=args.rate, subscribers=3)
+    if args.backend == 'replay':
+        drv = graph.driver_replay(bag, args.mode, env=env, rate=args.rate, subscribers=3,
+                                  params_file=args.driver_params)
+    else:
+        drv = graph.driver_device(args.backend, env=env, subscribers=3,
+                                  params_file=args.driver_params)
     procs = [drv, sim, viz]
     code = 0
     t_start = time.monotonic()
@@ -93,7 +128,8 @@ def main(argv=None) -> int:
         print('demo: starting viz_node and sim_node (the first start compiles the SPH kernels)',
               flush=True)
         viz.wait_for_output(graph.VIZ_READY, timeout=60)
-        sim.wait_for_output(graph.SIM_READY, timeout=240)
+        ready = sim.wait_for_output(graph.SIM_READY + r'(model [^\n]*)', timeout=240)
+        print(f'demo: sim_node {ready.group(1)}', flush=True)
         print(f'demo: nodes ready after {time.monotonic() - t_start:.1f} s; replaying', flush=True)
         with graph.Monitor(env, reliable=args.mode == 'lockstep') as mon:
             mon.probe_sim()
@@ -107,7 +143,7 @@ def main(argv=None) -> int:
 
                 # a pty without a size (0 x 0) makes tqdm hide the bar: give it one
                 size = shutil.get_terminal_size((120, 24))
-                bar = tqdm(total=n_total, unit='pose', ncols=max(size.columns, 100),
+                bar = tqdm(total=n_total or None, unit='pose', ncols=max(size.columns, 100),
                            nrows=max(size.lines, 10), smoothing=0.1, file=sys.stdout)
             prev = (time.monotonic(), 0)
             last_print = 0.0
@@ -115,18 +151,18 @@ def main(argv=None) -> int:
                 time.sleep(0.2)
                 m = mon.last_metrics
                 step_ms = m.step_wall_time * 1e3 if m is not None else None
+                done = min(mon.n_poses, n_total) if n_total else mon.n_poses
                 if bar is not None:
                     line, prev = _fmt_line(mon, prev, step_ms)
-                    bar.update(min(mon.n_poses, n_total) - bar.n)
+                    bar.update(done - bar.n)
                     bar.set_postfix_str(line, refresh=True)
                 elif time.monotonic() - last_print >= 5.0:
                     line, prev = _fmt_line(mon, prev, step_ms)
                     last_print = time.monotonic()
-                    pct = 100.0 * min(mon.n_poses, n_total) / max(n_total, 1)
-                    print(f'demo: {pct:5.1f} % {min(mon.n_poses, n_total)}/{n_total} poses  {line}',
-                          flush=True)
+                    pct = f'{100.0 * done / n_total:5.1f} % ' if n_total else ''
+                    print(f'demo: {pct}{done}/{n_total or "?"} poses  {line}', flush=True)
             if bar is not None:
-                bar.update(min(mon.n_poses, n_total) - bar.n)
+                bar.update((min(mon.n_poses, n_total) if n_total else mon.n_poses) - bar.n)
                 bar.close()
             if drv.returncode != 0:
                 print(f'demo: error: omni_driver exited with {drv.returncode}:\n'
@@ -155,9 +191,9 @@ def main(argv=None) -> int:
     totals = re.search(r'totals: ([^\n]*)', sim.output())
     if totals:
         print(f'demo: sim_node {totals.group(1)}', flush=True)
-    finished = re.search(r'replay finished: ([^\n]*)', drv.output())
+    finished = re.search(r'(?:replay|script) finished: ([^\n]*)', drv.output())
     if finished:
-        print(f'demo: omni_driver {finished.group(1)}', flush=True)
+        print(f'demo: omni_driver {finished.group(0)}', flush=True)
     m = re.search(r'report written: (\S+)', viz.output())
     if m:
         index = Path(m.group(1))

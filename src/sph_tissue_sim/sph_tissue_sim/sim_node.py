@@ -254,6 +254,7 @@ class SimNode(Node):
         o = self.mapping.origin
         return (f'model {self.model.name} ({s.n_particles} particles, {int(s.fixed.sum())} fixed, '
                 f'spacing {self.model.spacing * 1e3:.2f} mm, h {s.smoothing_length * 1e3:.2f} mm), '
+                f'tool {s.tool.name} (radius {s.tool.radius * 1e3:g} mm), '
                 f'scheme {c.scheme}, mode {c.mode}, material {m.name} (E {m.E:.4g} Pa, nu {m.nu:g}, '
                 f'eta_shear {m.eta_shear:g} Pa s), timing {self.p["timing_mode"]}, pose QoS '
                 f'{"reliable" if self.io_qos.reliability == ReliabilityPolicy.RELIABLE else "best effort"}'

@@ -273,3 +273,27 @@ def test_launch_file_imports_without_the_launch_packages():
     except ImportError:
         return
     assert mod.generate_launch_description() is not None
+
+
+def test_bringup_launch_sets_only_parameters_its_nodes_declare():
+    """The bring-up's arguments reach parameters each node really has (a typo would be ignored by
+    ROS at launch, silently); the launch packages are absent here, so this checks the mapping the
+    file builds its nodes from, and the file imports."""
+    import importlib.util
+
+    from haptic_omni_driver.params import DRIVER_PARAMS
+    from tissue_viz.viz_node import PARAMETERS as VIZ_PARAMS
+
+    spec = importlib.util.spec_from_file_location('bringup', PKG_DIR / 'launch' / 'bringup.launch.py')
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert callable(mod.generate_launch_description)
+    overrides = mod.node_overrides(lambda name: name)
+    declared = {'omni_driver': DRIVER_PARAMS, 'sim_node': SIM_PARAMS, 'viz_node': VIZ_PARAMS}
+    for node, params in overrides.items():
+        assert set(params) <= set(declared[node]), (node, set(params) - set(declared[node]))
+    used = {v for params in overrides.values() for v in params.values()}
+    assert used - {'replay_mode', 'timing_mode'} <= set(mod.ARGUMENTS)
+    # every choice a launch argument offers is one its parameter accepts
+    assert set(mod.ARGUMENTS['backend'][1].split(': ')[1].split(' | ')) == set(DRIVER_PARAMS['backend'][2])
+    assert set(mod.ARGUMENTS['tool'][1].split(': ')[1].split(' | ')) == set(SIM_PARAMS['tool_shape'][2])

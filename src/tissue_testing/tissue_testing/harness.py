@@ -92,7 +92,8 @@ class NodeProcess:
     """
 
     def __init__(self, pkg: str, exe: str, args: Iterable[str] = (), ros_args: Iterable[str] = (),
-                 params_file: str | Path | None = None, params: Mapping[str, object] | None = None,
+                 params_file: str | Path | Iterable[str | Path] | None = None,
+                 params: Mapping[str, object] | None = None,
                  env: Mapping[str, str] | None = None, name: str | None = None,
                  node_name: str | None = None, command: Iterable[str] | None = None) -> None:
         self.pkg, self.exe = pkg, exe
@@ -101,8 +102,11 @@ class NodeProcess:
         # ``command`` starts a node that is not installed (a benchmark's script) the same way
         cmd = [*(command if command is not None else [str(executable(pkg, exe))]), *args]
         extra = list(ros_args)
-        if params_file is not None:
-            extra += ['--params-file', str(params_file)]
+        # params files in order (a later one overrides an earlier one), then ``params`` over them
+        files = ([] if params_file is None else [params_file]
+                 if isinstance(params_file, (str, Path)) else list(params_file))
+        for path in files:
+            extra += ['--params-file', str(path)]
         if params:
             # A params file keyed by '/**' applies to whatever the node is called.
             path = write_params_file(node_name or '/**', params, self._tmp.name)

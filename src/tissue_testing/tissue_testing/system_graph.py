@@ -36,33 +36,53 @@ RECORD_READY = r'recording '
 
 
 def sim(mode: str = 'lockstep', env: Mapping[str, str] | None = None, golden: bool = True,
-        params: Mapping[str, object] | None = None, name: str = 'sim_node') -> harness.NodeProcess:
-    """sim_node in ``mode`` (lockstep | live), with the golden parameters unless ``golden`` is False."""
+        params: Mapping[str, object] | None = None, name: str = 'sim_node',
+        params_file: str | Path | None = None) -> harness.NodeProcess:
+    """sim_node in ``mode`` (lockstep | live), with the golden parameters unless ``golden`` is False,
+    then ``params_file``, then ``params``."""
     p = {'timing_mode': mode}
     p.update(params or {})
-    return harness.NodeProcess('sph_tissue_sim', 'sim_node', env=env, name=name,
-                               params_file=GOLDEN_SIM_PARAMS if golden else None, params=p)
+    files = [GOLDEN_SIM_PARAMS] if golden else []
+    files += [params_file] if params_file is not None else []
+    return harness.NodeProcess('sph_tissue_sim', 'sim_node', env=env, name=name, params_file=files,
+                               params=p)
 
 
 def driver_replay(bag: str | Path, mode: str = 'lockstep', env: Mapping[str, str] | None = None,
                   rate: float = 1.0, loop: bool = False, subscribers: int = 1,
-                  params: Mapping[str, object] | None = None) -> harness.NodeProcess:
+                  params: Mapping[str, object] | None = None,
+                  params_file: str | Path | None = None) -> harness.NodeProcess:
     """omni_driver replaying ``bag`` (lockstep: reliable, wait for each reply; timed: 1 kHz)."""
     p = {'backend': 'replay', 'bag': str(bag), 'replay_mode': mode, 'rate': float(rate),
          'loop': loop, 'exit_on_end': not loop, 'wait_for_subscribers': subscribers,
          'lockstep_timeout': 30.0, 'lockstep_timeout_action': 'continue'}
     p.update(params or {})
-    return harness.NodeProcess('haptic_omni_driver', 'omni_driver', env=env, params=p)
+    return harness.NodeProcess('haptic_omni_driver', 'omni_driver', env=env, params=p,
+                               params_file=params_file)
+
+
+def driver_device(backend: str, env: Mapping[str, str] | None = None, subscribers: int = 1,
+                  params: Mapping[str, object] | None = None,
+                  params_file: str | Path | None = None) -> harness.NodeProcess:
+    """omni_driver on a live source: ``scripted`` (one pass of its script, then it exits) or
+    ``openhaptics`` (the device, until stopped)."""
+    p = {'backend': backend, 'wait_for_subscribers': subscribers}
+    if backend == 'scripted':
+        p.update(loop=False, exit_on_end=True)
+    p.update(params or {})
+    return harness.NodeProcess('haptic_omni_driver', 'omni_driver', env=env, params=p,
+                               params_file=params_file)
 
 
 def viz(report_dir: str | Path | None = None, env: Mapping[str, str] | None = None,
-        params: Mapping[str, object] | None = None) -> harness.NodeProcess:
+        params: Mapping[str, object] | None = None,
+        params_file: str | Path | None = None) -> harness.NodeProcess:
     """viz_node writing its report to ``report_dir`` on shutdown (no report if None)."""
     p = {'report_on_shutdown': report_dir is not None, 'summary_period': 1.0}
     if report_dir is not None:
         p['report_dir'] = str(report_dir)
     p.update(params or {})
-    return harness.NodeProcess('tissue_viz', 'viz_node', env=env, params=p)
+    return harness.NodeProcess('tissue_viz', 'viz_node', env=env, params=p, params_file=params_file)
 
 
 def recorder(output: str | Path, env: Mapping[str, str] | None = None,
