@@ -115,5 +115,11 @@ def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clea
         # every stream of a lockstep replay runs on the bag's clock from its first message
         summary = json.loads((report / 'summary.json').read_text())
         assert summary['backwards_stamps'] == {'metrics': 0, 'particles': 0, 'pose': 0, 'force': 0}
+        # the organ itself, from the clouds viz_node received: pressed, with the tool drawn
+        from tissue_viz.tissue_images import TissueSnapshots
+
+        shots = TissueSnapshots.load(report / 'tissue_snapshots.npz')
+        assert shots.rest.peak < 1e-4 < shots.deepest.peak and shots.deepest.tool is not None
+        assert {'tissue_rest.png', 'tissue_deepest.png', 'tissue_press.gif'} <= set(summary['files'])
     print(f'{name}: {len(pose_stamps)} poses replayed in lockstep in {replay_s:.2f} s, peak golden '
           f'force {peak:.3f} N, max diff {worst:.1e} N')

@@ -13,9 +13,12 @@ from tissue_viz.errors import ReportError
 from tissue_viz.report import (PLOTS, TABLES, ReportData, load_report_data, main, read_csv,
                                write_csv, write_report)
 from tissue_viz.stats import HAPTIC_MULTIRATE, VizStats
+from tissue_viz.tissue_images import TissueSnapshots
 
 MS = 1_000_000
 PNGS = [png for png, _ in PLOTS]
+TISSUE_PNGS = ['tissue_rest.png', 'tissue_deepest.png']
+CHARTS = [png for png in PNGS if png not in TISSUE_PNGS]       # the 800 x 450 plots
 
 
 def _press_run(seconds: float = 2.0, rate: float = 500.0, multirate: bool = True) -> VizStats:
@@ -44,6 +47,25 @@ def _press_run(seconds: float = 2.0, rate: float = 500.0, multirate: bool = True
     return stats
 
 
+def _press_clouds(n_clouds: int = 40) -> TissueSnapshots:
+    """A 10 x 10 x 5 block pressed at its top centre and released: displacement a bowl under the
+    tool, deepest (4 mm) half-way, von Mises 1 kPa per mm of it."""
+    g = np.stack(np.meshgrid(np.arange(10), np.arange(10), np.arange(5), indexing='ij'), -1)
+    rest = g.reshape(-1, 3) * 0.005 + np.array([-0.0225, -0.0225, 0.0])
+    top = np.array([0.0, 0.0, 0.02])
+    snaps = TissueSnapshots()
+    for k in range(n_clouds):
+        depth = 0.004 * math.sin(math.pi * k / (n_clouds - 1))
+        r2 = np.sum((rest - top) ** 2, axis=1)
+        disp = depth * np.exp(-r2 / 0.01 ** 2)
+        xyz = rest - np.outer(disp, [0.0, 0.0, 1.0])
+        columns = {'x': xyz[:, 0], 'y': xyz[:, 1], 'z': xyz[:, 2], 'displacement': disp,
+                   'von_mises': 1e6 * disp}
+        tool = (top + np.array([0.0, 0.0, 0.005 - depth]), np.zeros(3), 0.0, 0.005)
+        snaps.add(columns, k * 33 * MS, tool)
+    return snaps
+
+
 def _ink(path) -> tuple[tuple[int, int], float, int]:
     """(size, share of non-white pixels, number of distinct colours) of a PNG."""
     with Image.open(path) as img:
@@ -61,14 +83,16 @@ def report(tmp_path_factory):
     out = tmp_path_factory.mktemp('report') / 'run'
     targets = {'metrics': (450.0, 550.0), 'particles': (25.0, 35.0), 'pose': (450.0, 550.0),
                'force': (450.0, 550.0)}
-    write_report(out, ReportData.from_stats(stats, 2.0, title='Press test', rate_targets=targets))
+    write_report(out, ReportData.from_stats(stats, 2.0, title='Press test', rate_targets=targets,
+                                            tissue=_press_clouds()))
     return out, stats
 
 
 def test_report_folder_holds_plots_series_and_summaries(report):
     out, _ = report
     expected = set(PNGS) | {f'{n}.csv' for n in TABLES} | {'summary.md', 'index.html',
-                                                            'summary.json'}
+                                                            'summary.json', 'tissue_press.gif',
+                                                            'tissue_snapshots.npz'}
     assert expected <= {p.name for p in out.iterdir()}
     summary = json.loads((out / 'summary.json').read_text())
     assert set(summary['files']) == expected - {'summary.json'}
@@ -80,7 +104,7 @@ def test_report_folder_holds_plots_series_and_summaries(report):
 
 def test_report_pngs_are_non_blank_plots_with_colour(report):
     out, _ = report
-    for png in PNGS:
+    for png in CHARTS:
         size, ink, colours = _ink(out / png)
         assert size == (800, 450), png
         # Axes, labels, title and data: several per cent of the pixels, many colours (antialiasing,
@@ -157,7 +181,8 @@ def test_a_direct_run_gets_an_e_in_placeholder_and_no_haptic_summary_rows(tmp_pa
     out = write_report(tmp_path / 'run',
                        ReportData.from_stats(_press_run(0.5, multirate=False), 0.5))
     summary = _assert_complete_with_drawn_plots(out)
-    assert said == ['multirate haptic rendering']        # every other plot has its data
+    # every other plot has its data (no clouds in this run: the tissue images say so too)
+    assert said == ['multirate haptic rendering'] + ['tissue/particles cloud'] * 2
     assert 'energy_in_min_j' not in summary and 'E_in' not in (out / 'summary.md').read_text()
 
 
@@ -185,7 +210,7 @@ def test_an_old_report_without_the_haptic_columns_still_loads_and_renders(tmp_pa
         assert not any(summary['bad_values'].get(c) for c in haptic), (name, summary['bad_values'])
         md = (tmp_path / name / 'summary.md').read_text()
         assert 'E_in' not in md and '## Not shown' not in md, name
-    assert said == ['multirate haptic rendering'] * len(runs)
+    assert said == (['multirate haptic rendering'] + ['tissue/particles cloud'] * 2) * len(runs)
 
 
 def test_csv_series_round_trip_with_the_recorded_values(report):
@@ -414,7 +439,7 @@ def test_a_file_that_cannot_be_written_is_named_and_the_others_are_written(tmp_p
         real(path, columns, table)
 
     monkeypatch.setattr(report, 'write_csv', full_disk)
-    with pytest.raises(ReportError, match=r'1 of 13 report files not written .*force\.csv '
+    with pytest.raises(ReportError, match=r'1 of 15 report files not written .*force\.csv '
                                           r'\(OSError: .*No space left on device\)'):
         write_report(tmp_path / 'run', ReportData.from_stats(_press_run(0.5), 0.5))
     written = {p.name for p in (tmp_path / 'run').iterdir()}
@@ -463,3 +488,71 @@ def test_tissue_report_rebuilds_a_report_from_csv_files_holding_inf_and_huge_val
     assert summary['steps'] == 2 and summary['bad_values']['step_wall_time'] == 3
     assert summary['max_displacement_m'] == pytest.approx(0.002)
     assert ALL_FILES <= {p.name for p in (tmp_path / 'out').iterdir()}
+
+
+# -- the organ in the report ------------------------------------------------------------------------
+def test_the_tissue_images_show_the_pressed_cloud_coloured_and_the_animation_its_frames(report):
+    out, _ = report
+    for png in TISSUE_PNGS:
+        size, ink, colours = _ink(out / png)
+        assert size == (1200, 900) and 0.02 < ink < 0.8 and colours > 100, (png, ink, colours)
+    # the deepest press carries more colour than the rest (all dots one colour at rest)
+    assert _ink(out / 'tissue_deepest.png')[2] > _ink(out / 'tissue_rest.png')[2]
+    with Image.open(out / 'tissue_press.gif') as gif:
+        assert gif.format == 'GIF' and gif.n_frames == 25          # 12 before, the deepest, 12 after
+    html = (out / 'index.html').read_text()
+    assert 'src="tissue_press.gif"' in html and 'src="tissue_deepest.png"' in html
+
+
+def test_snapshots_keep_rest_deepest_and_the_clouds_around_it():
+    snaps = _press_clouds(40)
+    assert snaps.rest.peak == 0.0 and snaps.deepest.stamp_ns == 19 * 33 * MS   # half-way
+    assert snaps.deepest.peak == pytest.approx(0.004 * math.exp(-0.125) * math.sin(math.pi * 19 / 39))
+    stamps = [s.stamp_ns for s in snaps.frames]
+    deepest = stamps.index(snaps.deepest.stamp_ns)
+    assert deepest == 12 and len(stamps) == 25 and np.all(np.diff(stamps) > 0)
+    assert snaps.deepest.tool[3] == 0.005
+
+
+def test_a_large_cloud_is_kept_as_a_fixed_subset():
+    snaps = TissueSnapshots(max_points=1000)
+    n = 100_000
+    x = np.arange(n, dtype=float)
+    for k in range(3):
+        snaps.add({'x': x, 'y': x, 'z': x, 'displacement': x * k, 'von_mises': x}, k, None)
+    assert len(snaps.rest.xyz) == 1000 and np.array_equal(snaps.rest.xyz[:, 0], snaps.deepest.xyz[:, 0])
+    assert snaps.rest.xyz[0, 0] == 0.0 and snaps.rest.xyz[-1, 0] == n - 1
+
+
+def test_tissue_report_draws_the_tissue_again_from_the_saved_snapshots(report, tmp_path):
+    out, _ = report
+    again = tmp_path / 'again'
+    assert main([str(out), '-o', str(again)]) == 0
+    assert _ink(again / 'tissue_deepest.png')[2] > 100
+    with Image.open(again / 'tissue_press.gif') as gif:
+        assert gif.n_frames == 25
+
+
+def test_without_clouds_the_tissue_images_say_so_and_no_animation_is_written(tmp_path):
+    empty = write_report(tmp_path / 'empty', ReportData())
+    assert (empty / 'tissue_rest.png').is_file() and not (empty / 'tissue_press.gif').exists()
+    assert 'tissue_press.gif' not in json.loads((empty / 'summary.json').read_text())['files']
+
+
+def test_a_point_cloud_message_layout_is_read_by_its_fields():
+    from tissue_viz.tissue_images import cloud_arrays
+
+    dtype = np.dtype({'names': ['x', 'y', 'z', 'displacement', 'von_mises', 'region'],
+                      'formats': ['<f4'] * 5 + ['u1'], 'offsets': [0, 4, 8, 12, 16, 20],
+                      'itemsize': 24})
+    rec = np.zeros(3, dtype)
+    rec['x'], rec['displacement'], rec['von_mises'] = [1, 2, 3], [0.1, 0.2, 0.3], [5, 6, 7]
+    fields = [('x', 0, 7), ('y', 4, 7), ('z', 8, 7), ('displacement', 12, 7), ('von_mises', 16, 7),
+              ('region', 20, 2)]
+    cols = cloud_arrays(fields, rec.tobytes(), 3, 24)
+    assert cols['x'].tolist() == [1, 2, 3] and cols['von_mises'].tolist() == [5, 6, 7]
+    assert cols['displacement'] == pytest.approx([0.1, 0.2, 0.3])
+    with pytest.raises(ValueError, match='x, y and z'):
+        cloud_arrays(fields[3:], rec.tobytes(), 3, 24)
+    with pytest.raises(ValueError, match='3 points need 72'):
+        cloud_arrays(fields, rec.tobytes()[:50], 3, 24)

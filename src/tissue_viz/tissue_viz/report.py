@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from tissue_viz.errors import ReportError
+from tissue_viz.tissue_images import TissueSnapshots, draw_animation, draw_snapshot
 from tissue_viz.stats import (HAPTIC_MULTIRATE, LIMITS, MAX_RATE, MAX_SECONDS, Limit, VizStats,
                               haptic_summary, within, percentile, press_displacement)
 
@@ -42,7 +43,15 @@ PLOTS = (
     ('rates.png', 'Topic rates over time'),
     ('latency_hist.png', 'Pose to force latency'),
     ('energy_in.png', 'Energy the hand put into the rendered tissue (multirate haptic rendering)'),
+    ('tissue_rest.png', 'The tissue at rest (the first tissue/particles cloud received)'),
+    ('tissue_deepest.png', 'The tissue at the deepest press (the cloud with the largest '
+                           'displacement), with the simulated tool'),
 )
+#: the clouds around the deepest press, and the snapshots themselves (for tissue_report); written
+#: when viz_node received clouds
+ANIMATION = ('tissue_press.gif', 'The deepest press, cloud by cloud: the section through the tool, '
+                                 'coloured by displacement')
+SNAPSHOTS = 'tissue_snapshots.npz'
 
 
 @dataclass
@@ -55,6 +64,7 @@ class ReportData:
     haptic_period: float = 1e-3          # [s] for the deadline line in the step-time histogram
     contact_threshold: float = 0.01      # [N] force that counts as first contact
     rate_targets: dict = field(default_factory=dict)   # topic -> (min, max) [Hz], drawn as bands
+    tissue: TissueSnapshots | None = None               # the clouds to draw the organ from
 
     @classmethod
     def from_stats(cls, stats: VizStats, now: float, **kw) -> 'ReportData':
@@ -453,7 +463,26 @@ def _close_all() -> None:
         pass
 
 
+def _plot_tissue(which: str):
+    def plot(data: ReportData, path: Path) -> None:
+        t = data.tissue
+        snap = getattr(t, which, None) if t is not None else None
+        if snap is None:
+            plt, fig, ax = _figure()
+            ax.set_title('Tissue ' + ('at rest' if which == 'rest' else 'at the deepest press'))
+            _no_data(ax, 'tissue/particles cloud')
+            _save(plt, fig, path)
+            return
+        title = ('at rest' if which == 'rest' else
+                 f'at the deepest press: largest displacement {snap.peak * 1e3:.1f} mm')
+        draw_snapshot(snap, path, f'Tissue {title} ({len(snap.xyz)} particles drawn)',
+                      scale_from=[t.rest, t.deepest], reference=t.rest)
+    return plot
+
+
 PLOTTERS = {
+    'tissue_rest.png': _plot_tissue('rest'),
+    'tissue_deepest.png': _plot_tissue('deepest'),
     'force_vs_time.png': plot_force_vs_time,
     'force_vs_displacement.png': plot_force_vs_displacement,
     'step_time_hist.png': plot_step_hist,
@@ -625,9 +654,14 @@ def write_markdown(path: Path, data: ReportData, created: str) -> None:
         lines += ['', '## Not shown', ''] + [f'- {line}' for line in problems]
     lines += ['', 'Series: ' + ', '.join(f'[{n}.csv]({n}.csv)' for n in TABLES) +
               ', machine-readable summary: [summary.json](summary.json).', '']
-    for png, caption in PLOTS:
+    for png, caption in _figures(path.parent):
         lines += [f'## {caption}', '', f'![{caption}]({png})', '']
     path.write_text('\n'.join(lines))
+
+
+def _figures(folder: Path) -> list[tuple[str, str]]:
+    """The plots, and the animation where it was written."""
+    return list(PLOTS) + ([ANIMATION] if (folder / ANIMATION[0]).is_file() else [])
 
 
 def write_html(path: Path, data: ReportData, created: str) -> None:
@@ -638,7 +672,7 @@ def write_html(path: Path, data: ReportData, created: str) -> None:
                  + '</ul>') if problems else ''
     figures = '\n'.join(
         f'<figure><img src="{png}" alt="{html.escape(c)}"><figcaption>{html.escape(c)}'
-        f'</figcaption></figure>' for png, c in PLOTS)
+        f'</figcaption></figure>' for png, c in _figures(path.parent))
     links = ', '.join(f'<a href="{n}.csv">{n}.csv</a>' for n in TABLES)
     path.write_text(f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(data.title)}</title>
@@ -779,6 +813,20 @@ def write_report(directory: str | Path, data: ReportData) -> Path:
                 plot_failures[png] = reason
         attempt(png, draw)
     data.summary['plot_failures'] = plot_failures
+    for stale in (ANIMATION[0], SNAPSHOTS):     # from an earlier report into this folder
+        attempt(stale, lambda p=out / stale: p.unlink(missing_ok=True))
+    t = data.tissue
+    if t is not None and t.rest is not None:
+        attempt(SNAPSHOTS, lambda: t.save(out / SNAPSHOTS))
+    if t is not None and len(t.frames) >= 2:
+        def animate() -> None:
+            try:
+                draw_animation(t.frames, out / ANIMATION[0], 'Tissue', reference=t.rest)
+            except Exception as exc:  # noqa: BLE001 -- noted like a failed plot; no placeholder
+                _close_all()
+                (out / ANIMATION[0]).unlink(missing_ok=True)
+                plot_failures[ANIMATION[0]] = _reason(exc)
+        attempt(ANIMATION[0], animate)
     attempt('summary.md', lambda: write_markdown(out / 'summary.md', data, created))
     attempt('index.html', lambda: write_html(out / 'index.html', data, created))
     attempt('summary.json', lambda: _write_summary_json(out, data, created, failed))
@@ -795,7 +843,8 @@ def _write_summary_json(out: Path, data: ReportData, created: str, failed: dict)
     if data.rate_targets:
         summary['rate_targets_hz'] = _json_safe(data.rate_targets)
     summary['created'] = created
-    summary['files'] = sorted(n for n in report_files() if n not in failed and n != 'summary.json')
+    summary['files'] = sorted(n for n in report_files() + [ANIMATION[0], SNAPSHOTS]
+                              if n not in failed and n != 'summary.json' and (out / n).is_file())
     summary['failed_files'] = dict(failed)
     tmp = out / '.summary.json.tmp'
     tmp.write_text(json.dumps(summary, indent=2, sort_keys=True) + '\n')
@@ -830,7 +879,14 @@ def load_report_data(directory: str | Path) -> ReportData:
         if isinstance(targets, dict) else {}
     summary = {k: v for k, v in summary.items()
                if k not in ('created', 'files', 'failed_files', 'rate_targets_hz', 'plot_failures')}
-    return ReportData(tables=tables, summary=summary, haptic_period=period, rate_targets=targets)
+    tissue = None
+    if (src / SNAPSHOTS).is_file():
+        try:
+            tissue = TissueSnapshots.load(src / SNAPSHOTS)
+        except (OSError, ValueError, KeyError) as exc:
+            raise ReportError(f'{src / SNAPSHOTS} is not a tissue snapshot file: {exc}') from exc
+    return ReportData(tables=tables, summary=summary, haptic_period=period, rate_targets=targets,
+                      tissue=tissue)
 
 
 def main(argv: list[str] | None = None) -> int:

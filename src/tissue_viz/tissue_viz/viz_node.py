@@ -39,6 +39,7 @@ from tissue_viz.errors import ReportError, VizConfigError
 from tissue_viz.markers import ToolShape, force_arrow
 from tissue_viz.report import ReportData, default_report_dir, prepare_report_dir, write_report
 from tissue_viz.stats import TOPICS, VizStats, summary_line
+from tissue_viz.tissue_images import TissueSnapshots, cloud_arrays
 
 _F, _I, _B, _S, _FA = (Parameter.Type.DOUBLE, Parameter.Type.INTEGER, Parameter.Type.BOOL,
                        Parameter.Type.STRING, Parameter.Type.DOUBLE_ARRAY)
@@ -90,6 +91,9 @@ PARAMETERS: dict[str, tuple] = {
     'report_title': ('SPH soft-tissue simulation run', 'title of the report', None, False),
     'contact_threshold': (0.01, 'force that counts as first contact in the report [N]',
                           (0.0, 100.0), False),
+    'tissue_images': (True, 'keep the tissue/particles clouds at rest, at the deepest press and '
+                            'around it, and draw them in the report (images and an animation)',
+                      None, False),
     'tool_in_tissue_frame': (False, 'draw the simulated tool and its force in the tissue frame, as '
                              'tissue/metrics reports them (else the stylus tip and the device '
                              'force in the pose frame, omni_base)', None, False),
@@ -141,6 +145,7 @@ class VizNode(Node):
         self.pose_frame = 'omni_base'
         # the simulated tool (tissue frame) and the force on it, from the newest tissue/metrics
         self.sim_tool: tuple[str, ToolShape, np.ndarray] | None = None
+        self.tissue = TissueSnapshots()
         self._report_lock = threading.Lock()
         self._report_thread: threading.Thread | None = None
         self.last_statuses: list[Status] = []
@@ -229,8 +234,17 @@ class VizNode(Node):
             self.sim_tool = (msg.header.frame_id, tool, np.array([f.x, f.y, f.z]))
 
     def _on_particles(self, msg: PointCloud2) -> None:
-        self.stats.on_particles(time.monotonic(), stamp_to_ns(msg.header.stamp),
-                                msg.width * msg.height)
+        stamp = stamp_to_ns(msg.header.stamp)
+        self.stats.on_particles(time.monotonic(), stamp, msg.width * msg.height)
+        if not self.p['tissue_images']:
+            return
+        columns = cloud_arrays([(f.name, f.offset, f.datatype) for f in msg.fields], bytes(msg.data),
+                               msg.width * msg.height, msg.point_step, msg.is_bigendian)
+        tool = None
+        if self.sim_tool is not None and self.sim_tool[0] == msg.header.frame_id:
+            shape = self.sim_tool[1]
+            tool = (shape.tip, shape.axis, shape.length, shape.radius)
+        self.tissue.add(columns, stamp, tool)
 
     def _on_pose(self, msg: PoseStamped) -> None:
         p = msg.pose.position
@@ -330,7 +344,8 @@ class VizNode(Node):
         targets = {t: (r.min_rate, r.max_rate) for t, r in self.targets.rates.items()}
         return ReportData.from_stats(self.stats, time.monotonic(), title=self.p['report_title'],
                                      rate_targets=targets,
-                                     contact_threshold=self.p['contact_threshold'])
+                                     contact_threshold=self.p['contact_threshold'],
+                                     tissue=self.tissue.copy() if self.p['tissue_images'] else None)
 
     def write_report_now(self) -> Path:
         """Write the report synchronously (used at shutdown); returns the folder.

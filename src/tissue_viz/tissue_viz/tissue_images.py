@@ -1,0 +1,322 @@
+"""The organ itself in the report: the particle cloud at rest and at the deepest press (no rclpy).
+
+:class:`TissueSnapshots` keeps, from the ``tissue/particles`` clouds viz_node receives, the first
+(at rest), the one with the largest displacement (the deepest press) with the simulated tool of
+that moment, and a short run of clouds around it for an animation. The images are drawn headless
+(matplotlib Agg): every particle as a dot coloured by its displacement and, beside it, by its von
+Mises stress, the tool drawn where the simulation had it. A cloud of more than
+:data:`MAX_POINTS` particles is kept as a fixed, evenly spread subset (the images stay legible
+and the memory bounded at 100k particles). Snapshots are saved with the report
+(``tissue_snapshots.npz``) so that ``tissue_report`` can draw them again.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: particles kept per cloud (a fixed subset of a larger cloud)
+MAX_POINTS = 20000
+#: clouds kept before and after the deepest one for the animation
+ANIMATION_SIDE = 12
+#: PointField datatypes -> numpy (sensor_msgs/PointField constants)
+POINTFIELD_DTYPES = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
+FIELDS = ('x', 'y', 'z', 'displacement', 'von_mises')
+
+
+def cloud_arrays(fields, data: bytes, width: int, point_step: int, big_endian: bool = False) -> dict:
+    """Columns of a PointCloud2 (``fields``: (name, offset, datatype) triples) as float arrays; the
+    ones of :data:`FIELDS` it carries (x, y, z at least).
+
+    Raises:
+        ValueError: the cloud lacks x, y or z, or its data is shorter than ``width`` points.
+    """
+    names = {name: (offset, POINTFIELD_DTYPES.get(kind)) for name, offset, kind in fields}
+    if not {'x', 'y', 'z'} <= set(names):
+        raise ValueError(f'a cloud needs x, y and z fields, got {sorted(names)}')
+    if len(data) < width * point_step:
+        raise ValueError(f'cloud data holds {len(data)} bytes, {width} points need {width * point_step}')
+    order = '>' if big_endian else '<'
+    keep = [n for n in FIELDS if n in names and names[n][1] is not None]
+    dtype = np.dtype({'names': keep, 'formats': [order + names[n][1] for n in keep],
+                      'offsets': [names[n][0] for n in keep], 'itemsize': point_step})
+    rec = np.frombuffer(data, dtype=dtype, count=width)
+    return {n: rec[n].astype(np.float64) for n in keep}
+
+
+@dataclass
+class Snapshot:
+    """One cloud: positions (n, 3) [m], displacement (n,) [m], von Mises (n,) [Pa] (NaN where the
+    cloud had no such field), its stamp [ns], and the tool (tip, axis, length, radius) or None."""
+
+    xyz: np.ndarray
+    displacement: np.ndarray
+    von_mises: np.ndarray
+    stamp_ns: int
+    tool: tuple | None = None
+
+    @property
+    def peak(self) -> float:
+        d = self.displacement[np.isfinite(self.displacement)]
+        return float(d.max()) if d.size else 0.0
+
+
+class TissueSnapshots:
+    """Rest, deepest press and the clouds around it, from the clouds as they arrive."""
+
+    def __init__(self, max_points: int = MAX_POINTS, side: int = ANIMATION_SIDE) -> None:
+        self.max_points, self.side = max_points, side
+        self.rest: Snapshot | None = None
+        self.deepest: Snapshot | None = None
+        self.frames: list[Snapshot] = []          # before the deepest, the deepest, after it
+        self._recent: collections.deque = collections.deque(maxlen=side)
+        self._after = 0
+        self._subset: tuple[int, np.ndarray] | None = None
+        self.clouds = 0
+
+    def _take(self, n: int) -> np.ndarray | slice:
+        if n <= self.max_points:
+            return slice(None)
+        if self._subset is None or self._subset[0] != n:
+            self._subset = (n, np.linspace(0, n - 1, self.max_points).astype(np.int64))
+        return self._subset[1]
+
+    def copy(self) -> 'TissueSnapshots':
+        """What there is now, for a report drawn on another thread while clouds keep coming."""
+        out = TissueSnapshots(self.max_points, self.side)
+        out.rest, out.deepest, out.frames, out.clouds = self.rest, self.deepest, list(self.frames), self.clouds
+        return out
+
+    def add(self, columns: dict, stamp_ns: int, tool: tuple | None) -> None:
+        """One received cloud (:func:`cloud_arrays`) and the simulated tool of that moment."""
+        n = len(columns['x'])
+        if n == 0:
+            return
+        pick = self._take(n)
+        nan = np.full(n, np.nan)
+        snap = Snapshot(np.column_stack([columns['x'], columns['y'], columns['z']])[pick],
+                        columns.get('displacement', nan)[pick], columns.get('von_mises', nan)[pick],
+                        int(stamp_ns), tool)
+        self.clouds += 1
+        if self.rest is None:
+            self.rest = snap
+        if self.deepest is None or snap.peak > self.deepest.peak:
+            self.deepest = snap
+            self.frames = [*self._recent, snap]
+            self._after = self.side
+        elif self._after > 0:
+            self.frames.append(snap)
+            self._after -= 1
+        self._recent.append(snap)
+
+    # -- saving, so that tissue_report can draw them again -------------------------------------
+    def save(self, path: Path) -> None:
+        arrays = {}
+        for name, snap in (('rest', self.rest), ('deepest', self.deepest),
+                           *((f'frame{k:03d}', s) for k, s in enumerate(self.frames))):
+            if snap is None:
+                continue
+            arrays[f'{name}_xyz'] = snap.xyz
+            arrays[f'{name}_disp'] = snap.displacement
+            arrays[f'{name}_vm'] = snap.von_mises
+            arrays[f'{name}_stamp'] = np.array(snap.stamp_ns)
+            if snap.tool is not None:
+                tip, axis, length, radius = snap.tool
+                arrays[f'{name}_tool'] = np.r_[tip, axis, length, radius]
+        np.savez_compressed(path, **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> 'TissueSnapshots':
+        out = cls()
+        with np.load(path) as z:
+            def snap(name):
+                if f'{name}_xyz' not in z:
+                    return None
+                tool = z[f'{name}_tool'] if f'{name}_tool' in z else None
+                return Snapshot(z[f'{name}_xyz'], z[f'{name}_disp'], z[f'{name}_vm'],
+                                int(z[f'{name}_stamp']),
+                                None if tool is None else (tool[:3], tool[3:6], float(tool[6]),
+                                                           float(tool[7])))
+            out.rest, out.deepest = snap('rest'), snap('deepest')
+            k = 0
+            while (s := snap(f'frame{k:03d}')) is not None:
+                out.frames.append(s)
+                k += 1
+        out.clouds = len(out.frames)
+        return out
+
+
+# -- drawing --------------------------------------------------------------------------------------
+def _tool_surface(tool, n: int = 16):
+    """Points of the tool's surface (sphere at the tip, plus the shaft of a capsule) to wireframe."""
+    tip, axis, length, radius = tool
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, n), np.linspace(0, np.pi, n // 2))
+    sphere = [tip[0] + radius * np.cos(u) * np.sin(v), tip[1] + radius * np.sin(u) * np.sin(v),
+              tip[2] + radius * np.cos(v)]
+    shaft = None
+    a = np.asarray(axis, float)
+    if length > 0.0 and np.linalg.norm(a) > 0.0:
+        z = a / np.linalg.norm(a)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = np.cross(helper, z)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        th, s = np.meshgrid(np.linspace(0, 2 * np.pi, n), np.linspace(0.0, length, 4))
+        shaft = [tip[k] + radius * (np.cos(th) * x[k] + np.sin(th) * y[k]) + s * z[k] for k in range(3)]
+    return sphere, shaft
+
+
+def _dot_size(n: int) -> float:
+    return float(np.clip(20000.0 / max(n, 1), 1.0, 14.0))
+
+
+def _norm(vmax: float, scale: float):
+    from matplotlib.colors import PowerNorm
+    # square-root scale: the pressed region's gradient stays visible beside the peak under the tool
+    return PowerNorm(0.5, vmin=0.0, vmax=max(vmax * scale, 1e-12))
+
+
+def _draw_cloud(fig, ax, snap: Snapshot, values: np.ndarray, label: str, limits, vmax: float,
+                cmap: str, scale: float) -> None:
+    ok = np.isfinite(values)
+    xyz = snap.xyz * 1e3
+    sc = ax.scatter(xyz[ok, 0], xyz[ok, 1], xyz[ok, 2], c=values[ok] * scale, s=_dot_size(len(xyz)),
+                    cmap=cmap, norm=_norm(vmax, scale), depthshade=False, linewidths=0)
+    if (~ok).any():
+        ax.scatter(xyz[~ok, 0], xyz[~ok, 1], xyz[~ok, 2], s=2, color='0.7', depthshade=False)
+    if snap.tool is not None:
+        sphere, shaft = _tool_surface(snap.tool)
+        ax.plot_wireframe(*(c * 1e3 for c in sphere), color='0.15', linewidth=0.5)
+        if shaft is not None:
+            ax.plot_wireframe(*(c * 1e3 for c in shaft), color='0.15', linewidth=0.5)
+    lo, hi = limits
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
+    ax.set_xlabel('x [mm]')
+    ax.set_ylabel('y [mm]')
+    ax.set_zlabel('z [mm]')
+    ax.view_init(elev=25, azim=-60)
+    fig.colorbar(sc, ax=ax, shrink=0.6, pad=0.12, label=label)
+
+
+def _section(snap: Snapshot, reference: Snapshot) -> np.ndarray:
+    """Particles of the slab one spacing thick (in the reference configuration) through the tool's
+    tip, or through the most displaced particle: the x-z section of the press."""
+    ref = reference.xyz if len(reference.xyz) == len(snap.xyz) else snap.xyz
+    ys = np.unique(np.round(ref[:, 1], 6))
+    gap = float(np.median(np.diff(ys))) if ys.size > 1 else 1.0
+    if snap.tool is not None:
+        y0 = float(snap.tool[0][1])
+    else:
+        d = np.where(np.isfinite(snap.displacement), snap.displacement, -np.inf)
+        y0 = float(ref[int(np.argmax(d)), 1])
+    near = ys[np.argmin(np.abs(ys - y0))]
+    return np.abs(ref[:, 1] - near) <= 0.5 * gap
+
+
+def _draw_section(fig, ax, snap: Snapshot, reference: Snapshot, values: np.ndarray, label: str,
+                  limits, vmax: float, cmap: str, scale: float) -> None:
+    pick = _section(snap, reference) & np.isfinite(values)
+    xz = snap.xyz[pick][:, [0, 2]] * 1e3
+    sc = ax.scatter(xz[:, 0], xz[:, 1], c=values[pick] * scale, s=4 * _dot_size(int(pick.sum())),
+                    cmap=cmap, norm=_norm(vmax, scale), linewidths=0)
+    if snap.tool is not None:
+        tip, axis, length, radius = snap.tool
+        th = np.linspace(0.0, 2.0 * np.pi, 64)
+        ax.plot((tip[0] + radius * np.cos(th)) * 1e3, (tip[2] + radius * np.sin(th)) * 1e3,
+                color='0.15', linewidth=1.0)
+        if length > 0.0 and np.linalg.norm(axis) > 0.0:
+            end = np.asarray(tip) + length * np.asarray(axis) / np.linalg.norm(axis)
+            ax.plot([tip[0] * 1e3, end[0] * 1e3], [tip[2] * 1e3, end[2] * 1e3], color='0.15',
+                    linewidth=2 * radius * 1e3 * 2.0, alpha=0.3, solid_capstyle='round')
+    lo, hi = limits
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[2], hi[2])
+    ax.set_aspect('equal')
+    ax.set_xlabel('x [mm]')
+    ax.set_ylabel('z [mm]')
+    ax.set_title('section through the tool (one particle layer)', fontsize=9)
+    fig.colorbar(sc, ax=ax, shrink=0.8, label=label)
+
+
+def _limits(snaps) -> tuple[np.ndarray, np.ndarray]:
+    pts = np.vstack([s.xyz for s in snaps if s is not None]) * 1e3
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    pad = 0.05 * np.max(hi - lo) + 1.0
+    return lo - pad, hi + pad
+
+
+def _finite_max(*arrays) -> float:
+    vals = np.concatenate([a[np.isfinite(a)] for a in arrays])
+    return float(vals.max()) if vals.size else 0.0
+
+
+def draw_snapshot(snap: Snapshot, path: Path, title: str, scale_from=None,
+                  reference: Snapshot | None = None) -> None:
+    """One cloud, coloured by displacement [mm] (left) and von Mises stress [Pa] (right): in 3-D
+    (top) and as the x-z section through the tool (bottom).
+
+    ``scale_from``: snapshots whose range the colour scales and axes share (rest and deepest read on
+    one scale); ``reference``: the cloud at rest, which picks the section's particles."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    group = [s for s in (scale_from or [snap]) if s is not None]
+    limits = _limits(group)
+    dmax = _finite_max(*(s.displacement for s in group))
+    vmax = _finite_max(*(s.von_mises for s in group))
+    fig = plt.figure(figsize=(12, 9), dpi=100)
+    for k, (values, label, top, cmap, scale) in enumerate((
+            (snap.displacement, 'displacement [mm]', dmax, 'viridis', 1e3),
+            (snap.von_mises, 'von Mises stress [Pa]', vmax, 'inferno', 1.0))):
+        ax = fig.add_subplot(2, 2, k + 1, projection='3d')
+        _draw_cloud(fig, ax, snap, values, label, limits, top, cmap, scale)
+        _draw_section(fig, fig.add_subplot(2, 2, k + 3), snap, reference or snap, values, label,
+                      limits, top, cmap, scale)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def draw_animation(frames: list[Snapshot], path: Path, title: str, fps: int = 6,
+                   reference: Snapshot | None = None) -> None:
+    """The clouds around the deepest press as an animated GIF: the x-z section through the tool,
+    coloured by displacement (a 3-D scatter per frame would take seconds each)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    limits = _limits(frames)
+    dmax = _finite_max(*(s.displacement for s in frames))
+    t0 = frames[0].stamp_ns
+    fig = plt.figure(figsize=(7, 4.5), dpi=80)
+
+    def show(k):
+        fig.clear()
+        ax = fig.add_subplot(1, 1, 1)
+        _draw_section(fig, ax, frames[k], reference or frames[0], frames[k].displacement,
+                      'displacement [mm]', limits, dmax, 'viridis', 1e3)
+        ax.set_title(f'{title}: t = {(frames[k].stamp_ns - t0) * 1e-9:.2f} s, largest displacement '
+                     f'{frames[k].peak * 1e3:.1f} mm', fontsize=9)
+        return []
+
+    anim = FuncAnimation(fig, show, frames=len(frames), blit=False)
+    anim.save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)
+
+
+def finite_tool(tool) -> bool:
+    """True for a (tip, axis, length, radius) whose numbers are all finite and radius positive."""
+    if tool is None:
+        return False
+    tip, axis, length, radius = tool
+    return all(math.isfinite(float(v)) for v in (*tip, *axis, length, radius)) and radius > 0.0
