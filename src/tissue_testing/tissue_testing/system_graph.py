@@ -37,15 +37,15 @@ RECORD_READY = r'recording '
 
 def sim(mode: str = 'lockstep', env: Mapping[str, str] | None = None, golden: bool = True,
         params: Mapping[str, object] | None = None, name: str = 'sim_node',
-        params_file: str | Path | None = None) -> harness.NodeProcess:
+        params_file: str | Path | None = None, ros_args=()) -> harness.NodeProcess:
     """sim_node in ``mode`` (lockstep | live), with the golden parameters unless ``golden`` is False,
-    then ``params_file``, then ``params``."""
+    then ``params_file``, then ``params`` (``ros_args``: e.g. a namespace, ``['-r', '__ns:=/left']``)."""
     p = {'timing_mode': mode}
     p.update(params or {})
     files = [GOLDEN_SIM_PARAMS] if golden else []
     files += [params_file] if params_file is not None else []
     return harness.NodeProcess('sph_tissue_sim', 'sim_node', env=env, name=name, params_file=files,
-                               params=p)
+                               params=p, ros_args=ros_args)
 
 
 def driver_replay(bag: str | Path, mode: str = 'lockstep', env: Mapping[str, str] | None = None,
