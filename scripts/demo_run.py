@@ -55,10 +55,11 @@ def main(argv=None) -> int:
                     help='omni_driver backend: replay a bag (default), play the scripted session '
                          'once, or the device (until Ctrl-C)')
     ap.add_argument('--bag', type=Path, default=ROOT / 'bags' / 'long', help='bag folder to replay')
-    ap.add_argument('--timing', '--mode', dest='mode', choices=('timed', 'lockstep'), default='timed',
-                    help='timed: the recorded 1 kHz timing, sim in live mode (default); lockstep: '
-                         'each pose waits for its force, sim in lockstep mode (deterministic; replay '
-                         'only)')
+    ap.add_argument('--timing', '--mode', dest='mode', choices=('timed', 'live', 'lockstep'),
+                    default='timed',
+                    help='timed (or live, as the bring-up launch calls it): the recorded 1 kHz '
+                         'timing, sim in live mode (default); lockstep: each pose waits for its '
+                         'force, sim in lockstep mode (deterministic; replay only)')
     ap.add_argument('--model', default=None, help='sim_node model (liver, block, beam, mesh)')
     ap.add_argument('--tool', default=None, help='sim_node tool_shape (sphere, capsule)')
     for node in ('driver', 'sim', 'viz'):
@@ -72,6 +73,8 @@ def main(argv=None) -> int:
                          '(bags/golden_sim_params.yaml) instead of its defaults')
     ap.add_argument('--domain', type=int, default=None, help='ROS_DOMAIN_ID (default: a free one)')
     args = ap.parse_args(argv)
+    if args.mode == 'live':
+        args.mode = 'timed'
 
     def _terminate(signum, frame):
         raise KeyboardInterrupt  # SIGTERM (e.g. from `timeout`): stop the nodes as Ctrl-C does

@@ -41,7 +41,8 @@ def test_demo_runs_the_scripted_stylus_on_a_block_with_a_capsule_from_params_fil
     duration = script_duration(build_script(ScriptConfig(**times)))
     assert f'script finished: {round(duration * 1000) + 1} poses, one pass of {duration:.2f} s' in text
     summary = json.loads((report / 'summary.json').read_text())
-    assert summary, text
+    assert {'force_vs_time.png', 'tissue_deepest.png', 'tissue_press.gif'} <= set(summary['files'])
+    assert summary['failed_files'] == {}, summary
 
 
 def test_demo_refuses_lockstep_without_a_bag_and_a_missing_params_file(tmp_path):

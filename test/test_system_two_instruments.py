@@ -63,6 +63,10 @@ def test_two_instruments_in_namespaces_keep_their_loops_apart(rclpy_node):
 
         assert rclpy_node.spin_until(lambda: pressed('left') and pressed('right') and len(cps) > 50,
                                      60), [p.output()[-1500:] for p in procs]
+        # remapped: the CRTK name is where the client looks, and not under omni/ any more
+        assert rclpy_node.get_publishers_info_by_topic('/left/measured_cp')
+        assert rclpy_node.get_publishers_info_by_topic('/left/omni/measured_cp') == []
+        assert rclpy_node.get_publishers_info_by_topic('/right/omni/measured_cp')
     finally:
         graph.stop_all(procs, timeout=30)
     for ns in seen:
@@ -71,4 +75,3 @@ def test_two_instruments_in_namespaces_keep_their_loops_apart(rclpy_node):
                                          for m in seen[ns]['force'])
         assert all(m.header.frame_id == f'{ns}/omni_base' for m in seen[ns]['pose'].values())
     assert all(c.header.frame_id == 'left/omni_base' for c in cps)
-    assert rclpy_node.get_publishers_info_by_topic('/left/omni/measured_cp') == []

@@ -6,11 +6,13 @@ device four meta-states and six commands, sent as strings on ``state_command``:
     DISABLED --enable--> ENABLED --pause--> PAUSED --resume--> ENABLED
     any state --disable--> DISABLED;   a device failure --> FAULT --disable--> DISABLED
 
-``home`` and ``unhome`` set ``is_homed`` (they are accepted in any state but FAULT). Only ENABLED
-renders force: in every other state the safety chain outputs zero and, back in ENABLED, ramps up
-again from zero. A command that does not apply to the current state changes nothing and says why
-(CRTK devices ignore it with a warning). For the Omni, homed means calibrated: the OpenHaptics
-backend reports its calibration; replay and scripted sources are always homed.
+``home`` sets ``is_homed`` (in DISABLED or ENABLED, as cisst's prmOperatingState accepts it),
+``unhome`` clears it in any state. Only ENABLED renders force: in every other state the safety
+chain outputs zero and, back in ENABLED, ramps up again from zero. A command that does not apply to
+the current state changes nothing and says why (CRTK devices ignore it with a warning). For the
+Omni, homed means calibrated: the OpenHaptics backend reports the calibration it found at start;
+replay and scripted sources are always homed. omni_driver exits when its device fails, after
+publishing FAULT (a supervisor restarting it sees why).
 """
 
 from __future__ import annotations
@@ -26,8 +28,8 @@ TRANSITIONS = {
     'disable': (STATES, 'DISABLED'),
     'pause': (('ENABLED', 'PAUSED'), 'PAUSED'),
     'resume': (('PAUSED', 'ENABLED'), 'ENABLED'),
-    'home': (('DISABLED', 'ENABLED', 'PAUSED'), None),
-    'unhome': (('DISABLED', 'ENABLED', 'PAUSED'), None),
+    'home': (('DISABLED', 'ENABLED'), None),
+    'unhome': (STATES, None),
 }
 
 

@@ -42,7 +42,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from tissue_common.estimator import TrackingFilter
-from tissue_common.frames import STYLUS_FRAME, TfBroadcaster, Transform
+from tissue_common.frames import TfBroadcaster, Transform
 from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_until_stopped,
                                       stop_on_signals)
 from tissue_common.params import check_choice, declare_all
@@ -62,6 +62,8 @@ SAFETY_PARAMS = ('force_limit', 'ramp_time', 'watchdog_timeout', 'max_command_la
                  'accept_empty_frame', 'max_force_rate')
 #: [s] how often a lockstep replay looks for the reply it waits for
 LOCKSTEP_POLL = 0.0002
+#: [ns] a pause between two samples after which the CRTK velocity filter starts afresh
+CRTK_MAX_GAP_NS = 100_000_000
 #: log text of each rejection reason of the safety chain
 REJECTION_TEXT = {
     'nan': 'non-finite component',
@@ -163,7 +165,11 @@ class OmniDriver(Node):
 
     def _setup_crtk(self, p: dict, qos: QoSProfile) -> None:
         """The CRTK names beside omni/pose (relative: in the node's namespace, like it)."""
+        if p['start_state'] == 'DISABLED' and not p['crtk']:
+            raise ConfigError('start_state DISABLED needs crtk true: only omni/state_command can '
+                              'enable the device')
         self.op_state = OperatingStateMachine(p['start_state'])
+        self._op_lock = threading.Lock()
         self.safety.allow_output(self.op_state.current.renders_force, self._now_clocks()[0])
         #: next setpoint (message, message info) from servo_cf, None when empty; tests inject
         self._take_setpoint = lambda: None
@@ -247,6 +253,7 @@ class OmniDriver(Node):
                                                   name='virtual_servo')
             self._servo_thread.start()
         b.start(self)
+        self._publish_operating_state()     # is_homed: the calibration the backend found at start
 
     def shutdown(self) -> None:
         """Stop the backend and the servo loop (force zeroed on the device)."""
@@ -300,15 +307,20 @@ class OmniDriver(Node):
 
         The velocity filter takes every sample; the messages go out when due by the samples' own
         stamps (a replay's clock), and at once after a stamp that went backwards (a loop)."""
-        stamp = sample.stamp_ns
-        dt = 0.0 if self._last_sample_ns is None else (stamp - self._last_sample_ns) * 1e-9
+        stamp, last = sample.stamp_ns, self._last_sample_ns
         self._last_sample_ns = stamp
+        if last is None or stamp < last or stamp - last > CRTK_MAX_GAP_NS:
+            # a loop, a clock step or a pause: the filter's past is not this motion's
+            self._velocity.reset()
+            dt = 0.0
+        else:
+            dt = (stamp - last) * 1e-9
         _, v = self._velocity.update(sample.position, dt)
         due, period = self._next_crtk_ns, self._crtk_period_ns
         if due is not None and due - period <= stamp < due:
             return
         # on the schedule's ticks (the mean rate is crtk_rate); anew after a gap or a loop
-        on_time = due is not None and stamp < due + period
+        on_time = due is not None and due <= stamp < due + period
         self._next_crtk_ns = (due if on_time else stamp) + period
         self.cp_pub.publish(sample.raw if sample.raw is not None else self._pose_msg)
         cv = self._cv_msg
@@ -321,14 +333,16 @@ class OmniDriver(Node):
             js.position = [float(a) for a in sample.joints]
             self.js_pub.publish(js)
         if self.tf.available:
-            tip = Transform(self.p['frame_id'], STYLUS_FRAME, sample.position, sample.orientation)
+            tip = Transform(self.p['frame_id'], self.p['stylus_frame'], sample.position,
+                            sample.orientation)
             self.tf.send([tip.to_msg(cv.header.stamp)])
 
     def _on_state_command(self, msg: StringStamped) -> None:
         """A CRTK state_command: enable, disable, pause, resume, home, unhome."""
-        old = self.op_state.current
-        new, why = self.op_state.command(msg.string, homed_now=bool(self.backend.calibrated))
-        self.safety.allow_output(new.renders_force, self._now_clocks()[0])
+        with self._op_lock:      # a fault from the backend thread cannot slip in between
+            old = self.op_state.current
+            new, why = self.op_state.command(msg.string, homed_now=bool(self.backend.calibrated))
+            self.safety.allow_output(new.renders_force, self._now_clocks()[0])
         if why:
             self.get_logger().warn(f'state_command {msg.string!r}: {why}')
         if new != old:
@@ -374,7 +388,8 @@ class OmniDriver(Node):
             log.info('watchdog: force commands resumed, ramping up over %.3f s'
                      % self.safety.config.ramp_time)
         if new[0] and not old[0] and not old[2]:
-            log.info('force output enabled (first valid command), ramping up over %.3f s'
+            log.info('force output enabled (a valid command, operating state ENABLED), ramping up '
+                     'over %.3f s'
                      % self.safety.config.ramp_time)
         if new[1] and not old[1]:
             log.warn('force command above %.3f N: clamped' % self.safety.config.force_limit)
@@ -423,8 +438,9 @@ class OmniDriver(Node):
             self.get_logger().info(summary)
         else:
             self.get_logger().error(summary)
-            self.op_state.fault(summary)
-            self.safety.allow_output(False, self._now_clocks()[0])
+            with self._op_lock:
+                self.op_state.fault(summary)
+                self.safety.allow_output(False, self._now_clocks()[0])
             self._publish_operating_state()
         if exit_code != 0 or self.p['exit_on_end']:
             self.exit_code = exit_code

@@ -57,6 +57,8 @@ DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
                          'device\'s)', (1.0, 2000.0), True),
     'velocity_cutoff': (30.0, '[Hz] CRTK: cut-off of the tracking filter behind measured_cv (the '
                               'simulator\'s renderer uses the same filter)', (1.0, 200.0), True),
+    'stylus_frame': ('omni_stylus', 'CRTK: child frame of frame_id that /tf moves with the stylus tip '
+                                    '(where tf2 is installed; one per instrument)', None, True),
     'start_state': ('ENABLED', 'CRTK operating state at start: ENABLED (renders force as soon as '
                                'commands come) | DISABLED (waits for an enable on state_command)',
                     ('ENABLED', 'DISABLED'), True),

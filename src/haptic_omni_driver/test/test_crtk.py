@@ -56,6 +56,15 @@ def test_home_reports_what_the_device_found_and_unhome_clears_it():
     assert m.command('home', homed_now=True) == (m.current, '') and m.current.is_homed
 
 
+def test_home_applies_where_cisst_accepts_it_and_unhome_everywhere():
+    m = OperatingStateMachine()
+    m.command('pause')
+    assert 'does not apply in state PAUSED' in m.command('home')[1]
+    m.fault('device failed')
+    new, why = m.command('unhome')
+    assert (new.state, new.is_homed, why) == ('FAULT', False, '')
+
+
 def test_a_start_state_other_than_enabled_or_disabled_is_refused():
     with pytest.raises(ValueError, match='PAUSED'):
         OperatingStateMachine('PAUSED')

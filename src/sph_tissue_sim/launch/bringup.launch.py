@@ -6,12 +6,14 @@
     ros2 launch sph_tissue_sim bringup.launch.py namespace:=left sim_params:=/path/to/my_sim.yaml
 
 Each node reads one YAML (``driver_params``, ``sim_params``, ``viz_params``; the packages'
-defaults unless given), and the arguments override what they name: ``backend`` and ``bag`` the
-driver's, ``model`` and ``tool`` (``tool_shape``) the simulation's, ``timing`` both (``live``: the
-driver at its device rate or the bag's recorded timing, the simulation on the newest pose;
+defaults unless given), and the arguments given override what they name: ``backend`` and ``bag``
+the driver's, ``model`` and ``tool`` (``tool_shape``) the simulation's, ``timing`` both (``live``:
+the driver at its device rate or the bag's recorded timing, the simulation on the newest pose;
 ``lockstep``: a replay that waits for each force and a simulation that steps every pose in order,
-bit-identical between runs). ``namespace`` puts the three nodes and their relative topics under
-one name (a second instrument beside the first). Where the ROS 2 ``launch`` packages are absent,
+bit-identical between runs; refused without ``backend:=replay``). An argument left empty leaves
+the YAML's value. ``namespace`` puts the three nodes and their relative topics under one name (a
+second instrument beside the first); the YAMLs' node keys must then match the namespaced names
+(``/left/sim_node:``), or use ``/**:`` for any. Where the ROS 2 ``launch`` packages are absent,
 ``scripts/demo.sh`` takes the same choices as options, and importing this file still works.
 """
 
@@ -19,38 +21,48 @@ from __future__ import annotations
 
 import os
 
-#: launch argument -> (default, description); the node parameters each one sets are in
-#: :func:`node_overrides`
+#: launch argument -> (default, description); empty: the node's YAML decides
 ARGUMENTS = {
-    'backend': ('scripted', 'omni_driver backend: openhaptics | replay | scripted'),
+    'backend': ('', 'omni_driver backend: openhaptics | replay | scripted (empty: driver_params)'),
     'bag': ('', 'bag folder to replay (backend replay)'),
-    'model': ('liver', 'sim_node model: liver | block | beam | mesh'),
-    'tool': ('sphere', 'sim_node tool_shape: sphere | capsule'),
+    'model': ('', 'sim_node model: liver | block | beam | mesh (empty: sim_params)'),
+    'tool': ('', 'sim_node tool_shape: sphere | capsule (empty: sim_params)'),
     'timing': ('live', 'live | lockstep (a replay that waits for each force; deterministic)'),
     'namespace': ('', 'namespace of the three nodes and their topics'),
-    'report_dir': ('', 'viz report folder (empty: ./reports/<timestamp>)'),
+    'report_dir': ('', 'viz report folder (empty: viz_params, or ./reports/<timestamp>)'),
     'rviz': ('false', 'also start rviz2 with the tissue layout'),
 }
 
 
-def node_overrides(arg) -> dict:
-    """The parameters each node gets from the launch arguments (``arg(name)`` gives a value or a
-    substitution), on top of its YAML: node executable -> {parameter: value}."""
-    return {
-        'omni_driver': {'backend': arg('backend'), 'bag': arg('bag'),
-                        'replay_mode': arg('replay_mode')},
-        'sim_node': {'model': arg('model'), 'tool_shape': arg('tool'),
-                     'timing_mode': arg('timing_mode')},
-        'viz_node': {'report_dir': arg('report_dir')},
+def node_overrides(values: dict) -> dict:
+    """The parameters each node gets from the launch arguments' ``values`` (name -> string), on
+    top of its YAML: executable -> {parameter: value}. An empty argument sets nothing.
+
+    Raises:
+        ValueError: ``timing`` lockstep without a replay (a live source cannot wait for a force).
+    """
+    timing = values.get('timing') or 'live'
+    if timing not in ('live', 'lockstep'):
+        raise ValueError(f'timing must be live or lockstep, got {timing!r}')
+    if timing == 'lockstep' and values.get('backend') != 'replay':
+        raise ValueError('timing:=lockstep needs backend:=replay and a bag (a live source cannot '
+                         'wait for each force)')
+    out = {
+        'omni_driver': {'backend': values.get('backend'), 'bag': values.get('bag'),
+                        'replay_mode': 'lockstep' if timing == 'lockstep' else None},
+        'sim_node': {'model': values.get('model'), 'tool_shape': values.get('tool'),
+                     'timing_mode': timing},
+        'viz_node': {'report_dir': values.get('report_dir')},
     }
+    return {exe: {k: v for k, v in params.items() if v} for exe, params in out.items()}
 
 
 def generate_launch_description():
     from ament_index_python.packages import get_package_share_directory
     from launch import LaunchDescription
-    from launch.actions import DeclareLaunchArgument
+    from launch.actions import DeclareLaunchArgument, OpaqueFunction
     from launch.conditions import IfCondition
-    from launch.substitutions import LaunchConfiguration, PythonExpression
+    from launch.substitutions import LaunchConfiguration
     from launch_ros.actions import Node
 
     shares = {pkg: get_package_share_directory(pkg)
@@ -58,29 +70,27 @@ def generate_launch_description():
     files = {'driver_params': os.path.join(shares['haptic_omni_driver'], 'config', 'omni_driver.yaml'),
              'sim_params': os.path.join(shares['sph_tissue_sim'], 'config', 'sim_node.yaml'),
              'viz_params': os.path.join(shares['tissue_viz'], 'config', 'viz.yaml')}
-    timing = LaunchConfiguration('timing')
-    derived = {
-        # a lockstep simulation needs a replay that waits for each force, and live needs timed
-        'replay_mode': PythonExpression(["'lockstep' if '", timing, "' == 'lockstep' else 'timed'"]),
-        'timing_mode': PythonExpression(["'lockstep' if '", timing, "' == 'lockstep' else 'live'"]),
-    }
 
-    def arg(name):
-        return derived[name] if name in derived else LaunchConfiguration(name)
+    def nodes(context):
+        values = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
+        overrides = node_overrides(values)
+        ns = values['namespace']
+        out = []
+        for pkg, exe, params in (('haptic_omni_driver', 'omni_driver', 'driver_params'),
+                                 ('sph_tissue_sim', 'sim_node', 'sim_params'),
+                                 ('tissue_viz', 'viz_node', 'viz_params')):
+            out.append(Node(package=pkg, executable=exe, name=exe, namespace=ns, output='screen',
+                            parameters=[LaunchConfiguration(params).perform(context),
+                                        overrides[exe]]))
+        return out
 
-    overrides = node_overrides(arg)
-    ns = LaunchConfiguration('namespace')
     actions = [DeclareLaunchArgument(name, default_value=default, description=text)
                for name, (default, text) in ARGUMENTS.items()]
     actions += [DeclareLaunchArgument(name, default_value=path, description=f'{name} YAML')
                 for name, path in files.items()]
-    for pkg, exe, params in (('haptic_omni_driver', 'omni_driver', 'driver_params'),
-                             ('sph_tissue_sim', 'sim_node', 'sim_params'),
-                             ('tissue_viz', 'viz_node', 'viz_params')):
-        actions.append(Node(package=pkg, executable=exe, name=exe, namespace=ns, output='screen',
-                            parameters=[LaunchConfiguration(params), overrides[exe]]))
+    actions.append(OpaqueFunction(function=nodes))
     actions.append(Node(package='rviz2', executable='rviz2', name='rviz2', output='log',
-                        namespace=ns,
+                        namespace=LaunchConfiguration('namespace'),
                         arguments=['-d', os.path.join(shares['tissue_viz'], 'rviz', 'tissue.rviz')],
                         condition=IfCondition(LaunchConfiguration('rviz'))))
     return LaunchDescription(actions)

@@ -738,8 +738,8 @@ class SimNode(Node):
             self.p = new
         if 'particles_rate' in changed:
             self._set_cloud_timer(new['particles_rate'])
-        if 'device_frame' in changed:
-            self._publish_device_frame()
+        if mapping is not None or solver is not None or 'device_frame' in changed:
+            self._publish_device_frame()      # the latched transform follows the map
         what = ('solver rebuilt, tissue at rest' if solver is not None else
                 'material swapped' if material is not None else 'applied')
         self.get_logger().info(f'parameters {sorted(changed)} changed: {what}; now '

@@ -138,6 +138,15 @@ def test_the_device_frame_is_latched_and_maps_the_device_where_the_simulation_do
         assert tr.apply(point) == pytest.approx(mapping.to_tissue(point), abs=1e-12)
     # the default map: the device's up (y) is the tissue's up (z)
     assert tr.apply([0.0, 0.01, 0.0]) - tr.apply([0.0, 0.0, 0.0]) == pytest.approx([0, 0, 0.01])
+    # a new map at run time: the latched transform follows it
+    n = len(got)
+    try:
+        assert all(r.successful for r in set_parameters(rclpy_node, {'translation': [0.01, 0.0, 0.0]}))
+        assert rclpy_node.spin_until(lambda: len(got) > n, 20), live_sim.output()
+        moved = from_msg(got[-1])
+        assert moved.apply([0.0, 0.0, 0.0]) - tr.apply([0.0, 0.0, 0.0]) == pytest.approx([0.01, 0, 0])
+    finally:
+        assert all(r.successful for r in set_parameters(rclpy_node, {'translation': [0.0, 0.0, 0.0]}))
 
 
 def test_particle_cloud_fields_and_count_match_the_model(probe):

@@ -277,8 +277,9 @@ def test_launch_file_imports_without_the_launch_packages():
 
 def test_bringup_launch_sets_only_parameters_its_nodes_declare():
     """The bring-up's arguments reach parameters each node really has (a typo would be ignored by
-    ROS at launch, silently); the launch packages are absent here, so this checks the mapping the
-    file builds its nodes from, and the file imports."""
+    ROS at launch, silently), an empty argument leaves the YAML's value, and lockstep needs a
+    replay; the launch packages are absent here, so this checks the mapping the file builds its
+    nodes from, and that the file imports."""
     import importlib.util
 
     from haptic_omni_driver.params import DRIVER_PARAMS
@@ -288,12 +289,19 @@ def test_bringup_launch_sets_only_parameters_its_nodes_declare():
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     assert callable(mod.generate_launch_description)
-    overrides = mod.node_overrides(lambda name: name)
     declared = {'omni_driver': DRIVER_PARAMS, 'sim_node': SIM_PARAMS, 'viz_node': VIZ_PARAMS}
-    for node, params in overrides.items():
+    every = mod.node_overrides({'backend': 'replay', 'bag': '/b', 'model': 'block', 'tool': 'capsule',
+                                'timing': 'lockstep', 'report_dir': '/r'})
+    assert every == {'omni_driver': {'backend': 'replay', 'bag': '/b', 'replay_mode': 'lockstep'},
+                     'sim_node': {'model': 'block', 'tool_shape': 'capsule', 'timing_mode': 'lockstep'},
+                     'viz_node': {'report_dir': '/r'}}
+    for node, params in every.items():
         assert set(params) <= set(declared[node]), (node, set(params) - set(declared[node]))
-    used = {v for params in overrides.values() for v in params.values()}
-    assert used - {'replay_mode', 'timing_mode'} <= set(mod.ARGUMENTS)
-    # every choice a launch argument offers is one its parameter accepts
-    assert set(mod.ARGUMENTS['backend'][1].split(': ')[1].split(' | ')) == set(DRIVER_PARAMS['backend'][2])
-    assert set(mod.ARGUMENTS['tool'][1].split(': ')[1].split(' | ')) == set(SIM_PARAMS['tool_shape'][2])
+        for name, value in params.items():
+            choices = declared[node][name][2]
+            assert not isinstance(choices, tuple) or not isinstance(choices[0], str) or \
+                value in choices, (node, name, value)
+    defaults = mod.node_overrides({name: spec[0] for name, spec in mod.ARGUMENTS.items()})
+    assert defaults == {'omni_driver': {}, 'sim_node': {'timing_mode': 'live'}, 'viz_node': {}}
+    with pytest.raises(ValueError, match='needs backend:=replay'):
+        mod.node_overrides({'backend': 'scripted', 'timing': 'lockstep'})

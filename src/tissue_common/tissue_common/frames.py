@@ -1,6 +1,7 @@
 """The graph's coordinate frames as transforms, and /tf where the install has it.
 
-Three frames put the stylus, the tool and the tissue in one scene (RViz2's fixed frame ``tissue``)::
+Three frames put the stylus, the tool and the tissue in one scene (RViz2's fixed frame ``tissue``;
+the names are the nodes' parameters, defaults shown)::
 
     tissue  --(static, sim_node: the device map)-->  omni_base  --(omni_driver: the pose)-->  omni_stylus
 
@@ -24,11 +25,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .rotation import matrix_quaternion, quaternion_matrix
-
-TISSUE_FRAME = 'tissue'
-DEVICE_FRAME = 'omni_base'
-STYLUS_FRAME = 'omni_stylus'
-
 
 @dataclass(frozen=True)
 class Transform:

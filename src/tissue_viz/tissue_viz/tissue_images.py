@@ -98,7 +98,7 @@ class TissueSnapshots:
             return
         pick = self._take(n)
         nan = np.full(n, np.nan)
-        snap = Snapshot(np.column_stack([columns['x'], columns['y'], columns['z']])[pick],
+        snap = Snapshot(np.column_stack([columns['x'][pick], columns['y'][pick], columns['z'][pick]]),
                         columns.get('displacement', nan)[pick], columns.get('von_mises', nan)[pick],
                         int(stamp_ns), tool)
         self.clouds += 1
