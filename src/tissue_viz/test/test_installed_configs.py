@@ -33,6 +33,9 @@ def test_rviz_config_shows_the_cloud_coloured_by_region_and_the_viz_markers():
     markers = [d for d in displays if d['Class'] == 'rviz_default_plugins/MarkerArray']
     assert len(markers) == 1 and markers[0]['Topic']['Value'] == '/viz/markers'
     assert set(markers[0]['Namespaces']) == {'tool', 'force'}
+    # the frames that place the stylus in the tissue scene (tissue/device_frame, /tf)
+    frames = [d for d in displays if d['Class'] == 'rviz_default_plugins/TF']
+    assert len(frames) == 1 and frames[0]['Enabled'] and frames[0]['Show Names']
 
 
 def test_foxglove_layout_references_existing_panels_and_contract_topics():
