@@ -48,6 +48,19 @@ def _unique_t0(k: int) -> int:
     return T0_NS + k * 10_000_000_000
 
 
+def _hold_until_pushed(probe, point, t_start: int, up: float = 0.0, at_least: int = 1) -> np.ndarray:
+    """Hold the stylus at ``point`` (1 ms poses from ``t_start``) until the force pushes it up by
+    more than ``up`` [N], at least ``at_least`` poses and at most 3000: live, the renderer answers
+    from the solver thread's last contact model, and on a busy machine the solver's first step there
+    can take longer than a short hold. Returns the forces of the held poses."""
+    forces = []
+    for k in range(3000):
+        forces.append(force_of(probe.exchange(point, t_start + k * 1_000_000)))
+        if forces[-1][1] > up and k + 1 >= at_least:
+            break
+    return np.array(forces)
+
+
 # -- pose in, wrench out ------------------------------------------------------------------------------
 def test_pressing_returns_a_wrench_per_pose_with_its_stamp_pushing_back_up(probe, live_sim):
     path = press_path(60, depth=0.004)  # 1 cm above the surface point down to 4 mm below
@@ -60,14 +73,8 @@ def test_pressing_returns_a_wrench_per_pose_with_its_stamp_pushing_back_up(probe
     assert finite_and_bounded(forces, FORCE_LIMIT)
     above = path[:, 1] > 0.001
     assert np.all(forces[above] == 0.0)                # no contact above the surface
-    # the renderer answers from the solver thread's last contact model: hold the stylus 4 mm deep
-    # until the solver has stepped there (on a busy machine that can take more than the press)
-    f = forces[-1]
-    t1 = t0 + len(path) * 1_000_000
-    for k in range(3000):
-        if f[1] > 0.02:
-            break
-        f = force_of(probe.exchange(path[-1], t1 + k * 1_000_000))
+    # hold the stylus 4 mm deep until the solver thread has stepped there
+    f = _hold_until_pushed(probe, path[-1], t0 + len(path) * 1_000_000, up=0.02)[-1]
     assert f[1] > 0.02                                 # device +y: the tissue pushes the stylus up
     # mostly up: on this 1 cm lattice a 5 mm tool pressed 4 mm between particles meets a sideways
     # force of up to 0.45 of the normal one, depending on where it lands (core, any local-area
@@ -193,11 +200,7 @@ def test_reset_in_contact_returns_tissue_to_rest_and_force_stays_bounded(probe, 
     # comes back once the solver thread has stepped there (held poses until it has: its first step
     # may take longer than a few poses on a busy machine)
     t1 = t0 + 100_000_000
-    forces = []
-    for k in range(3000):
-        forces.append(force_of(probe.exchange(path[-1], t1 + k * 1_000_000)))
-        if forces[-1][1] > 0.0 and k >= 19:
-            break
+    forces = _hold_until_pushed(probe, path[-1], t1, at_least=20)
     assert finite_and_bounded(forces, FORCE_LIMIT)
     assert forces[-1][1] > 0.0
     assert probe.node.spin_until(lambda: any(stamp_ns(m.header) >= t1 for m in probe.metrics), 10.0)
@@ -253,8 +256,9 @@ def test_flood_of_poses_in_live_mode_drops_to_the_newest_without_backlog(probe, 
     assert len(replies) < n
     forces = [force_of(probe.forces[ns]) for ns in replies] + [force_of(w)]
     assert finite_and_bounded(forces, FORCE_LIMIT)
-    # and the node goes on normally: holding the stylus there, the tissue pushes back
-    hold = probe.run_path(np.repeat(path[-1:], 100, axis=0), last_ns + 1_000_000)
+    # and the node goes on normally: holding the stylus there, the tissue pushes back (once the
+    # solver thread, which the flood kept busy with 20 ms frames, has stepped there)
+    hold = _hold_until_pushed(probe, path[-1], last_ns + 1_000_000, at_least=100)
     assert finite_and_bounded(hold, FORCE_LIMIT) and hold[-1][1] > 0.0
     assert live_sim.alive()
 
