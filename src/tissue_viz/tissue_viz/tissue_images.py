@@ -13,7 +13,6 @@ and the memory bounded at 100k particles). Snapshots are saved with the report
 from __future__ import annotations
 
 import collections
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -76,7 +75,6 @@ class TissueSnapshots:
         self._recent: collections.deque = collections.deque(maxlen=side)
         self._after = 0
         self._subset: tuple[int, np.ndarray] | None = None
-        self.clouds = 0
 
     def _take(self, n: int) -> np.ndarray | slice:
         if n <= self.max_points:
@@ -88,7 +86,7 @@ class TissueSnapshots:
     def copy(self) -> 'TissueSnapshots':
         """What there is now, for a report drawn on another thread while clouds keep coming."""
         out = TissueSnapshots(self.max_points, self.side)
-        out.rest, out.deepest, out.frames, out.clouds = self.rest, self.deepest, list(self.frames), self.clouds
+        out.rest, out.deepest, out.frames = self.rest, self.deepest, list(self.frames)
         return out
 
     def add(self, columns: dict, stamp_ns: int, tool: tuple | None) -> None:
@@ -101,7 +99,6 @@ class TissueSnapshots:
         snap = Snapshot(np.column_stack([columns['x'][pick], columns['y'][pick], columns['z'][pick]]),
                         columns.get('displacement', nan)[pick], columns.get('von_mises', nan)[pick],
                         int(stamp_ns), tool)
-        self.clouds += 1
         if self.rest is None:
             self.rest = snap
         if self.deepest is None or snap.peak > self.deepest.peak:
@@ -146,7 +143,6 @@ class TissueSnapshots:
             while (s := snap(f'frame{k:03d}')) is not None:
                 out.frames.append(s)
                 k += 1
-        out.clouds = len(out.frames)
         return out
 
 
@@ -313,10 +309,3 @@ def draw_animation(frames: list[Snapshot], path: Path, title: str, fps: int = 6,
     anim.save(path, writer=PillowWriter(fps=fps))
     plt.close(fig)
 
-
-def finite_tool(tool) -> bool:
-    """True for a (tip, axis, length, radius) whose numbers are all finite and radius positive."""
-    if tool is None:
-        return False
-    tip, axis, length, radius = tool
-    return all(math.isfinite(float(v)) for v in (*tip, *axis, length, radius)) and radius > 0.0
