@@ -130,3 +130,25 @@ def test_a_shaft_laid_on_the_surface_presses_it_along_its_length():
     f = forces['capsule']
     assert f[2] > 2.0 * forces['sphere'][2] > 0.0
     assert np.hypot(f[0], f[1]) < 0.1 * f[2]
+
+
+def test_through_the_renderer_the_tool_rests_where_the_tissue_holds_the_device_limit():
+    """The device pressed 30 mm into the block through the haptic renderer (force limit 1 N):
+    the simulated tool stops where the tissue's own force-depth curve (the tool pressed directly)
+    reaches 1 N, however deep the device goes (within the creep of a held tissue against one
+    pressed at 10 mm/s); the device feels the limit and no particle ends up over the tool."""
+    from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
+
+    model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
+    config = SolverConfig(mode='local', contact_samples=3)
+    direct = press_curve(model, LIVER, config, 0.012, speed=0.01, xy=_centre(model))
+    held = float(np.interp(1.0, direct['normal'], direct['depth']))
+    curve = press_curve(model, LIVER, config, 0.03, speed=0.02, xy=_centre(model),
+                        renderer=HapticRenderer(RendererConfig(force_limit=1.0)))
+    print(f'direct: 1 N at {held * 1e3:.2f} mm; renderer: tool at {curve["tool"][-1] * 1e3:.2f} mm, '
+          f'deepest {curve["tool"].max() * 1e3:.2f} mm')
+    assert 0.003 < held < 0.012
+    assert abs(curve['tool'][-1] - held) < 1e-3
+    assert curve['tool'].max() < held + 1.5e-3
+    assert curve['device'][-1] == pytest.approx(1.0, abs=1e-3)   # the limit, nearly all along +z
+    assert curve['over'].max() == 0

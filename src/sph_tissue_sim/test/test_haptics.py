@@ -190,3 +190,53 @@ def test_coupling_without_a_contact_force_renders_nothing():
     c = VirtualCoupling(700.0, 0.5, 2.0, ContactModel(700.0))
     proxy, force = c.render(np.zeros(3), np.zeros(3), T)
     assert not force.any() and not proxy.any()
+
+
+class GivingWall(Wall):
+    """A wall that gives way like a tissue the tool pops through: ``k d`` up to ``d_peak``, then
+    falling linearly to nothing at ``2 d_peak`` and beyond."""
+
+    def __init__(self, k: float, d_peak: float) -> None:
+        super().__init__(k)
+        self.d_peak = d_peak
+
+    def force(self, x: np.ndarray) -> np.ndarray:
+        d = max(0.0, -x[2])
+        f = self.k * d if d <= self.d_peak else self.k * max(0.0, 2.0 * self.d_peak - d)
+        return f * Z
+
+
+def press_past_the_peak(force_limit: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The device pressed 40 mm into a :class:`GivingWall` (200 N/m, holding at most 2 N at
+    10 mm) over 4 s, held, then withdrawn. Returns forces, E_in and the proxy's heights."""
+    r = HapticRenderer(RendererConfig(force_limit=force_limit))
+    wall = GivingWall(200.0, 0.010)
+    z = np.r_[np.linspace(0.0, -0.040, 4000), np.full(500, -0.040), np.linspace(-0.040, 0.002, 4000)]
+    forces, energy, proxy = [], [], []
+    for x in np.stack([0 * z, 0 * z, quantised(z)], axis=1):
+        out = r.answer(x, T)
+        r.refresh(out.proxy, wall.force(out.proxy))
+        forces.append(out.force)
+        energy.append(out.energy)
+        proxy.append(out.proxy[2])
+    return np.array(forces), np.array(energy), np.array(proxy)
+
+
+def test_pressed_past_what_the_device_renders_the_tool_stays_where_the_tissue_holds_that_force():
+    """The god-object property: with the device's limit (1 N) below what the tissue holds (2 N),
+    the simulated tool stops where the tissue pushes 1 N (5 mm) however deep the hand goes, the
+    hand feels the limit, and withdrawing gives back no more energy than went in."""
+    forces, energy, proxy = press_past_the_peak(force_limit=1.0)
+    assert -0.0055 < proxy.min() < -0.0045     # overshoot while pressing at 10 mm/s: 0.2 mm
+    held = slice(4000, 4500)
+    np.testing.assert_allclose(proxy[held], -0.005, atol=2e-4)
+    np.testing.assert_allclose(forces[held, 2], 1.0, atol=1e-9)
+    assert energy.min() >= -1e-9
+    assert proxy[-1] == pytest.approx(0.002, abs=1e-4) and not forces[-1].any()
+
+
+def test_with_a_limit_above_what_the_tissue_holds_the_tool_passes_the_peak():
+    """The limit is what keeps the tool out: allowed to push 3 N against a tissue that holds 2 N,
+    the proxy follows the device past the peak (the failure the limit prevents)."""
+    proxy = press_past_the_peak(force_limit=3.0)[2]
+    assert proxy.min() < -0.02

@@ -28,7 +28,17 @@ fast approach does not arrive with a stretched spring (a damper to the world tra
 ``B_p / K_c`` times its speed: with 2 N s/m, 0.7 mm at 0.24 m/s, felt as 0.5 N the moment contact
 began).
 
-The device receives the spring's force ``K_c (x_t - x^)`` plus a damper ``-B_c (n . v^) n`` on the
+The spring pulls the proxy with at most ``P`` (the force the device can render, the renderer's
+``force_limit``): stretched further, it pulls with ``P`` along ``u = a / |a|``,
+
+    B_p (a - a') / T = -P u + F0 - k n n . (x^ + a - x0),
+
+so the proxy rests where the tissue holds ``P`` however deep the device goes (a god-object on
+the surface: pressed past what the hand can feel, the simulated tool does not follow the device
+through the tissue). The device then feels ``P``, as it would after its own clamp; the saturated
+spring is a function of the stretch alone, so it stores and returns energy like the spring.
+
+The device receives the spring's force ``K_c (x_t - x^)`` (its normal part at most ``P``) plus a damper ``-B_c (n . v^) n`` on the
 device's normal velocity, while the spring pushes (``. n > 0``); never a pull. With zero-order
 hold, a rendered stiffness ``K`` is passive when the damping exceeds ``K T / 2`` (Colgate and
 Brown); the default ``K_c`` 700 N/m (what a PHANTOM Omni renders, about 0.7 N/mm) needs
@@ -94,15 +104,18 @@ class VirtualCoupling:
     """The proxy (simulated tool) and the force on the device, against a :class:`ContactModel`."""
 
     def __init__(self, stiffness: float, damping: float, proxy_damping: float,
-                 model: ContactModel) -> None:
+                 model: ContactModel, push_limit: float = math.inf) -> None:
         for name, val, low in (('coupling stiffness', stiffness, 'open'),
                                ('coupling damping', damping, 'closed'),
                                ('proxy damping', proxy_damping, 'open')):
             if not (math.isfinite(val) and (val > 0.0 if low == 'open' else val >= 0.0)):
                 raise ValueError(f'{name} must be {">" if low == "open" else ">="} 0, got {val}')
+        if not push_limit >= 0.0:
+            raise ValueError(f'push limit must be >= 0 N, got {push_limit}')
         self.stiffness = stiffness
         self.damping = damping
         self.proxy_damping = proxy_damping
+        self.push_limit = push_limit  # P [N]: the most the spring pushes the proxy into the tissue
         self.model = model
         self.proxy: np.ndarray | None = None
         self.offset = np.zeros(3)     # x_t - x^ [m]
@@ -125,13 +138,22 @@ class VirtualCoupling:
             b, kc, k, n = self.proxy_damping / dt, self.stiffness, m.stiffness, m.normal
             r = b * self.offset + m.force - (k * float(n @ (x_hat - m.point))) * n
             self.offset = (r - (k * float(n @ r) / (b + kc + k)) * n) / (b + kc)
+            length = math.sqrt(float(self.offset @ self.offset))
+            if m.magnitude > 0.0 and kc * length > self.push_limit:
+                # saturated: the spring pulls with P along u = a / |a| (from the unsaturated
+                # solution), (b I + k n n^T) a = r - P u
+                q = r - (self.push_limit / length) * self.offset
+                self.offset = (q - (k * float(n @ q) / (b + k)) * n) / b
         self.proxy = x_hat + self.offset
-        spring = self.stiffness * self.offset
         n = m.normal
-        fn = float(spring @ n)
-        if m.magnitude == 0.0 or fn <= 0.0:
+        a_n = float(self.offset @ n)
+        if m.magnitude == 0.0 or a_n <= 0.0:
             self.stretch = 0.0
             return self.proxy, np.zeros(3)
-        self.stretch = fn / self.stiffness
+        self.stretch = a_n
+        spring = self.stiffness * self.offset
+        pull = math.sqrt(float(spring @ spring))
+        if pull > self.push_limit:
+            spring *= self.push_limit / pull
         force = spring - (self.damping * float(n @ v_hat)) * n
         return self.proxy, (force if float(force @ n) > 0.0 else np.zeros(3))

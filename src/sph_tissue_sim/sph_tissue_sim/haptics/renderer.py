@@ -59,7 +59,8 @@ class RendererConfig:
         proxy_damping: ``B_p`` on the simulated tool's offset from the device [N s/m].
         passivity_max_damping: the most damping the passivity controller may add [N s/m].
         force_limit: norm of the rendered force at most this [N] (set it to what the device
-            receives, so that the passivity observer charges the force really held).
+            receives, so that the passivity observer charges the force really held); also the
+            most the coupling pushes the simulated tool into the tissue with (see :mod:`.coupling`).
     """
 
     velocity_cutoff: float = 30.0
@@ -97,8 +98,9 @@ class HapticRenderer:
         c = self.config
         self.estimator = TrackingFilter(c.velocity_cutoff)
         self.model = ContactModel(k_max=STIFFNESS_CEILING * c.coupling_stiffness)
+        # the proxy is pushed into the tissue with no more than the device can render
         self.coupling = VirtualCoupling(c.coupling_stiffness, c.coupling_damping, c.proxy_damping,
-                                        self.model)
+                                        self.model, c.force_limit)
         self.observer = PassivityObserver()
         self.controller = PassivityController(c.passivity_max_damping)
         self.proxy = np.zeros(3)

@@ -206,7 +206,7 @@ def drag(model: TissueModel, material: Material, config: SolverConfig, depth: fl
 
 
 def press_curve(model: TissueModel, material: Material, config: SolverConfig, depth: float,
-                speed: float = 0.01, xy=(0.0, 0.0), dt: float = 1e-3) -> dict:
+                speed: float = 0.01, xy=(0.0, 0.0), dt: float = 1e-3, renderer=None) -> dict:
     """Press the tool straight down into the top surface above ``xy`` to ``depth`` [m] at ``speed``
     [m/s], one ``dt`` frame at a time, from first touch.
 
@@ -215,21 +215,33 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
     tool (closer than its radius to its vertical axis and above its centre): tissue the tool has
     passed under, i.e. popped through; ``slip``: how far the particle touched first has moved
     sideways [m] (a straight press should carry it straight down).
+
+    With a :class:`~..haptics.renderer.HapticRenderer`, ``depth`` is the device's: the renderer
+    answers each device sample and the solver steps at its proxy (the lockstep schedule of the
+    node, one step per sample); then ``tool`` is the simulated tool's depth [m] and ``device`` the
+    force sent to the device along +z [N] (``normal`` stays the solver's).
     """
     solver = Solver(model, material, config)
     P = model.positions
     start = first_touch(model, solver.contact_reach, xy, NUDGE)
     frames = int(math.ceil(depth / (speed * dt)))
-    out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'over', 'slip')}
+    out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'over', 'slip', 'tool', 'device')}
     radius = solver.tool.radius
     first = int(np.argmin(np.linalg.norm(P - start, axis=1)))
     for k in range(frames):
         d = min(depth, (k + 1) * speed * dt)
         tip = start - np.array([0.0, 0.0, d])
+        if renderer is not None:
+            answer = renderer.answer(tip, dt)
+            out['device'][k] = answer.force[2]
+            tip = answer.proxy
         res = solver.step(tip, dt)
         f = res.force_raw
+        if renderer is not None:
+            renderer.refresh(res.tool_segment[0] if res.tool_segment is not None else tip, f)
         at = res.tool_segment[0] if res.tool_segment is not None else tip
         out['depth'][k] = d
+        out['tool'][k] = start[2] - at[2]
         out['normal'][k] = f[2]
         out['sideways'][k] = math.hypot(f[0], f[1])
         x = solver.positions
