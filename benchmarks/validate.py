@@ -22,7 +22,9 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
   global and local, at the top of the right lobe's dome (level there): the force must rise with depth (no pop-through), no particle may
   end up over the tool, the sideways force must stay small and the first-touched particle must not
   slide from under the tool; Hertz's sphere-on-half-space curve is drawn where it applies
-  (depth < tool radius; the liver is no half-space, so it is not scored).
+  (depth < tool radius; the liver is no half-space, so it is not scored). Then the running loop's
+  version: the device pressed as deep through the haptic renderer (local, the driver's 0.88 N
+  limit): the simulated tool must stop where the tissue holds the limit, with no particle over it.
 
 Writes to ``--out`` (default ``benchmarks/results/validate``): ``validate.csv`` (one row per
 measure: measured, reference, error, target, met), ``validate.md`` (the same as a table, with the
@@ -49,6 +51,7 @@ from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import SolverConfig
+from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
 from sph_tissue_sim.validation import cases
 from sph_tissue_sim.validation.analytic import hertz_force
 
@@ -64,6 +67,8 @@ PRESS_REPORT_DEPTHS = (0.005, 0.010, 0.020, 0.030, 0.040)
 #: (at the bounding box's centre the top slopes at about 45 degrees, where a frictionless tool is
 #: pushed sideways as much as up)
 LIVER_TOP = (-0.034, 0.0)
+#: [N] the driver's continuous force limit (PHANTOM Omni), for the press through the renderer
+DEVICE_LIMIT = 0.88
 
 #: SolverConfig fields set from the command line (--set) for the checks with a tool
 OVERRIDES: dict = {}
@@ -295,11 +300,26 @@ def check_press(quick: bool, out: Path) -> list[dict]:
                                 side <= 0.10))
                 rows.append(row('press', f'{mode}: slip of the first-touched particle at 10 mm',
                                 c['slip'][k] * 1e3, None, 'mm', '<= 1 mm', c['slip'][k] <= 1e-3))
+    # the running loop: the device pressed through the haptic renderer, which pulls the simulated
+    # tool with at most the device's limit (the driver's continuous 0.88 N)
+    config = solver_config(mode='local', parallel_min_particles=10 ** 9)
+    c = cases.press_curve(model, material, config, depth, xy=LIVER_TOP,
+                          renderer=HapticRenderer(RendererConfig(force_limit=DEVICE_LIMIT)))
+    held = float(np.interp(DEVICE_LIMIT, np.maximum.accumulate(curves['local']['normal']),
+                           curves['local']['depth'], right=math.inf))
+    rows.append(row('press', f'through the renderer ({DEVICE_LIMIT} N limit): deepest tool, device at '
+                    f'{depth * 1e3:.0f} mm', c['tool'].max() * 1e3, None, 'mm',
+                    'where the tissue holds the limit' + ('' if math.isfinite(held) else ' (it never does)'),
+                    bool(math.isfinite(held) and c['tool'].max() <= held + 1.5e-3)))
+    rows.append(row('press', f'through the renderer ({DEVICE_LIMIT} N limit): most particles over the tool',
+                    float(c['over'].max()), None, '-', '0', c['over'].max() == 0))
     fig, ax = _figure()
     colours = {'global': '#d62728', 'local': '#1f77b4'}
-    for mode, c in curves.items():
-        ax.plot(c['depth'] * 1e3, c['normal'], color=colours[mode], lw=1.2, label=f'{mode}: normal')
-        ax.plot(c['depth'] * 1e3, c['sideways'], color=colours[mode], lw=0.8, ls='--', label=f'{mode}: sideways')
+    for mode, cv in curves.items():
+        ax.plot(cv['depth'] * 1e3, cv['normal'], color=colours[mode], lw=1.2, label=f'{mode}: normal')
+        ax.plot(cv['depth'] * 1e3, cv['sideways'], color=colours[mode], lw=0.8, ls='--', label=f'{mode}: sideways')
+    ax.plot(c['depth'] * 1e3, c['device'], color='#2ca02c', lw=1.2,
+            label=f'through the renderer ({DEVICE_LIMIT} N): device force against device depth')
     radius = solver_config().tool_radius
     _plot_hertz(ax, material, radius, radius, 'Hertz (half-space, d < R)')
     ax.set_xlabel('tool depth below first touch [mm]')

@@ -731,7 +731,7 @@ class SimNode(Node):
                     if 'renderer' in kinds:   # new gains: the device's past no longer applies
                         self.haptic.reset()
                         self.haptic.renderer = HapticRenderer(renderer)
-                    self.haptic.renderer.config.force_limit = renderer.force_limit
+                    self.haptic.renderer.set_force_limit(renderer.force_limit)
                     self.haptic.max_dt = float(new['max_dt'])
                     if self.lockstep:
                         self.haptic.every = int(new['solver_every'])

@@ -113,6 +113,11 @@ class HapticRenderer:
         self.observer.reset()
         self.controller.alpha = self.controller.total = 0.0
 
+    def set_force_limit(self, limit: float) -> None:
+        """A new force limit [N]: the clamp and the most the coupling pulls the tool with."""
+        self.config.force_limit = limit
+        self.coupling.push_limit = limit
+
     def answer(self, x, dt: float) -> Rendered:
         """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one."""
         prev = self.observer.last
