@@ -25,7 +25,8 @@ from sph_tissue_sim.validation.cases import (E_TEST, RHO, cantilever_frequency, 
 
 
 # ---------------------------------------------------------------------------------------------
-def test_kelvin_voigt_creep_under_constant_traction_follows_sigma_over_e_times_one_minus_exp():
+@pytest.mark.parametrize('viscosity', ['explicit', 'implicit'])
+def test_kelvin_voigt_creep_under_constant_traction_follows_sigma_over_e_times_one_minus_exp(viscosity):
     """Creep of a free bar under a constant end traction: eps(t) = sigma0/E (1 - exp(-t/tau)).
 
     Why this is the closed-form answer: with both dashpots sharing the retardation time tau
@@ -40,12 +41,13 @@ def test_kelvin_voigt_creep_under_constant_traction_follows_sigma_over_e_times_o
     (elastic-wave) transients decay at rate omega^2 tau. Strain 1e-3 keeps the neo-Hookean spring
     linear to 0.1 %.
     """
-    errors = {t: measured / exact - 1.0 for t, measured, exact in creep()}
+    errors = {t: measured / exact - 1.0 for t, measured, exact in creep(viscosity=viscosity)}
     print('creep relative error at t/tau:', {k: f'{v:+.4f}' for k, v in errors.items()})
     assert all(abs(e) < 0.02 for e in errors.values()), errors
 
 
-def test_uniaxial_tension_recovers_youngs_modulus_and_poisson_ratio():
+@pytest.mark.parametrize('viscosity', ['explicit', 'implicit'])
+def test_uniaxial_tension_recovers_youngs_modulus_and_poisson_ratio(viscosity):
     """Static uniaxial stress: sigma0 = E eps_axial and eps_lateral = -nu eps_axial (Hooke's law).
 
     A free bar (12 x 6 x 6 particles) under equal and opposite end tractions; the viscosity
@@ -54,7 +56,7 @@ def test_uniaxial_tension_recovers_youngs_modulus_and_poisson_ratio():
     (uniform stress region, 1.5 spacings from the loaded ends).
     """
     nu = 0.45
-    E_meas, nu_meas = uniaxial(nu=nu)
+    E_meas, nu_meas = uniaxial(nu=nu, viscosity=viscosity)
     print(f'E error {E_meas / E_TEST - 1.0:+.4f}, nu measured {nu_meas:.4f} (exact {nu})')
     assert E_meas == pytest.approx(E_TEST, rel=0.05)
     assert nu_meas == pytest.approx(nu, rel=0.05)

@@ -26,6 +26,7 @@ from . import frame
 from .contact import contact_vector_py, deepest_contact, surface_discs
 from .surface_contact import SURFACE_OFFSET, no_samples, sample_stiffness_factor, surface_samples
 from .errors import ConfigError, ModelError, SimError
+from .implicit_viscosity import DashpotSolve
 from .integrate import SymplecticEuler, frame_state_ok, substep_bounds, substeps_for
 from .kernel import SUPPORT
 from .local_area import LocalArea, active_stats
@@ -40,7 +41,10 @@ from .tlsph import TlsphScheme
 from .tools import NO_ROTATION, TOOLS, make_tool
 
 SCHEMES = ('paper', 'tlsph', 'mass_spring')
+#: conjugate-gradient iterations of one implicit dashpot solve at most
+DASHPOT_MAX_ITER = 200
 MODES = ('global', 'local')
+VISCOSITIES = ('explicit', 'implicit')
 
 
 class InvalidInput(SimError, ValueError):
@@ -67,6 +71,7 @@ CONFIG_RANGES = {
     'paper_momentum': (12, 14, 'int'), 'parallel_min_particles': (0, math.inf, 'int'),
     'far_field': (0.0, 2.0, 'closed'), 'max_tool_speed': (0.0, math.inf, 'open'),
     'contact_samples': (0, 5, 'int'),
+    'viscous_tol': (0.0, 1.0, 'open'),
 }
 
 
@@ -182,11 +187,14 @@ class SolverConfig:
     far_field: float = 1.0
     max_tool_speed: float = 1.0
     contact_samples: int = 0
+    viscosity: str = 'explicit'
+    viscous_tol: float = 1e-6
 
     def validate(self) -> 'SolverConfig':
         """Check ranges (:data:`CONFIG_RANGES`); raises :class:`ConfigError` naming the bad field.
         Returns self, with the integer fields as ``int``."""
-        for name, choices in (('scheme', SCHEMES), ('mode', MODES), ('tool_shape', tuple(TOOLS))):
+        for name, choices in (('scheme', SCHEMES), ('mode', MODES), ('tool_shape', tuple(TOOLS)),
+                              ('viscosity', VISCOSITIES)):
             if getattr(self, name) not in choices:
                 raise ConfigError(f'{name} must be one of {choices}, got {getattr(self, name)!r}')
         for name, (lo, hi, kind) in CONFIG_RANGES.items():
@@ -206,6 +214,8 @@ class SolverConfig:
             raise ConfigError(f'k1_min ({self.k1_min}) must be <= k1_max ({self.k1_max})')
         if self.contact_samples > 0 and self.contact_disc > 0.0:
             raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
+        if self.viscosity == 'implicit' and self.scheme != 'tlsph':
+            raise ConfigError(f'viscosity implicit needs scheme tlsph, got {self.scheme!r}')
         if self.paper_momentum not in (12, 14):
             raise ConfigError(f'paper_momentum must be 12 or 14 (paper eq. 12 or 14), got {self.paper_momentum}')
         return self
@@ -293,6 +303,8 @@ class Solver:
         pm = cfg.parallel_min_particles
         self.par_min = pm if pm > 0 and numba.get_num_threads() > 1 else self.n + 1
         self.scheme = self._make_scheme()
+        self.dashpots = (DashpotSolve(self.scheme, self.n, cfg.viscous_tol, DASHPOT_MAX_ITER)
+                         if cfg.viscosity == 'implicit' else None)
         self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
                               self.h, cfg.n_layers, self.contact_surf)
         self.set_material(material)
@@ -331,7 +343,7 @@ class Solver:
         if cfg.scheme == 'mass_spring':
             return MassSpringScheme(self.X, self.model.spacing, cfg.spring_radius)
         return TlsphScheme(self.X, self.offsets, self.indices, self.h, self.volume, cfg.hourglass,
-                           self.par_min)
+                           self.par_min, explicit_dashpots=cfg.viscosity == 'explicit')
 
     def interrupt(self) -> None:
         """Make the step running in another thread stop before its next sub-step (it then raises
@@ -380,9 +392,16 @@ class Solver:
         else:
             self.samples = no_samples(self.n)
         self.scheme.set_material(material, self.mass)
+        if self.dashpots is not None:
+            self.dashpots.set_material(material)
         c = self.scheme.wave_speed(material, self.mass)
-        self.dt_bounds = substep_bounds(self.h, c, material.rho, material.eta_longitudinal, self.mass,
+        # implicit dashpots are stable at any sub-step: no viscous bound
+        eta_long = material.eta_longitudinal if self.dashpots is None else 0.0
+        self.dt_bounds = substep_bounds(self.h, c, material.rho, eta_long, self.mass,
                                         cfg.contact_stiffness * self.sample_factor, cfg.cfl)
+        if self.dashpots is not None:
+            # the hourglass dashpot stays explicit (its bonds' damping is not symmetric)
+            self.dt_bounds['hourglass_damping'] = self.scheme.hourglass_damping_bound(self.mass, cfg.cfl)
         if cfg.contact_damping_ratio > 0.0:
             # explicit dashpot: dt < 2 m / c; keep a factor 2 margin
             self.dt_bounds['contact_damping'] = self.mass / (self.samples.damping * self.sample_factor
@@ -584,7 +603,8 @@ class Solver:
         back to their state before the frame and :class:`SimError` is raised.
         """
         self.area.save(self.x, self.v, sets)
-        status, overlap = frame.run(self.scheme, SymplecticEuler(sub_dt), self.body, self.motion, sets,
+        integrator = SymplecticEuler(sub_dt) if self.dashpots is None else self.dashpots.integrator(sub_dt)
+        status, overlap = frame.run(self.scheme, integrator, self.body, self.motion, sets,
                                     path, self.loads, n_sub, dt, self.react, self.abort,
                                     self.area.active, self.area.n_active)
         ok = (status == STATUS_OK and self.abort[0] == 0

@@ -389,13 +389,16 @@ class TlsphScheme(FixedStateScheme):
         h: smoothing length [m]; volume: particle volume [m^3].
         hourglass: the hourglass coefficient alpha [-].
         par_min: stressed particles from which a sub-step uses the thread pool.
+        explicit_dashpots: False leaves the material's dashpots out of the forces (an implicit
+            integrator applies them, :mod:`.implicit_viscosity`); the hourglass dashpot stays.
     """
 
     name = 'tlsph'
 
     def __init__(self, X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float,
-                 volume: float, hourglass: float, par_min: int) -> None:
+                 volume: float, hourglass: float, par_min: int, explicit_dashpots: bool = True) -> None:
         n = len(X)
+        self.explicit_dashpots = explicit_dashpots
         self.offsets, self.indices, self.volume = offsets, indices, volume
         self.hourglass = hourglass
         self.par_min = par_min
@@ -418,12 +421,24 @@ class TlsphScheme(FixedStateScheme):
         eta_e = 9.0 * eta_b * eta_s / (3.0 * eta_b + eta_s) if eta_b + eta_s > 0.0 else 0.0
         hg_c = self.hourglass * eta_e * vol2
         self.material = material
+        on = 1.0 if self.explicit_dashpots else 0.0
         self._state = Tlsph(self.offsets, self.indices, self.dw, self.gv, self.w0, self.Linv,
                             self.F, self.Fd, self.A, self.H, self.volume, material.G, material.K,
-                            eta_s, eta_b, hg_k, hg_c, self.par_min)
+                            on * eta_s, on * eta_b, hg_k, hg_c, self.par_min)
 
     def wave_speed(self, material: Material, mass: float) -> float:
         return material.wave_speed
+
+    def hourglass_damping_bound(self, mass: float, cfl: float) -> float:
+        """Stable explicit sub-step of the hourglass dashpot alone [s]: ``C m / max_i sum_j
+        W0_ij hg_c`` (its bonds' damping summed per particle; Gershgorin). Far looser than the
+        viscous bound (liver: 0.35 against 1.3 sub-steps per ms at 3670 particles, 3.2 against
+        12 at 100k); it binds only where the dashpots are implicit and the viscosity is extreme."""
+        st = self._state
+        rows = np.repeat(np.arange(len(self.offsets) - 1), np.diff(self.offsets))
+        per = np.bincount(rows, weights=self.w0 * st.hg_c, minlength=len(self.offsets) - 1)
+        top = float(per.max()) if len(per) else 0.0
+        return cfl * mass / top if top > 0.0 else math.inf
 
     def reset(self) -> None:
         self.F[:] = np.eye(3)

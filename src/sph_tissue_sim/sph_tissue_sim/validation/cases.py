@@ -69,7 +69,7 @@ def advance_to(solver: Solver, t_end: float, frame: float) -> None:
 
 
 def creep(nx: int = 8, ny: int = 4, nz: int = 4, nu: float = 0.45,
-          times=(0.5, 1.0, 3.0)) -> list[tuple[float, float, float]]:
+          times=(0.5, 1.0, 3.0), **config) -> list[tuple[float, float, float]]:
     """Creep of a free bar under a constant end traction against eps(t) = sigma0/E (1 - exp(-t/tau)).
 
     With both dashpots sharing the retardation time tau (eta_shear/G = eta_bulk/K = tau), the
@@ -81,11 +81,12 @@ def creep(nx: int = 8, ny: int = 4, nz: int = 4, nu: float = 0.45,
     (elastic-wave) transients decay. Strain 1e-3 keeps the neo-Hookean spring linear to 0.1 %.
 
     Returns ``(t / tau, measured strain, exact strain)`` at each of ``times`` (in units of tau).
+    ``config``: further :class:`SolverConfig` fields (e.g. ``viscosity``).
     """
     omega = math.pi * math.sqrt(E_TEST / RHO) / (nx * SPACING)
     tau = 12.0 / omega
     sigma0 = 1e-3 * E_TEST
-    solver, interior = free_bar_under_end_tractions(nx, ny, nz, kelvin_voigt(nu, tau), sigma0)
+    solver, interior = free_bar_under_end_tractions(nx, ny, nz, kelvin_voigt(nu, tau), sigma0, **config)
     out = []
     for t in times:
         advance_to(solver, t * tau, 5e-4)
@@ -94,7 +95,8 @@ def creep(nx: int = 8, ny: int = 4, nz: int = 4, nu: float = 0.45,
     return out
 
 
-def uniaxial(nx: int = 12, ny: int = 6, nz: int = 6, nu: float = 0.45, tau: float = 0.02) -> tuple[float, float]:
+def uniaxial(nx: int = 12, ny: int = 6, nz: int = 6, nu: float = 0.45, tau: float = 0.02,
+             **config) -> tuple[float, float]:
     """Static uniaxial stress on a free bar: (measured E [Pa], measured nu) from sigma0 = E eps_axial
     and eps_lateral = -nu eps_axial (Hooke's law); exact ``E_TEST`` and ``nu``.
 
@@ -102,7 +104,7 @@ def uniaxial(nx: int = 12, ny: int = 6, nz: int = 6, nu: float = 0.45, tau: floa
     to rest: after 8 tau the transient is below 1e-3 of the static strain.
     """
     sigma0 = 1e-3 * E_TEST
-    solver, interior = free_bar_under_end_tractions(nx, ny, nz, kelvin_voigt(nu, tau), sigma0)
+    solver, interior = free_bar_under_end_tractions(nx, ny, nz, kelvin_voigt(nu, tau), sigma0, **config)
     advance_to(solver, 8.0 * tau, 1e-3)
     eps = strain_slope(solver, interior, 0)
     eps_lat = 0.5 * (strain_slope(solver, interior, 1) + strain_slope(solver, interior, 2))
