@@ -172,34 +172,32 @@ def _dot(a, b, sph, n):
 @njit(cache=True, fastmath=True)
 def implicit_viscous_step(s, body, motion, sets):
     """One sub-step: ``v* = v + dt a``, then ``(I + dt/m C) v' = v*`` by conjugate gradients
-    from ``v*`` (relative residual ``s.tol``, at most ``s.max_iter`` iterations), ``x += dt v'``."""
+    from ``v*`` until the residual is ``s.tol`` times ``|v*|`` (or the first residual) (at most ``s.max_iter`` iterations),
+    ``x += dt v'``."""
     X, x, v, acc = body.X, motion.x, motion.v, motion.acc
     sph, n = sets.sph, sets.n_sph
     dt = s.dt
     scale = dt * body.inv_mass
     u, r, p, q, w = s.u, s.r, s.p, s.q, s.w
-    # right-hand side b = v* - dt/m C_B v_B: the held velocities enter with the solved ones at 0
+    # from the guess u = v*: r = b - (I + dt/m C) u with b = v* - dt/m C_B v_B is, by linearity,
+    # dt/m f_visc(v* on the solved particles, the held velocities elsewhere): one pass
     for k in range(n):
         i = sph[k]
         for a in range(3):
             u[i, a] = v[i, a] + dt * acc[i, a]
-            v[i, a] = 0.0
-    _apply(s, X, v, sets, -scale, u, r)            # r = b (v* + dt/m f(0 + v_B))
-    bnorm = math.sqrt(_dot(r, r, sph, n))
-    # residual of the guess u = v*: r = b - (u + dt/m C u)
+            v[i, a] = u[i, a]
+            q[i, a] = 0.0
+    _apply(s, X, v, sets, -scale, q, r)
+    unorm = math.sqrt(_dot(u, u, sph, n))
     for k in range(n):
         i = sph[k]
         for a in range(3):
-            w[i, a] = u[i, a]
-    _apply(s, X, w, sets, scale, u, q)             # q = u - dt/m f(u) = (I + dt/m C) u
-    for k in range(n):
-        i = sph[k]
-        for a in range(3):
-            r[i, a] -= q[i, a]
             p[i, a] = r[i, a]
     rr = _dot(r, r, sph, n)
+    # relative to |v*| (or to the first residual, should v* vanish)
+    limit = s.tol * max(unorm, math.sqrt(rr))
     it = 0
-    while it < s.max_iter and math.sqrt(rr) > s.tol * bnorm:
+    while it < s.max_iter and math.sqrt(rr) > limit:
         for k in range(n):
             i = sph[k]
             for a in range(3):

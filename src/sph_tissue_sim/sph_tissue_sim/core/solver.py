@@ -188,7 +188,7 @@ class SolverConfig:
     max_tool_speed: float = 1.0
     contact_samples: int = 0
     viscosity: str = 'explicit'
-    viscous_tol: float = 1e-6
+    viscous_tol: float = 1e-3
 
     def validate(self) -> 'SolverConfig':
         """Check ranges (:data:`CONFIG_RANGES`); raises :class:`ConfigError` naming the bad field.
