@@ -122,6 +122,7 @@ class Case:
     n_layers: int = 2
     paper_s: float | None = None
     parallel_min: int = 0                # SolverConfig.parallel_min_particles (0: serial)
+    viscosity: str = 'explicit'          # SolverConfig.viscosity
 
 
 # ---------------------------------------------------------------------------------------------
@@ -191,7 +192,8 @@ class Runner:
     def __init__(self, case: Case, model: TissueModel, settings: Settings, material) -> None:
         self.case, self.model, self.st = case, model, settings
         cfg = SolverConfig(scheme=case.scheme, mode=case.mode, n_layers=case.n_layers,
-                           k1_gain=case.k1_gain, parallel_min_particles=case.parallel_min)
+                           k1_gain=case.k1_gain, parallel_min_particles=case.parallel_min,
+                           viscosity=case.viscosity)
         if case.h_ratio is not None:
             cfg.h_ratio = float(case.h_ratio)
         if case.k1_pinned is not None:
@@ -377,10 +379,14 @@ def run_targets(st: Settings, models: Models, material, progress) -> list[dict]:
              Case('targets', 'global mass_spring', 'mass_spring', 'global', n, paper_s=PAPER_T1.get(n, (None,))[0]),
              Case('targets', 'local tlsph big', 'tlsph', 'local', st.targets_local_big),
              Case('targets', 'global tlsph 50k', 'tlsph', 'global', st.targets_global_big)]
+    # the same tlsph cases with implicit dashpots (no viscous sub-step bound)
+    implicit = [Case('targets', f'{c.label} implicit', c.scheme, c.mode, c.n_target, paper_s=c.paper_s,
+                     viscosity='implicit') for c in cases if c.scheme == 'tlsph']
     if _numba_threads() > 1:
         # the same tlsph cases on numba's thread pool (SolverConfig.parallel_min_particles=1)
         cases += [Case('targets', f'{c.label} threads', c.scheme, c.mode, c.n_target, paper_s=c.paper_s,
                        parallel_min=1) for c in cases if c.scheme == 'tlsph']
+    cases += implicit
     runners = []
     for c in cases:
         try:
@@ -441,6 +447,13 @@ def target_lines(rows: list[dict]) -> list[str]:
         nb = by['global tlsph 50k']['n_particles']
         out.append(f'global tlsph step, {nb} particles: {gb:.2f} ms ({by["global tlsph 50k"]["substeps"]:.0f} sub-steps); '
                    f'target <= 16 ms: {verdict(gb <= 16.0)}')
+    li, lbi = ms('local tlsph implicit'), ms('local tlsph big implicit')
+    if li is not None and lbi is not None and lt:
+        bi, si = by['local tlsph big implicit'], by['local tlsph implicit']
+        out.append(f'implicit dashpots: local {li:.4f} ms ({li / lt:.2f}x the explicit step, '
+                   f'{si["substeps"]:.0f} sub-steps), big {lbi:.4f} ms ({lbi / lb:.2f}x explicit, '
+                   f'{bi["substeps"]:.0f} sub-steps against {by["local tlsph big"]["substeps"]:.0f}) = '
+                   f'{lbi / li:.2f}x the implicit {n}-particle step; target <= 2x: {verdict(lbi / li <= 2.0)}')
     lp, gp, lbp, gbp = (ms(f'{k} threads') for k in ('local tlsph', 'global tlsph', 'local tlsph big',
                                                        'global tlsph 50k'))
     if lp is not None and lt is not None:
@@ -778,7 +791,7 @@ def main(argv: list[str] | None = None) -> int:
     meta['model_kind'] = models.kind
     meta['h_unit_mm'] = h_unit(models) * 1e3
     cases = build_cases(tables, st, models)
-    n_total = len(cases) + ((11 if _numba_threads() > 1 else 7) if 'targets' in tables else 0) + (1 if 'memory' in tables else 0)
+    n_total = len(cases) + ((15 if _numba_threads() > 1 else 11) if 'targets' in tables else 0) + (1 if 'memory' in tables else 0)
     rows: list[dict] = []
     with tqdm(total=n_total, desc='bench', unit='case', file=sys.stderr, dynamic_ncols=True) as bar:
         for case in cases:

@@ -229,6 +229,18 @@ def test_threads_disc_contact_and_paper_momentum_parameters_reach_the_solver_con
         build_config(defaults(paper_momentum=13))
 
 
+def test_the_viscosity_parameters_reach_the_solver_config_and_bad_ones_are_refused():
+    cfg = build_config(defaults())
+    assert (cfg.viscosity, cfg.viscous_tol) == ('explicit', 1e-3)
+    cfg = build_config(defaults(viscosity='implicit', viscous_tol=1e-5))
+    assert (cfg.viscosity, cfg.viscous_tol) == ('implicit', 1e-5)
+    assert 'must be one of' in check_value('viscosity', 'semi')
+    with pytest.raises(ConfigError, match='viscous_tol'):
+        build_config(defaults(viscous_tol=0.0))
+    with pytest.raises(ConfigError, match='viscosity'):
+        build_config(defaults(viscosity='implicit', scheme='paper'))
+
+
 def test_check_value_catches_bad_choices_and_vectors():
     assert check_value('mode', 'local') is None
     assert 'must be one of' in check_value('mode', 'diagonal')
