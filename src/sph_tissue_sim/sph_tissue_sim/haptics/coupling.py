@@ -38,10 +38,10 @@ the surface: pressed past what the hand can feel, the simulated tool does not fo
 through the tissue). The device then feels ``P``, as it would after its own clamp; the saturated
 spring is a function of the stretch alone, so it stores and returns energy like the spring.
 
-The device receives the spring's force ``K_c (x_t - x^)`` (its normal part at most ``P``) plus a damper ``-B_c (n . v^) n`` on the
-device's normal velocity, while the spring pushes (``. n > 0``); never a pull. With zero-order
-hold, a rendered stiffness ``K`` is passive when the damping exceeds ``K T / 2`` (Colgate and
-Brown); the default ``K_c`` 700 N/m (what a PHANTOM Omni renders, about 0.7 N/mm) needs
+The device receives the spring's force ``K_c (x_t - x^)`` (at most ``P``) plus a damper
+``-B_c (n . v^) n`` on the device's normal velocity, while the spring pushes (``. n > 0``); never
+a pull. With zero-order hold, a rendered stiffness ``K`` is passive when the damping exceeds
+``K T / 2`` (Colgate and Brown); the default ``K_c`` 700 N/m (what a PHANTOM Omni renders, about 0.7 N/mm) needs
 ``B_c > 0.35 N s/m`` at 1 kHz. The default ``B_c`` is 1.5 N s/m: the loop through the solver and
 the estimator's overshoot are active too, and with 0.5 a poke session on tissue ten times stiffer
 than the liver gave energy back (E_in -85 uJ; with 1.5 it stays >= 0).
