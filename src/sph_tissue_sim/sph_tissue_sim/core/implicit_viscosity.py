@@ -173,8 +173,8 @@ def _dot(a, b, sph, n):
 @njit(cache=True, fastmath=True)
 def implicit_viscous_step(s, body, motion, sets):
     """One sub-step: ``v* = v + dt a``, then ``(I + dt/m C) v' = v*`` by conjugate gradients
-    from ``v*`` until the residual is ``s.tol`` times ``|v*|`` (or the first residual) (at most ``s.max_iter`` iterations),
-    ``x += dt v'``."""
+    from ``v*`` until the residual is ``s.tol`` times ``|v*|`` (or the first residual; at most
+    ``s.max_iter`` iterations), ``x += dt v'``."""
     X, x, v, acc = body.X, motion.x, motion.v, motion.acc
     sph, n = sets.sph, sets.n_sph
     dt = s.dt

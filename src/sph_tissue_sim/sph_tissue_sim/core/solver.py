@@ -662,8 +662,9 @@ class Solver:
                     k1=float(k1), n_active=int(n_active_frame))
 
 
-def warmup(scheme: str | None = None) -> float:
-    """Compile every numba kernel on a tiny block (numba caches to disk); returns seconds taken."""
+def warmup(scheme: str | None = None, viscosity: str = 'explicit') -> float:
+    """Compile every numba kernel on a tiny block (numba caches to disk); returns seconds taken.
+    ``viscosity`` picks the ``tlsph`` integrator's specialisation of the frame loop."""
     from .models import make_block
 
     t0 = time.perf_counter()
@@ -673,7 +674,8 @@ def warmup(scheme: str | None = None) -> float:
     for sch in schemes:
         for mode in MODES:
             try:
-                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode))
+                visc = viscosity if sch == 'tlsph' else 'explicit'
+                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode, viscosity=visc))
             except ConfigError:
                 continue
             top = model.positions[:, 2].max()
