@@ -170,11 +170,12 @@ def _dot(a, b, sph, n):
     return t
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True)
 def implicit_viscous_step(s, body, motion, sets):
     """One sub-step: ``v* = v + dt a``, then ``(I + dt/m C) v' = v*`` by conjugate gradients
     from ``v*`` until the residual is ``s.tol`` times ``|v*|`` (or the first residual; at most
-    ``s.max_iter`` iterations), ``x += dt v'``."""
+    ``s.max_iter`` iterations), ``x += dt v'``. Compiled without ``fastmath`` (its passes have
+    their own flags) so that the stopping tests keep their meaning for a NaN."""
     X, x, v, acc = body.X, motion.x, motion.v, motion.acc
     sph, n = sets.sph, sets.n_sph
     dt = s.dt
