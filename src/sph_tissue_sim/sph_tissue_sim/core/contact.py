@@ -115,6 +115,19 @@ def contact_vector(i, x, seg, surf):
     return u0, u1, u2, s0, s1, s2, tseg
 
 
+@njit(cache=True, inline='always')
+def record_touch(touches, kind, idx, n0, n1, n2):
+    """Append a pushing contact to ``touches`` (:class:`~.state.Touches`)."""
+    t = touches.count[0]
+    if t < touches.idx.shape[0]:
+        touches.kind[t] = kind
+        touches.idx[t] = idx
+        touches.normal[t, 0] = n0
+        touches.normal[t, 1] = n1
+        touches.normal[t, 2] = n2
+        touches.count[0] = t + 1
+
+
 @njit(cache=True, nogil=True)
 def contact_vector_py(i, x, seg, surf):
     """:func:`contact_vector` callable from Python (``(u0, u1, u2, s0, s1, s2, t)``)."""
@@ -168,6 +181,8 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
         react[0] -= fmag * n0
         react[1] -= fmag * n1
         react[2] -= fmag * n2
+        if tool.touches.on:
+            record_touch(tool.touches, 0, i, n0, n1, n2)
         if not fixed[i]:
             acc[i, 0] += fmag * n0 * inv_mass
             acc[i, 1] += fmag * n1 * inv_mass

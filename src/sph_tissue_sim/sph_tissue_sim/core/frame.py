@@ -91,10 +91,11 @@ def run_frame(scheme, integrator, body, motion, sets, tool, loads, first, n_sub,
         if tool.on:
             _segment_at(tool.seg0, tool.seg1, s, n_sub, seg)
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
+            tool.touches.count[0] = 0
             overlap = contact_forces(body, motion, sets.cand, sets.n_cand, tool, seg, seg_vel, rsum)
             if tool.samples.w_val.shape[0] > 0:
                 overlap = max(overlap, sample_contact_forces(body, motion, sets.cand, sets.n_cand, seg,
-                                                             seg_vel, tool.samples, rsum))
+                                                             seg_vel, tool.samples, rsum, tool.touches))
             react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
         advance(integrator, body, motion, sets)
         move_layers(motion.x, motion.v, body.fixed, sets.layer, sets.layer_w, sets.n_layer,

@@ -26,6 +26,7 @@ from . import frame
 from .contact import contact_vector_py, deepest_contact, surface_discs
 from .surface_contact import SURFACE_OFFSET, no_samples, sample_stiffness_factor, surface_samples
 from .errors import ConfigError, ModelError, SimError
+from .implicit_contact import ContactSolve
 from .implicit_viscosity import DashpotSolve
 from .integrate import SymplecticEuler, frame_state_ok, substep_bounds, substeps_for
 from .kernel import SUPPORT
@@ -36,7 +37,7 @@ from .neighbours import CellGrid, find_neighbours
 from .paper import PaperScheme
 from .protocols import STATUS_OK
 from .springs import MassSpringScheme
-from .state import Body, Loads, Motion, Samples, Sets, ToolPath, Topology
+from .state import Body, Loads, Motion, Samples, Sets, ToolPath, Topology, no_touches
 from .tlsph import TlsphScheme
 from .tools import NO_ROTATION, TOOLS, make_tool
 
@@ -45,6 +46,9 @@ SCHEMES = ('paper', 'tlsph', 'mass_spring')
 DASHPOT_MAX_ITER = 200
 MODES = ('global', 'local')
 VISCOSITIES = ('explicit', 'implicit')
+CONTACT_INTEGRATIONS = ('explicit', 'implicit')
+#: relative residual of the implicit contact's solve (cheap: it spans the particles under the tool)
+CONTACT_TOL = 1e-8
 
 
 class InvalidInput(SimError, ValueError):
@@ -189,12 +193,13 @@ class SolverConfig:
     contact_samples: int = 0
     viscosity: str = 'explicit'
     viscous_tol: float = 1e-3
+    contact_integration: str = 'explicit'
 
     def validate(self) -> 'SolverConfig':
         """Check ranges (:data:`CONFIG_RANGES`); raises :class:`ConfigError` naming the bad field.
         Returns self, with the integer fields as ``int``."""
         for name, choices in (('scheme', SCHEMES), ('mode', MODES), ('tool_shape', tuple(TOOLS)),
-                              ('viscosity', VISCOSITIES)):
+                              ('viscosity', VISCOSITIES), ('contact_integration', CONTACT_INTEGRATIONS)):
             if getattr(self, name) not in choices:
                 raise ConfigError(f'{name} must be one of {choices}, got {getattr(self, name)!r}')
         for name, (lo, hi, kind) in CONFIG_RANGES.items():
@@ -216,6 +221,8 @@ class SolverConfig:
             raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
         if self.viscosity == 'implicit' and self.scheme != 'tlsph':
             raise ConfigError(f'viscosity implicit needs scheme tlsph, got {self.scheme!r}')
+        if self.viscosity == 'implicit' and self.contact_integration == 'implicit':
+            raise ConfigError('viscosity implicit and contact_integration implicit cannot be combined yet')
         if self.paper_momentum not in (12, 14):
             raise ConfigError(f'paper_momentum must be 12 or 14 (paper eq. 12 or 14), got {self.paper_momentum}')
         return self
@@ -305,6 +312,10 @@ class Solver:
         self.scheme = self._make_scheme()
         self.dashpots = (DashpotSolve(self.scheme, self.n, cfg.viscous_tol, DASHPOT_MAX_ITER)
                          if cfg.viscosity == 'implicit' else None)
+        n_samples = len(self.sample_arrays[4]) if self.sample_arrays is not None else 0
+        self.contact_solve = (ContactSolve(self.n, n_samples, CONTACT_TOL, DASHPOT_MAX_ITER)
+                              if cfg.contact_integration == 'implicit' else None)
+        self.touches = self.contact_solve.touches if self.contact_solve is not None else no_touches()
         self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
                               self.h, cfg.n_layers, self.contact_surf)
         self.set_material(material)
@@ -403,9 +414,13 @@ class Solver:
             # the hourglass dashpot stays explicit (its bonds' damping is not symmetric)
             self.dt_bounds['hourglass_damping'] = self.scheme.hourglass_damping_bound(self.mass, cfg.cfl)
         if cfg.contact_damping_ratio > 0.0:
-            # explicit dashpot: dt < 2 m / c; keep a factor 2 margin
+            # explicit dashpot: dt < 2 m / c; keep a factor 2 margin (implicit contact: none)
             self.dt_bounds['contact_damping'] = self.mass / (self.samples.damping * self.sample_factor
                                                              if per > 0 else self.contact_damping)
+        if self.contact_solve is not None:
+            # the pushing contacts are integrated backward along their normals
+            self.dt_bounds.pop('contact', None)
+            self.dt_bounds.pop('contact_damping', None)
         self.dt_max = min(self.dt_bounds.values())
         # without a tool no contact spring or dashpot acts, so only the material bounds apply
         self.dt_max_free = min(v for k, v in self.dt_bounds.items() if not k.startswith('contact'))
@@ -550,7 +565,7 @@ class Solver:
         else:
             seg0 = seg1 = np.stack([self.centre, self.centre])
         path = ToolPath(seg0, seg1, tool_on, self.ball_reach, cfg.contact_stiffness,
-                        self.contact_damping, self.contact_surf, self.samples)
+                        self.contact_damping, self.contact_surf, self.samples, self.touches)
         if cfg.mode == 'global':
             res = self._global_step(path, n_sub, sub_dt, dt)
         else:
@@ -603,7 +618,13 @@ class Solver:
         back to their state before the frame and :class:`SimError` is raised.
         """
         self.area.save(self.x, self.v, sets)
-        integrator = SymplecticEuler(sub_dt) if self.dashpots is None else self.dashpots.integrator(sub_dt)
+        if self.dashpots is not None:
+            integrator = self.dashpots.integrator(sub_dt)
+        elif self.contact_solve is not None:
+            integrator = self.contact_solve.integrator(sub_dt, self.samples, self.config.contact_stiffness,
+                                                       self.contact_damping, self.react)
+        else:
+            integrator = SymplecticEuler(sub_dt)
         status, overlap = frame.run(self.scheme, integrator, self.body, self.motion, sets,
                                     path, self.loads, n_sub, dt, self.react, self.abort,
                                     self.area.active, self.area.n_active)

@@ -104,6 +104,25 @@ class Samples(NamedTuple):
     margin: float          # [m] a sample is never farther than this from its owning particle
 
 
+class Touches(NamedTuple):
+    """The contacts of the last sub-step that pushed (for an implicit contact update,
+    :mod:`.implicit_contact`): ``kind[t]`` 0 for a particle's ball, 1 for a surface sample, ``idx[t]``
+    the particle or sample, ``normal[t]`` its unit normal; ``count[0]`` of them. ``on`` False: the
+    contact kernels record nothing."""
+
+    on: bool
+    kind: np.ndarray       # (cap,) int8
+    idx: np.ndarray        # (cap,) int32
+    normal: np.ndarray     # (cap, 3)
+    count: np.ndarray      # (1,) int64
+
+
+def no_touches() -> Touches:
+    """Touches that record nothing (explicit contact)."""
+    return Touches(False, np.zeros(1, dtype=np.int8), np.zeros(1, dtype=np.int32), np.zeros((1, 3)),
+                   np.zeros(1, dtype=np.int64))
+
+
 class ToolPath(NamedTuple):
     """The tool across one frame and the contact law (see :mod:`.contact`)."""
 
@@ -115,6 +134,7 @@ class ToolPath(NamedTuple):
     damping: float         # [N s/m] contact dashpot per particle
     surf: tuple            # contact surface geometry (:func:`~.contact.surface_discs`)
     samples: Samples       # contact samples (none: the particles' ball model alone)
+    touches: Touches       # where the pushing contacts are recorded (implicit contact)
 
 
 class Loads(NamedTuple):

@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import closest_on_segment, first_moments, segment_distance2
+from .contact import closest_on_segment, first_moments, record_touch, segment_distance2
 from .kernel import kernel_w
 from .neighbours import CellGrid, query_ball
 from .state import Samples
@@ -150,7 +150,7 @@ def no_samples(n: int) -> Samples:
 
 
 @njit(cache=True, fastmath=True)
-def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, react):
+def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, react, touches):
     """Contact of the samples of ``cand[:n_cand]`` with the tool (segment ``seg`` (2, 3) swept by
     a sphere of ``samples.radius`` [m], its ends moving at ``seg_vel`` [m/s]).
 
@@ -200,6 +200,8 @@ def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, rea
             react[0] -= fmag * n0
             react[1] -= fmag * n1
             react[2] -= fmag * n2
+            if touches.on:
+                record_touch(touches, 1, s, n0, n1, n2)
             for k in range(w_start[s], w_start[s + 1]):
                 j = w_idx[k]
                 if not fixed[j]:
