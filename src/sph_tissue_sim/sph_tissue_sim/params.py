@@ -25,7 +25,7 @@ from .core.errors import ConfigError, ModelError
 from .core.material import Material, load_material
 from .core.factory import MODELS, make_model
 from .core.models import TissueModel
-from .core.solver import MODES, SCHEMES, VISCOSITIES, SolverConfig
+from .core.solver import CONTACT_INTEGRATIONS, MODES, SCHEMES, VISCOSITIES, SolverConfig
 from .core.tools import TOOLS
 from .haptics.renderer import RENDERER_RANGES, RendererConfig
 from .mapping import ANCHORS, DEFAULT_ROTATION
@@ -94,6 +94,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                               'on fine models, each dearer)', VISCOSITIES, False, 'solver'),
     'viscous_tol': (1e-3, 'implicit dashpots: the solve stops at this residual relative to the '
                           'velocities', (1e-9, 0.1), False, 'solver'),
+    'contact_integration': ('explicit', 'contact springs and dashpots: explicit (sub-step bounded by '
+                                        'the penalty) | implicit (backward along the normals: no contact '
+                                        'bound; contact_samples 3 then costs 2 sub-steps, not 8)',
+                            CONTACT_INTEGRATIONS, False, 'solver'),
     'paper_momentum': (14, 'paper scheme: momentum equation 14 (the paper\'s eq. 14) or 12 (eq. 12, '
                            'steadier at free surfaces)', (12, 14), False, 'solver'),
     'far_field': (1.0, 'local mode: still particles next to the solved ones follow this times the '
@@ -275,7 +279,8 @@ def build_config(p: dict) -> SolverConfig:
                        paper_momentum=int(p['paper_momentum']),
                        far_field=float(p['far_field']),
                        max_tool_speed=float(p['max_tool_speed']),
-                       viscosity=p['viscosity'], viscous_tol=float(p['viscous_tol']))
+                       viscosity=p['viscosity'], viscous_tol=float(p['viscous_tol']),
+                       contact_integration=p['contact_integration'])
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')

@@ -239,6 +239,8 @@ def test_the_viscosity_parameters_reach_the_solver_config_and_bad_ones_are_refus
         build_config(defaults(viscous_tol=0.0))
     with pytest.raises(ConfigError, match='viscosity'):
         build_config(defaults(viscosity='implicit', scheme='paper'))
+    assert build_config(defaults(contact_integration='implicit')).contact_integration == 'implicit'
+    assert 'must be one of' in check_value('contact_integration', 'semi')
 
 
 def test_check_value_catches_bad_choices_and_vectors():

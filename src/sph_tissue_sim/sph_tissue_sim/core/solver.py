@@ -145,6 +145,11 @@ class SolverConfig:
             block: +36 % at 2.5 mm spacing), the samples are 9 times stiffer per area and the
             explicit step needs about 4x the sub-steps: a local step costs about 2.6 ms instead of
             0.45 ms, too slow for a 1 kHz loop on this liver.
+        viscosity: ``explicit`` (default) or ``implicit``: the ``tlsph`` dashpots backward Euler
+            (:mod:`.implicit_viscosity`), no viscous sub-step bound; slower on the bundled models.
+        viscous_tol: the implicit dashpots' solve stops at this residual relative to ``|v*|``.
+        contact_integration: ``explicit`` (default) or ``implicit``: the pushing contacts backward
+            along their normals (:mod:`.implicit_contact`), no contact sub-step bound.
         max_tool_speed: the simulated tool follows the requested tool pose at most this fast
             [m/s]: a frame moves its tip, and the far end of a shaft, by at most about
             ``max_tool_speed * dt`` towards the request (a
@@ -683,9 +688,10 @@ class Solver:
                     k1=float(k1), n_active=int(n_active_frame))
 
 
-def warmup(scheme: str | None = None, viscosity: str = 'explicit') -> float:
+def warmup(scheme: str | None = None, viscosity: str = 'explicit',
+           contact_integration: str = 'explicit') -> float:
     """Compile every numba kernel on a tiny block (numba caches to disk); returns seconds taken.
-    ``viscosity`` picks the ``tlsph`` integrator's specialisation of the frame loop."""
+    ``viscosity`` and ``contact_integration`` pick the integrator's specialisation of the frame loop."""
     from .models import make_block
 
     t0 = time.perf_counter()
@@ -696,7 +702,8 @@ def warmup(scheme: str | None = None, viscosity: str = 'explicit') -> float:
         for mode in MODES:
             try:
                 visc = viscosity if sch == 'tlsph' else 'explicit'
-                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode, viscosity=visc))
+                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode, viscosity=visc,
+                                                         contact_integration=contact_integration))
             except ConfigError:
                 continue
             top = model.positions[:, 2].max()
