@@ -142,9 +142,9 @@ class SolverConfig:
             falling to nothing), the pressed surface slips 1.2 mm instead of 6.4 mm at 10 mm, and
             local mode is within 5 % of global at 9 of 12 presses (2 of 12 as balls). But the
             surface, interpolated over a kernel width, makes the tool a blunter indenter (Hertz
-            block: +36 % at 2.5 mm spacing), the samples are 9 times stiffer per area and the
-            explicit step needs about 4x the sub-steps: a local step costs about 2.6 ms instead of
-            0.45 ms, too slow for a 1 kHz loop on this liver.
+            block: +36 % at 2.5 mm spacing), and the samples are 9 times stiffer per area: the
+            explicit step needs about 4x the sub-steps (local step 2.8 ms instead of 0.64 ms on this
+            liver); with ``contact_integration`` implicit it keeps the material's (0.78 ms).
         viscosity: ``explicit`` (default) or ``implicit``: the ``tlsph`` dashpots backward Euler
             (:mod:`.implicit_viscosity`), no viscous sub-step bound; slower on the bundled models.
         viscous_tol: the implicit dashpots' solve stops at this residual relative to ``|v*|``.
