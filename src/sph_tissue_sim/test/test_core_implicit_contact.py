@@ -99,8 +99,22 @@ def test_a_ten_times_stiffer_contact_needs_no_contact_sub_steps_and_holds_the_sa
     assert f_imp[2] == pytest.approx(f_exp[2], rel=0.02)
 
 
-def test_implicit_contact_is_not_combined_with_implicit_dashpots_yet():
-    with pytest.raises(ConfigError, match='combined'):
-        SolverConfig(viscosity='implicit', contact_integration='implicit').validate()
+def test_with_implicit_dashpots_too_the_sub_step_follows_the_material_and_the_force_holds():
+    """Both implicit (one solve: dashpots and contacts): samples at 3000 N/m and the viscosity x10
+    leave the CFL and hourglass-dashpot bounds alone; the held force is the explicit one."""
+    model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
+    thick = LIVER.with_viscosity_scale(10.0)
+    base = dict(mode='global', contact_samples=3, contact_stiffness=3000.0, max_substeps=100000)
+    both = dict(viscosity='implicit', contact_integration='implicit', viscous_tol=1e-6)
+    imp = Solver(model, thick, SolverConfig(**both, **base))
+    assert set(imp.dt_bounds) == {'cfl', 'hourglass_damping'}
+    f_exp = press_and_hold(model, thick, SolverConfig(**base), 0.003, ramp=100, hold=200)
+    f_imp = press_and_hold(model, thick, SolverConfig(**both, **base), 0.003, ramp=100, hold=200)
+    print(f'held force: explicit {f_exp[2]:.4f} N, implicit {f_imp[2]:.4f} N')
+    assert f_exp[2] > 0.1
+    assert f_imp[2] == pytest.approx(f_exp[2], rel=0.02)
+
+
+def test_contact_integration_must_be_explicit_or_implicit():
     with pytest.raises(ConfigError, match='contact_integration'):
         SolverConfig(contact_integration='semi').validate()

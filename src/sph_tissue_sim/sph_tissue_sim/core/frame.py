@@ -88,10 +88,10 @@ def run_frame(scheme, integrator, body, motion, sets, tool, loads, first, n_sub,
         if status != STATUS_OK:
             return status, s, overlap
         _apply_loads(loads.idx, loads.force, loads.n, body.fixed, motion.acc, body.inv_mass)
+        tool.touches.count[0] = 0
         if tool.on:
             _segment_at(tool.seg0, tool.seg1, s, n_sub, seg)
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
-            tool.touches.count[0] = 0
             overlap = contact_forces(body, motion, sets.cand, sets.n_cand, tool, seg, seg_vel, rsum)
             if tool.samples.w_val.shape[0] > 0:
                 overlap = max(overlap, sample_contact_forces(body, motion, sets.cand, sets.n_cand, seg,

@@ -35,16 +35,15 @@ from numba.extending import overload
 from .protocols import advance, is_state
 
 
-class ImplicitContactEuler(NamedTuple):
-    """Symplectic Euler with the pushing contacts backward in time; sub-step ``dt`` [s].
+class ContactTerms(NamedTuple):
+    """The pushing contacts of a sub-step and their laws, for a backward-Euler solve.
 
-    ``touches`` (:class:`~.state.Touches`) is the same record the contact kernels write;
-    ``w_start, w_idx, w_val`` the samples' weights; ``k_ball, c_ball`` and ``k_sample, c_sample``
-    the contact laws; ``react`` (3,) the frame's reaction accumulator; ``u, r, p, q, w`` (N, 3)
-    scratch (``w`` stays zero off the solved set); ``stats`` (2,) iterations and solves.
+    ``touches`` (:class:`~.state.Touches`) is the record the contact kernels write; ``w_start,
+    w_idx, w_val`` the samples' weights; ``k_ball, c_ball`` and ``k_sample, c_sample`` the contact
+    laws; ``react`` (3,) the frame's reaction accumulator; ``vn`` (cap,) each touch's normal
+    velocity at the sub-step's start (scratch).
     """
 
-    dt: float
     touches: tuple
     w_start: np.ndarray
     w_idx: np.ndarray
@@ -54,6 +53,16 @@ class ImplicitContactEuler(NamedTuple):
     k_sample: float
     c_sample: float
     react: np.ndarray
+    vn: np.ndarray
+
+
+class ImplicitContactEuler(NamedTuple):
+    """Symplectic Euler with the pushing contacts backward in time; sub-step ``dt`` [s].
+    ``u, r, p, q, w`` (N, 3) are scratch (``w`` stays zero off the solved set); ``stats`` (2,)
+    iterations and solves."""
+
+    dt: float
+    contact: ContactTerms
     tol: float
     max_iter: int
     u: np.ndarray
@@ -62,6 +71,14 @@ class ImplicitContactEuler(NamedTuple):
     q: np.ndarray
     w: np.ndarray
     stats: np.ndarray
+
+
+@njit(cache=True, fastmath=True, inline='always')
+def _law(c, t):
+    """``(k, c)`` of touch ``t``."""
+    if c.touches.kind[t] == 0:
+        return c.k_ball, c.c_ball
+    return c.k_sample, c.c_sample
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -95,6 +112,39 @@ def _spread(c, t, amount, out):
 
 
 @njit(cache=True, fastmath=True)
+def contact_residual(c, inv_m, dt, v, dv, r):
+    """``r += -(1/m) sum_t Phi^T n [dt^2 k n . Phi v + (dt^2 k + dt c) n . Phi dv]``: the contacts'
+    share of the residual at ``v* = v + dv`` (``dv`` zero off the solved set); keeps each touch's
+    ``n . Phi v`` in ``c.vn`` for :func:`contact_reaction`."""
+    for t in range(c.touches.count[0]):
+        kk, cc = _law(c, t)
+        vn = _point_normal_velocity(c, t, v)
+        c.vn[t] = vn
+        _spread(c, t, -(dt * dt * kk * vn + (dt * dt * kk + dt * cc) * _point_normal_velocity(c, t, dv)) * inv_m, r)
+
+
+@njit(cache=True, fastmath=True)
+def contact_apply(c, inv_m, dt, w, q):
+    """``q += sum_t (dt^2 k + dt c) / m Phi^T n n^T Phi w`` (``w`` zero off the solved set)."""
+    for t in range(c.touches.count[0]):
+        kk, cc = _law(c, t)
+        _spread(c, t, (dt * dt * kk + dt * cc) * inv_m * _point_normal_velocity(c, t, w), q)
+
+
+@njit(cache=True, fastmath=True)
+def contact_reaction(c, dt, dv):
+    """The reaction's share of the solve: ``react += (dt k n . Phi v'' + c n . Phi (v'' - v)) n``
+    with ``dv = v'' - v`` (zero off the solved set) and ``n . Phi v`` from :func:`contact_residual`."""
+    for t in range(c.touches.count[0]):
+        kk, cc = _law(c, t)
+        d = _point_normal_velocity(c, t, dv)
+        g = dt * kk * (c.vn[t] + d) + cc * d
+        c.react[0] += g * c.touches.normal[t, 0]
+        c.react[1] += g * c.touches.normal[t, 1]
+        c.react[2] += g * c.touches.normal[t, 2]
+
+
+@njit(cache=True, fastmath=True)
 def _dot(a, b, sph, n):
     t = 0.0
     for k in range(n):
@@ -104,60 +154,57 @@ def _dot(a, b, sph, n):
 
 
 @njit(cache=True, fastmath=True)
-def _operator(c, sph, n, inv_m, dt, p, w, q):
-    """``q = p + sum_t (dt^2 k + dt c) / m Phi^T n n^T Phi p`` on ``sph`` (``w``: ``p`` there, 0 elsewhere)."""
+def _set_on(dst, src, sub, sph, n):
+    """``dst = src - sub`` on the solved set."""
     for k in range(n):
         i = sph[k]
         for a in range(3):
-            w[i, a] = p[i, a]
-            q[i, a] = p[i, a]
-    tc = c.touches
-    for t in range(tc.count[0]):
-        kk, cc = (c.k_ball, c.c_ball) if tc.kind[t] == 0 else (c.k_sample, c.c_sample)
-        _spread(c, t, (dt * dt * kk + dt * cc) * inv_m * _point_normal_velocity(c, t, w), q)
+            dst[i, a] = src[i, a] - sub[i, a]
+
+
+@njit(cache=True, fastmath=True)
+def _zero_on(dst, sph, n):
     for k in range(n):
         i = sph[k]
         for a in range(3):
-            w[i, a] = 0.0
+            dst[i, a] = 0.0
 
 
 @njit(cache=True)
-def implicit_contact_step(c, body, motion, sets):
+def implicit_contact_step(s, body, motion, sets):
     """One sub-step: ``v* = v + dt a``, the contact system above by conjugate gradients from
-    ``v*`` (to ``c.tol`` of ``|v*|``), the reaction corrected, ``x += dt v''``. Without
+    ``v*`` (to ``s.tol`` of ``|v*|``), the reaction corrected, ``x += dt v''``. Without
     ``fastmath`` (its passes have their own flags) so that the stopping tests hold for a NaN."""
     x, v, acc = motion.x, motion.v, motion.acc
     sph, n = sets.sph, sets.n_sph
-    dt = c.dt
+    dt = s.dt
     inv_m = body.inv_mass
-    u, r, p, q, w = c.u, c.r, c.p, c.q, c.w
-    tc = c.touches
+    u, r, p, q, w = s.u, s.r, s.p, s.q, s.w
+    c = s.contact
     for k in range(n):
         i = sph[k]
         for a in range(3):
             u[i, a] = v[i, a] + dt * acc[i, a]
     it = 0
-    if tc.count[0] > 0:
-        # residual at u = v*: r = -(1/m) sum_t Phi^T n [dt^2 k (n . Phi v) + (dt^2 k + dt c) n . Phi (v* - v)]
+    if c.touches.count[0] > 0:
+        _set_on(w, u, v, sph, n)
+        _zero_on(r, sph, n)
+        contact_residual(c, inv_m, dt, v, w, r)
+        _zero_on(w, sph, n)
         for k in range(n):
             i = sph[k]
             for a in range(3):
-                w[i, a] = u[i, a] - v[i, a]
-                r[i, a] = 0.0
-        for t in range(tc.count[0]):
-            kk, cc = (c.k_ball, c.c_ball) if tc.kind[t] == 0 else (c.k_sample, c.c_sample)
-            amount = -(dt * dt * kk * _point_normal_velocity(c, t, v)
-                       + (dt * dt * kk + dt * cc) * _point_normal_velocity(c, t, w)) * inv_m
-            _spread(c, t, amount, r)
-        for k in range(n):
-            i = sph[k]
-            for a in range(3):
-                w[i, a] = 0.0
                 p[i, a] = r[i, a]
         rr = _dot(r, r, sph, n)
-        limit = c.tol * max(math.sqrt(_dot(u, u, sph, n)), math.sqrt(rr))
-        while it < c.max_iter and math.sqrt(rr) > limit:
-            _operator(c, sph, n, inv_m, dt, p, w, q)
+        limit = s.tol * max(math.sqrt(_dot(u, u, sph, n)), math.sqrt(rr))
+        while it < s.max_iter and math.sqrt(rr) > limit:
+            for k in range(n):
+                i = sph[k]
+                for a in range(3):
+                    w[i, a] = p[i, a]
+                    q[i, a] = p[i, a]
+            contact_apply(c, inv_m, dt, w, q)   # q = p + the contact terms
+            _zero_on(w, sph, n)
             pq = _dot(p, q, sph, n)
             if not pq > 0.0:
                 break
@@ -175,30 +222,16 @@ def implicit_contact_step(c, body, motion, sets):
                 for a in range(3):
                     p[i, a] = r[i, a] + beta * p[i, a]
             it += 1
-        # the reaction gets the contacts' change: f'' - f = -(dt k n . Phi v'' + c n . Phi (v'' - v)) n
-        for k in range(n):
-            i = sph[k]
-            for a in range(3):
-                w[i, a] = u[i, a] - v[i, a]
-        for t in range(tc.count[0]):
-            kk, cc = (c.k_ball, c.c_ball) if tc.kind[t] == 0 else (c.k_sample, c.c_sample)
-            vn_old = _point_normal_velocity(c, t, v)
-            dvn = _point_normal_velocity(c, t, w)
-            g = dt * kk * (vn_old + dvn) + cc * dvn
-            c.react[0] += g * tc.normal[t, 0]
-            c.react[1] += g * tc.normal[t, 1]
-            c.react[2] += g * tc.normal[t, 2]
-        for k in range(n):
-            i = sph[k]
-            for a in range(3):
-                w[i, a] = 0.0
+        _set_on(w, u, v, sph, n)
+        contact_reaction(c, dt, w)
+        _zero_on(w, sph, n)
     for k in range(n):
         i = sph[k]
         for a in range(3):
             v[i, a] = u[i, a]
             x[i, a] += dt * u[i, a]
-    c.stats[0] += it
-    c.stats[1] += 1.0
+    s.stats[0] += it
+    s.stats[1] += 1.0
 
 
 @overload(advance)
@@ -220,16 +253,34 @@ class ContactSolve:
         cap = n + n_samples
         self.touches = Touches(True, np.zeros(cap, dtype=np.int8), np.zeros(cap, dtype=np.int32),
                                np.zeros((cap, 3)), np.zeros(1, dtype=np.int64))
+        self.vn = np.zeros(cap)
         self.tol, self.max_iter = float(tol), int(max_iter)
         self.u, self.r, self.p, self.q, self.w = (np.zeros((n, 3)) for _ in range(5))
         self.stats = np.zeros(2)
 
+    def terms(self, samples, k_ball: float, c_ball: float, react: np.ndarray) -> ContactTerms:
+        return contact_terms(self.touches, samples, k_ball, c_ball, react, self.vn)
+
     def integrator(self, dt: float, samples, k_ball: float, c_ball: float,
                    react: np.ndarray) -> ImplicitContactEuler:
-        return ImplicitContactEuler(dt, self.touches, samples.w_start, samples.w_idx, samples.w_val,
-                                    k_ball, c_ball, samples.stiffness, samples.damping, react, self.tol,
+        return ImplicitContactEuler(dt, self.terms(samples, k_ball, c_ball, react), self.tol,
                                     self.max_iter, self.u, self.r, self.p, self.q, self.w, self.stats)
 
     def mean_iterations(self) -> float:
-        """CG iterations per sub-step (0 for sub-steps without contact or with balls alone)."""
+        """CG iterations per sub-step (0 for sub-steps without contact)."""
         return float(self.stats[0] / self.stats[1]) if self.stats[1] > 0 else 0.0
+
+
+def contact_terms(touches, samples, k_ball: float, c_ball: float, react: np.ndarray,
+                  vn: np.ndarray) -> ContactTerms:
+    """The :class:`ContactTerms` of ``touches`` with ``samples`` (a :class:`~.state.Samples`)."""
+    return ContactTerms(touches, samples.w_start, samples.w_idx, samples.w_val, k_ball, c_ball,
+                        samples.stiffness, samples.damping, react, vn)
+
+
+def no_contact_terms() -> ContactTerms:
+    """Terms with nothing recorded (a solve without implicit contacts)."""
+    from .state import no_touches
+
+    return ContactTerms(no_touches(), np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0),
+                        0.0, 0.0, 0.0, 0.0, np.zeros(3), np.zeros(1))

@@ -34,6 +34,7 @@ from numba import njit
 from numba.extending import overload
 
 from .kernel import ZERO3X3, add_outer
+from .implicit_contact import contact_apply, contact_reaction, contact_residual, no_contact_terms
 from .protocols import advance, is_state
 
 
@@ -41,8 +42,10 @@ class ImplicitViscousEuler(NamedTuple):
     """Symplectic Euler with backward-Euler dashpots; sub-step ``dt`` [s].
 
     ``F`` (N, 3, 3) is the scheme's deformation gradient (read), ``A`` (N, 3, 3) scratch for the
-    dashpot stresses; ``u, r, p, q, w`` (N, 3) scratch vectors of the solve (``w`` stays zero off
-    the solved set); ``stats`` (2,) accumulates CG iterations and solves.
+    dashpot stresses; ``u, r, p, q, w, v0`` (N, 3) scratch vectors of the solve (``w`` stays zero
+    off the solved set); ``stats`` (2,) accumulates CG iterations and solves; ``contact`` the
+    pushing contacts solved with the dashpots (:class:`~.implicit_contact.ContactTerms`; none
+    recorded with explicit contact).
     """
 
     dt: float
@@ -63,7 +66,9 @@ class ImplicitViscousEuler(NamedTuple):
     p: np.ndarray
     q: np.ndarray
     w: np.ndarray
+    v0: np.ndarray
     stats: np.ndarray
+    contact: tuple
 
 
 @njit(cache=True, fastmath=True)
@@ -180,16 +185,26 @@ def implicit_viscous_step(s, body, motion, sets):
     sph, n = sets.sph, sets.n_sph
     dt = s.dt
     scale = dt * body.inv_mass
-    u, r, p, q, w = s.u, s.r, s.p, s.q, s.w
-    # from the guess u = v*: r = b - (I + dt/m C) u with b = v* - dt/m C_B v_B is, by linearity,
-    # dt/m f_visc(v* on the solved particles, the held velocities elsewhere): one pass
+    u, r, p, q, w, v0 = s.u, s.r, s.p, s.q, s.w, s.v0
+    c = s.contact
+    touched = c.touches.count[0] > 0
     for k in range(n):
         i = sph[k]
         for a in range(3):
             u[i, a] = v[i, a] + dt * acc[i, a]
+            w[i, a] = u[i, a] - v[i, a]
+            r[i, a] = 0.0
+    if touched:
+        contact_residual(c, body.inv_mass, dt, v, w, r)
+    # from the guess u = v*: the dashpots' share of r = b - (I + dt/m C) u with b = v* - dt/m C_B v_B
+    # is, by linearity, dt/m f_visc(v* on the solved particles, the held velocities elsewhere)
+    for k in range(n):
+        i = sph[k]
+        for a in range(3):
+            w[i, a] = 0.0
+            v0[i, a] = v[i, a]
             v[i, a] = u[i, a]
-            q[i, a] = 0.0
-    _apply(s, X, v, sets, -scale, q, r)
+    _apply(s, X, v, sets, -scale, r, r)
     unorm = math.sqrt(_dot(u, u, sph, n))
     for k in range(n):
         i = sph[k]
@@ -205,6 +220,8 @@ def implicit_viscous_step(s, body, motion, sets):
             for a in range(3):
                 w[i, a] = p[i, a]
         _apply(s, X, w, sets, scale, p, q)         # q = (I + dt/m C) p
+        if touched:
+            contact_apply(c, body.inv_mass, dt, w, q)
         pq = _dot(p, q, sph, n)
         if not pq > 0.0:
             break
@@ -222,6 +239,12 @@ def implicit_viscous_step(s, body, motion, sets):
             for a in range(3):
                 p[i, a] = r[i, a] + beta * p[i, a]
         it += 1
+    if touched:
+        for k in range(n):
+            i = sph[k]
+            for a in range(3):
+                w[i, a] = u[i, a] - v0[i, a]
+        contact_reaction(c, dt, w)
     for k in range(n):
         i = sph[k]
         for a in range(3):
@@ -249,18 +272,22 @@ class DashpotSolve:
         self.scheme = scheme
         self.tol, self.max_iter = float(tol), int(max_iter)
         self.A = np.zeros((n, 3, 3))
-        self.u, self.r, self.p, self.q, self.w = (np.zeros((n, 3)) for _ in range(5))
+        self.u, self.r, self.p, self.q, self.w, self.v0 = (np.zeros((n, 3)) for _ in range(6))
         self.stats = np.zeros(2)
         self.eta_s = self.eta_v = 0.0
 
     def set_material(self, material) -> None:
         self.eta_s, self.eta_v = material.eta_shear, material.eta_bulk
 
-    def integrator(self, dt: float) -> ImplicitViscousEuler:
+    def integrator(self, dt: float, contact=None) -> ImplicitViscousEuler:
+        """The frame's integrator; ``contact`` the :class:`~.implicit_contact.ContactTerms` solved
+        with the dashpots (None or terms whose touches record nothing: explicit contact)."""
         sc = self.scheme
+        if contact is None:
+            contact = no_contact_terms()
         return ImplicitViscousEuler(dt, sc.offsets, sc.indices, sc.dw, sc.gv, sc.Linv, sc.F, self.A,
                                     sc.volume, self.eta_s, self.eta_v, self.tol, self.max_iter,
-                                    self.u, self.r, self.p, self.q, self.w, self.stats)
+                                    self.u, self.r, self.p, self.q, self.w, self.v0, self.stats, contact)
 
     def mean_iterations(self) -> float:
         """CG iterations per sub-step since the last :meth:`reset_stats`."""

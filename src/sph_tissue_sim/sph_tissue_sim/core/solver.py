@@ -26,7 +26,7 @@ from . import frame
 from .contact import contact_vector_py, deepest_contact, surface_discs
 from .surface_contact import SURFACE_OFFSET, no_samples, sample_stiffness_factor, surface_samples
 from .errors import ConfigError, ModelError, SimError
-from .implicit_contact import ContactSolve
+from .implicit_contact import ContactSolve, contact_terms
 from .implicit_viscosity import DashpotSolve
 from .integrate import SymplecticEuler, frame_state_ok, substep_bounds, substeps_for
 from .kernel import SUPPORT
@@ -226,8 +226,6 @@ class SolverConfig:
             raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
         if self.viscosity == 'implicit' and self.scheme != 'tlsph':
             raise ConfigError(f'viscosity implicit needs scheme tlsph, got {self.scheme!r}')
-        if self.viscosity == 'implicit' and self.contact_integration == 'implicit':
-            raise ConfigError('viscosity implicit and contact_integration implicit cannot be combined yet')
         if self.paper_momentum not in (12, 14):
             raise ConfigError(f'paper_momentum must be 12 or 14 (paper eq. 12 or 14), got {self.paper_momentum}')
         return self
@@ -321,6 +319,7 @@ class Solver:
         self.contact_solve = (ContactSolve(self.n, n_samples, CONTACT_TOL, DASHPOT_MAX_ITER)
                               if cfg.contact_integration == 'implicit' else None)
         self.touches = self.contact_solve.touches if self.contact_solve is not None else no_touches()
+        self._no_vn = np.zeros(1)
         self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
                               self.h, cfg.n_layers, self.contact_surf)
         self.set_material(material)
@@ -624,7 +623,9 @@ class Solver:
         """
         self.area.save(self.x, self.v, sets)
         if self.dashpots is not None:
-            integrator = self.dashpots.integrator(sub_dt)
+            vn = self.contact_solve.vn if self.contact_solve is not None else self._no_vn
+            integrator = self.dashpots.integrator(sub_dt, contact_terms(
+                self.touches, self.samples, self.config.contact_stiffness, self.contact_damping, self.react, vn))
         elif self.contact_solve is not None:
             integrator = self.contact_solve.integrator(sub_dt, self.samples, self.config.contact_stiffness,
                                                        self.contact_damping, self.react)
