@@ -123,6 +123,7 @@ class Case:
     paper_s: float | None = None
     parallel_min: int = 0                # SolverConfig.parallel_min_particles (0: serial)
     viscosity: str = 'explicit'          # SolverConfig.viscosity
+    contact_integration: str = 'explicit'  # SolverConfig.contact_integration
 
 
 # ---------------------------------------------------------------------------------------------
@@ -193,7 +194,7 @@ class Runner:
         self.case, self.model, self.st = case, model, settings
         cfg = SolverConfig(scheme=case.scheme, mode=case.mode, n_layers=case.n_layers,
                            k1_gain=case.k1_gain, parallel_min_particles=case.parallel_min,
-                           viscosity=case.viscosity)
+                           viscosity=case.viscosity, contact_integration=case.contact_integration)
         if case.h_ratio is not None:
             cfg.h_ratio = float(case.h_ratio)
         if case.k1_pinned is not None:
@@ -379,9 +380,9 @@ def run_targets(st: Settings, models: Models, material, progress) -> list[dict]:
              Case('targets', 'global mass_spring', 'mass_spring', 'global', n, paper_s=PAPER_T1.get(n, (None,))[0]),
              Case('targets', 'local tlsph big', 'tlsph', 'local', st.targets_local_big),
              Case('targets', 'global tlsph 50k', 'tlsph', 'global', st.targets_global_big)]
-    # the same tlsph cases with implicit dashpots (no viscous sub-step bound)
+    # the same tlsph cases with implicit dashpots and contacts (the sub-step follows the CFL bound)
     implicit = [Case('targets', f'{c.label} implicit', c.scheme, c.mode, c.n_target, paper_s=c.paper_s,
-                     viscosity='implicit') for c in cases if c.scheme == 'tlsph']
+                     viscosity='implicit', contact_integration='implicit') for c in cases if c.scheme == 'tlsph']
     if _numba_threads() > 1:
         # the same tlsph cases on numba's thread pool (SolverConfig.parallel_min_particles=1)
         cases += [Case('targets', f'{c.label} threads', c.scheme, c.mode, c.n_target, paper_s=c.paper_s,
@@ -450,7 +451,7 @@ def target_lines(rows: list[dict]) -> list[str]:
     li, lbi = ms('local tlsph implicit'), ms('local tlsph big implicit')
     if li is not None and lbi is not None and lt:
         bi, si = by['local tlsph big implicit'], by['local tlsph implicit']
-        out.append(f'implicit dashpots: local {li:.4f} ms ({li / lt:.2f}x the explicit step, '
+        out.append(f'implicit dashpots and contacts: local {li:.4f} ms ({li / lt:.2f}x the explicit step, '
                    f'{si["substeps"]:.0f} sub-steps), big {lbi:.4f} ms ({lbi / lb:.2f}x explicit, '
                    f'{bi["substeps"]:.0f} sub-steps against {by["local tlsph big"]["substeps"]:.0f}) = '
                    f'{lbi / li:.2f}x the implicit {n}-particle step; target <= 2x: {verdict(lbi / li <= 2.0)}')
