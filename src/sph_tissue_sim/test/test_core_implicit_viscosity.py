@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from sph_tissue_sim.core.errors import ConfigError
-from sph_tissue_sim.core.implicit_viscosity import _apply, implicit_viscous_step
+from sph_tissue_sim.core.implicit_viscosity import _apply, backward_euler_step
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
@@ -46,7 +46,7 @@ def test_the_dashpots_damping_matrix_is_symmetric_and_dissipative():
     semi-definite: the conjugate-gradient solve applies, and the dashpots only take energy."""
     s = _deformed_block()
     sets = s.area.global_sets(-1)
-    C = _damping_matrix(s, sets, s.dashpots.integrator(1e-4))
+    C = _damping_matrix(s, sets, s.backward.integrator(1e-4))
     scale = np.abs(C).max()
     assert scale > 0.0
     np.testing.assert_allclose(C, C.T, atol=1e-9 * scale)
@@ -61,7 +61,7 @@ def test_one_sub_step_solves_the_backward_euler_system_of_a_dense_solver():
     sph = sets.sph[:sets.n_sph]
     n = len(sph)
     dt = 2e-4
-    integ = s.dashpots.integrator(dt)
+    integ = s.backward.integrator(dt)
     C = _damping_matrix(s, sets, integ)
     rng = np.random.default_rng(3)
     s.motion.v[sph] = rng.normal(scale=0.01, size=(n, 3))
@@ -69,7 +69,7 @@ def test_one_sub_step_solves_the_backward_euler_system_of_a_dense_solver():
     v_star = (s.motion.v[sph] + dt * s.motion.acc[sph]).ravel()
     x0 = s.motion.x[sph].copy()
     expected = np.linalg.solve(np.eye(3 * n) + dt * s.inv_mass * C, v_star).reshape(n, 3)
-    implicit_viscous_step(integ, s.body, s.motion, sets)
+    backward_euler_step(integ, s.body, s.motion, sets)
     np.testing.assert_allclose(s.motion.v[sph], expected, rtol=0, atol=1e-6 * np.abs(expected).max())
     np.testing.assert_allclose(s.motion.x[sph], x0 + dt * s.motion.v[sph], rtol=0, atol=1e-15)
 

@@ -16,8 +16,9 @@ where ``Phi_t v`` is the contact point's velocity (a particle's own, or a sample
     (M + sum_t (dt^2 k + dt c) Phi_t^T n n^T Phi_t) v'' = M v* + sum_t dt c Phi_t^T n n^T Phi_t v
 
 with ``v* = v + dt a``. The matrix is symmetric positive definite and touches only the particles
-under the tool: a ball's block is solved in closed form, samples by a few conjugate-gradient
-iterations over that handful of particles (no SPH pass). The tangential (curvature) part of the
+under the tool; it is solved by the conjugate gradients of :mod:`.implicit_viscosity` (alone a few
+iterations over that handful of particles, no SPH pass; with implicit dashpots, in the same
+system). The tangential (curvature) part of the
 penalty's stiffness stays explicit, and a contact that would release within the sub-step is
 still held by its linearisation until the next one. The reaction on the tool gets the same
 correction, so the tool and the tissue exchange equal and opposite impulses.
@@ -25,14 +26,11 @@ correction, so the tool and the tissue exchange equal and opposite impulses.
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
 from numba import njit
-from numba.extending import overload
 
-from .protocols import advance, is_state
 
 
 class ContactTerms(NamedTuple):
@@ -54,23 +52,6 @@ class ContactTerms(NamedTuple):
     c_sample: float
     react: np.ndarray
     vn: np.ndarray
-
-
-class ImplicitContactEuler(NamedTuple):
-    """Symplectic Euler with the pushing contacts backward in time; sub-step ``dt`` [s].
-    ``u, r, p, q, w`` (N, 3) are scratch (``w`` stays zero off the solved set); ``stats`` (2,)
-    iterations and solves."""
-
-    dt: float
-    contact: ContactTerms
-    tol: float
-    max_iter: int
-    u: np.ndarray
-    r: np.ndarray
-    p: np.ndarray
-    q: np.ndarray
-    w: np.ndarray
-    stats: np.ndarray
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -144,131 +125,12 @@ def contact_reaction(c, dt, dv):
         c.react[2] += g * c.touches.normal[t, 2]
 
 
-@njit(cache=True, fastmath=True)
-def _dot(a, b, sph, n):
-    t = 0.0
-    for k in range(n):
-        i = sph[k]
-        t += a[i, 0] * b[i, 0] + a[i, 1] * b[i, 1] + a[i, 2] * b[i, 2]
-    return t
+def make_touches(cap: int):
+    """A :class:`~.state.Touches` record for up to ``cap`` pushing contacts (implicit contact)."""
+    from .state import Touches
 
-
-@njit(cache=True, fastmath=True)
-def _set_on(dst, src, sub, sph, n):
-    """``dst = src - sub`` on the solved set."""
-    for k in range(n):
-        i = sph[k]
-        for a in range(3):
-            dst[i, a] = src[i, a] - sub[i, a]
-
-
-@njit(cache=True, fastmath=True)
-def _zero_on(dst, sph, n):
-    for k in range(n):
-        i = sph[k]
-        for a in range(3):
-            dst[i, a] = 0.0
-
-
-@njit(cache=True)
-def implicit_contact_step(s, body, motion, sets):
-    """One sub-step: ``v* = v + dt a``, the contact system above by conjugate gradients from
-    ``v*`` (to ``s.tol`` of ``|v*|``), the reaction corrected, ``x += dt v''``. Without
-    ``fastmath`` (its passes have their own flags) so that the stopping tests hold for a NaN."""
-    x, v, acc = motion.x, motion.v, motion.acc
-    sph, n = sets.sph, sets.n_sph
-    dt = s.dt
-    inv_m = body.inv_mass
-    u, r, p, q, w = s.u, s.r, s.p, s.q, s.w
-    c = s.contact
-    for k in range(n):
-        i = sph[k]
-        for a in range(3):
-            u[i, a] = v[i, a] + dt * acc[i, a]
-    it = 0
-    if c.touches.count[0] > 0:
-        _set_on(w, u, v, sph, n)
-        _zero_on(r, sph, n)
-        contact_residual(c, inv_m, dt, v, w, r)
-        _zero_on(w, sph, n)
-        for k in range(n):
-            i = sph[k]
-            for a in range(3):
-                p[i, a] = r[i, a]
-        rr = _dot(r, r, sph, n)
-        limit = s.tol * max(math.sqrt(_dot(u, u, sph, n)), math.sqrt(rr))
-        while it < s.max_iter and math.sqrt(rr) > limit:
-            for k in range(n):
-                i = sph[k]
-                for a in range(3):
-                    w[i, a] = p[i, a]
-                    q[i, a] = p[i, a]
-            contact_apply(c, inv_m, dt, w, q)   # q = p + the contact terms
-            _zero_on(w, sph, n)
-            pq = _dot(p, q, sph, n)
-            if not pq > 0.0:
-                break
-            alpha = rr / pq
-            for k in range(n):
-                i = sph[k]
-                for a in range(3):
-                    u[i, a] += alpha * p[i, a]
-                    r[i, a] -= alpha * q[i, a]
-            rr_new = _dot(r, r, sph, n)
-            beta = rr_new / rr
-            rr = rr_new
-            for k in range(n):
-                i = sph[k]
-                for a in range(3):
-                    p[i, a] = r[i, a] + beta * p[i, a]
-            it += 1
-        _set_on(w, u, v, sph, n)
-        contact_reaction(c, dt, w)
-        _zero_on(w, sph, n)
-    for k in range(n):
-        i = sph[k]
-        for a in range(3):
-            v[i, a] = u[i, a]
-            x[i, a] += dt * u[i, a]
-    s.stats[0] += it
-    s.stats[1] += 1.0
-
-
-@overload(advance)
-def _advance_implicit_contact(integrator, body, motion, sets):
-    if not is_state(integrator, ImplicitContactEuler):
-        return None
-
-    def impl(integrator, body, motion, sets):
-        implicit_contact_step(integrator, body, motion, sets)
-    return impl
-
-
-class ContactSolve:
-    """The implicit contact's record and buffers for one solver (:meth:`integrator` per frame)."""
-
-    def __init__(self, n: int, n_samples: int, tol: float, max_iter: int) -> None:
-        from .state import Touches
-
-        cap = n + n_samples
-        self.touches = Touches(True, np.zeros(cap, dtype=np.int8), np.zeros(cap, dtype=np.int32),
-                               np.zeros((cap, 3)), np.zeros(1, dtype=np.int64))
-        self.vn = np.zeros(cap)
-        self.tol, self.max_iter = float(tol), int(max_iter)
-        self.u, self.r, self.p, self.q, self.w = (np.zeros((n, 3)) for _ in range(5))
-        self.stats = np.zeros(2)
-
-    def terms(self, samples, k_ball: float, c_ball: float, react: np.ndarray) -> ContactTerms:
-        return contact_terms(self.touches, samples, k_ball, c_ball, react, self.vn)
-
-    def integrator(self, dt: float, samples, k_ball: float, c_ball: float,
-                   react: np.ndarray) -> ImplicitContactEuler:
-        return ImplicitContactEuler(dt, self.terms(samples, k_ball, c_ball, react), self.tol,
-                                    self.max_iter, self.u, self.r, self.p, self.q, self.w, self.stats)
-
-    def mean_iterations(self) -> float:
-        """CG iterations per sub-step (0 for sub-steps without contact)."""
-        return float(self.stats[0] / self.stats[1]) if self.stats[1] > 0 else 0.0
+    return Touches(True, np.zeros(cap, dtype=np.int8), np.zeros(cap, dtype=np.int32), np.zeros((cap, 3)),
+                   np.zeros(1, dtype=np.int64))
 
 
 def contact_terms(touches, samples, k_ball: float, c_ball: float, react: np.ndarray,

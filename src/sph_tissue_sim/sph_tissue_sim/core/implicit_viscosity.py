@@ -38,8 +38,9 @@ from .implicit_contact import contact_apply, contact_reaction, contact_residual,
 from .protocols import advance, is_state
 
 
-class ImplicitViscousEuler(NamedTuple):
-    """Symplectic Euler with backward-Euler dashpots; sub-step ``dt`` [s].
+class BackwardEuler(NamedTuple):
+    """Symplectic Euler with the dashpots (if ``dashpots``) and the recorded contacts (``contact``)
+    backward in time; sub-step ``dt`` [s].
 
     ``F`` (N, 3, 3) is the scheme's deformation gradient (read), ``A`` (N, 3, 3) scratch for the
     dashpot stresses; ``u, r, p, q, w, v0`` (N, 3) scratch vectors of the solve (``w`` stays zero
@@ -49,6 +50,7 @@ class ImplicitViscousEuler(NamedTuple):
     """
 
     dt: float
+    dashpots: bool
     offsets: np.ndarray
     indices: np.ndarray
     dw: np.ndarray
@@ -74,7 +76,7 @@ class ImplicitViscousEuler(NamedTuple):
 @njit(cache=True, fastmath=True)
 def dashpot_stress_one(i, s, vel):
     """``A_i = V^2 P_i L_i^-T`` of the dashpots alone for the velocity field ``vel`` (``s`` an
-    :class:`ImplicitViscousEuler`), with the deformation gradient ``s.F[i]`` of this sub-step."""
+    :class:`BackwardEuler`), with the deformation gradient ``s.F[i]`` of this sub-step."""
     gv, offsets, indices, Linv, F = s.gv, s.offsets, s.indices, s.Linv, s.F
     b = ZERO3X3
     vi0 = vel[i, 0]; vi1 = vel[i, 1]; vi2 = vel[i, 2]
@@ -176,11 +178,13 @@ def _dot(a, b, sph, n):
 
 
 @njit(cache=True)
-def implicit_viscous_step(s, body, motion, sets):
-    """One sub-step: ``v* = v + dt a``, then ``(I + dt/m C) v' = v*`` by conjugate gradients
-    from ``v*`` until the residual is ``s.tol`` times ``|v*|`` (or the first residual; at most
-    ``s.max_iter`` iterations), ``x += dt v'``. Compiled without ``fastmath`` (its passes have
-    their own flags) so that the stopping tests keep their meaning for a NaN."""
+def backward_euler_step(s, body, motion, sets):
+    """One sub-step: ``v* = v + dt a``, then ``(I + dt/m C + contacts) v' = v* + ...`` (the
+    dashpots if ``s.dashpots``, the contact terms of :mod:`.implicit_contact` for what the contact
+    kernels recorded) by conjugate gradients from ``v*`` until the residual is ``s.tol`` times
+    ``|v*|`` (or the first residual; at most ``s.max_iter`` iterations), the reaction corrected,
+    ``x += dt v'``. Compiled without ``fastmath`` (its passes have their own flags) so that the
+    stopping tests keep their meaning for a NaN."""
     X, x, v, acc = body.X, motion.x, motion.v, motion.acc
     sph, n = sets.sph, sets.n_sph
     dt = s.dt
@@ -204,7 +208,8 @@ def implicit_viscous_step(s, body, motion, sets):
             w[i, a] = 0.0
             v0[i, a] = v[i, a]
             v[i, a] = u[i, a]
-    _apply(s, X, v, sets, -scale, r, r)
+    if s.dashpots:
+        _apply(s, X, v, sets, -scale, r, r)
     unorm = math.sqrt(_dot(u, u, sph, n))
     for k in range(n):
         i = sph[k]
@@ -219,7 +224,9 @@ def implicit_viscous_step(s, body, motion, sets):
             i = sph[k]
             for a in range(3):
                 w[i, a] = p[i, a]
-        _apply(s, X, w, sets, scale, p, q)         # q = (I + dt/m C) p
+                q[i, a] = p[i, a]
+        if s.dashpots:
+            _apply(s, X, w, sets, scale, p, q)     # q = (I + dt/m C) p
         if touched:
             contact_apply(c, body.inv_mass, dt, w, q)
         pq = _dot(p, q, sph, n)
@@ -256,17 +263,21 @@ def implicit_viscous_step(s, body, motion, sets):
 
 
 @overload(advance)
-def _advance_implicit_viscous(integrator, body, motion, sets):
-    if not is_state(integrator, ImplicitViscousEuler):
+def _advance_backward_euler(integrator, body, motion, sets):
+    if not is_state(integrator, BackwardEuler):
         return None
 
     def impl(integrator, body, motion, sets):
-        implicit_viscous_step(integrator, body, motion, sets)
+        backward_euler_step(integrator, body, motion, sets)
     return impl
 
 
-class DashpotSolve:
-    """The solve's buffers for one ``tlsph`` scheme (built once; :meth:`integrator` per frame)."""
+class BackwardSolve:
+    """The solve's buffers for one solver (built once; :meth:`integrator` per frame).
+
+    ``scheme``: the ``tlsph`` scheme whose dashpots are solved, or None (the contacts alone; the
+    dashpot arrays are then placeholders the step never reads).
+    """
 
     def __init__(self, scheme, n: int, tol: float, max_iter: int) -> None:
         self.scheme = scheme
@@ -275,19 +286,27 @@ class DashpotSolve:
         self.u, self.r, self.p, self.q, self.w, self.v0 = (np.zeros((n, 3)) for _ in range(6))
         self.stats = np.zeros(2)
         self.eta_s = self.eta_v = 0.0
+        if scheme is None:
+            self._none = (np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0),
+                          np.zeros((0, 3)), np.zeros((n, 3, 3)), np.zeros((n, 3, 3)))
 
     def set_material(self, material) -> None:
         self.eta_s, self.eta_v = material.eta_shear, material.eta_bulk
 
-    def integrator(self, dt: float, contact=None) -> ImplicitViscousEuler:
+    def integrator(self, dt: float, contact=None) -> BackwardEuler:
         """The frame's integrator; ``contact`` the :class:`~.implicit_contact.ContactTerms` solved
-        with the dashpots (None or terms whose touches record nothing: explicit contact)."""
-        sc = self.scheme
+        with it (None: none)."""
         if contact is None:
             contact = no_contact_terms()
-        return ImplicitViscousEuler(dt, sc.offsets, sc.indices, sc.dw, sc.gv, sc.Linv, sc.F, self.A,
-                                    sc.volume, self.eta_s, self.eta_v, self.tol, self.max_iter,
-                                    self.u, self.r, self.p, self.q, self.w, self.v0, self.stats, contact)
+        sc = self.scheme
+        if sc is None:
+            offsets, indices, dw, gv, Linv, F = self._none
+            volume = 0.0
+        else:
+            offsets, indices, dw, gv, Linv, F, volume = sc.offsets, sc.indices, sc.dw, sc.gv, sc.Linv, sc.F, sc.volume
+        return BackwardEuler(dt, sc is not None, offsets, indices, dw, gv, Linv, F, self.A, volume,
+                             self.eta_s, self.eta_v, self.tol, self.max_iter, self.u, self.r, self.p, self.q,
+                             self.w, self.v0, self.stats, contact)
 
     def mean_iterations(self) -> float:
         """CG iterations per sub-step since the last :meth:`reset_stats`."""

@@ -26,8 +26,8 @@ from . import frame
 from .contact import contact_vector_py, deepest_contact, surface_discs
 from .surface_contact import SURFACE_OFFSET, no_samples, sample_stiffness_factor, surface_samples
 from .errors import ConfigError, ModelError, SimError
-from .implicit_contact import ContactSolve, contact_terms
-from .implicit_viscosity import DashpotSolve
+from .implicit_contact import contact_terms, make_touches
+from .implicit_viscosity import BackwardSolve
 from .integrate import SymplecticEuler, frame_state_ok, substep_bounds, substeps_for
 from .kernel import SUPPORT
 from .local_area import LocalArea, active_stats
@@ -313,13 +313,14 @@ class Solver:
         pm = cfg.parallel_min_particles
         self.par_min = pm if pm > 0 and numba.get_num_threads() > 1 else self.n + 1
         self.scheme = self._make_scheme()
-        self.dashpots = (DashpotSolve(self.scheme, self.n, cfg.viscous_tol, DASHPOT_MAX_ITER)
-                         if cfg.viscosity == 'implicit' else None)
+        # backward Euler for the dashpots and/or the pushing contacts (one solve), or None
+        dashpots, contacts = cfg.viscosity == 'implicit', cfg.contact_integration == 'implicit'
+        self.backward = (BackwardSolve(self.scheme if dashpots else None, self.n,
+                                       cfg.viscous_tol if dashpots else CONTACT_TOL, DASHPOT_MAX_ITER)
+                         if dashpots or contacts else None)
         n_samples = len(self.sample_arrays[4]) if self.sample_arrays is not None else 0
-        self.contact_solve = (ContactSolve(self.n, n_samples, CONTACT_TOL, DASHPOT_MAX_ITER)
-                              if cfg.contact_integration == 'implicit' else None)
-        self.touches = self.contact_solve.touches if self.contact_solve is not None else no_touches()
-        self._no_vn = np.zeros(1)
+        self.touches = make_touches(self.n + n_samples) if contacts else no_touches()
+        self._touch_vn = np.zeros(len(self.touches.idx))
         self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
                               self.h, cfg.n_layers, self.contact_surf)
         self.set_material(material)
@@ -407,21 +408,22 @@ class Solver:
         else:
             self.samples = no_samples(self.n)
         self.scheme.set_material(material, self.mass)
-        if self.dashpots is not None:
-            self.dashpots.set_material(material)
+        if self.backward is not None:
+            self.backward.set_material(material)
         c = self.scheme.wave_speed(material, self.mass)
         # implicit dashpots are stable at any sub-step: no viscous bound
-        eta_long = material.eta_longitudinal if self.dashpots is None else 0.0
+        implicit_dashpots = cfg.viscosity == 'implicit'
+        eta_long = 0.0 if implicit_dashpots else material.eta_longitudinal
         self.dt_bounds = substep_bounds(self.h, c, material.rho, eta_long, self.mass,
                                         cfg.contact_stiffness * self.sample_factor, cfg.cfl)
-        if self.dashpots is not None:
+        if implicit_dashpots:
             # the hourglass dashpot stays explicit (its bonds' damping is not symmetric)
             self.dt_bounds['hourglass_damping'] = self.scheme.hourglass_damping_bound(self.mass, cfg.cfl)
         if cfg.contact_damping_ratio > 0.0:
             # explicit dashpot: dt < 2 m / c; keep a factor 2 margin (implicit contact: none)
             self.dt_bounds['contact_damping'] = self.mass / (self.samples.damping * self.sample_factor
                                                              if per > 0 else self.contact_damping)
-        if self.contact_solve is not None:
+        if self.touches.on:
             # the pushing contacts are integrated backward along their normals
             self.dt_bounds.pop('contact', None)
             self.dt_bounds.pop('contact_damping', None)
@@ -614,6 +616,15 @@ class Solver:
                 return prev
         return -1
 
+    def substep_integrator(self, sub_dt: float):
+        """The integrator of a sub-step of ``sub_dt`` [s]: symplectic Euler, or backward Euler for
+        the implicit dashpots and contacts (:mod:`.implicit_viscosity`)."""
+        if self.backward is None:
+            return SymplecticEuler(sub_dt)
+        return self.backward.integrator(sub_dt, contact_terms(
+            self.touches, self.samples, self.config.contact_stiffness, self.contact_damping, self.react,
+            self._touch_vn))
+
     def _frame(self, sets: Sets, path: ToolPath, n_sub: int, sub_dt: float, dt: float, mode: str) -> float:
         """One frame on ``sets`` (:func:`~.frame.run`); returns the last overlap [m].
 
@@ -622,16 +633,7 @@ class Solver:
         back to their state before the frame and :class:`SimError` is raised.
         """
         self.area.save(self.x, self.v, sets)
-        if self.dashpots is not None:
-            vn = self.contact_solve.vn if self.contact_solve is not None else self._no_vn
-            integrator = self.dashpots.integrator(sub_dt, contact_terms(
-                self.touches, self.samples, self.config.contact_stiffness, self.contact_damping, self.react, vn))
-        elif self.contact_solve is not None:
-            integrator = self.contact_solve.integrator(sub_dt, self.samples, self.config.contact_stiffness,
-                                                       self.contact_damping, self.react)
-        else:
-            integrator = SymplecticEuler(sub_dt)
-        status, overlap = frame.run(self.scheme, integrator, self.body, self.motion, sets,
+        status, overlap = frame.run(self.scheme, self.substep_integrator(sub_dt), self.body, self.motion, sets,
                                     path, self.loads, n_sub, dt, self.react, self.abort,
                                     self.area.active, self.area.n_active)
         ok = (status == STATUS_OK and self.abort[0] == 0
