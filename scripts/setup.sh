@@ -68,4 +68,17 @@ if [[ $FORCE == 1 || ! -f "$BSTAMP" || "$(cat "$BSTAMP")" != "$SRC_HASH$REQ_HASH
 else
   log "workspace build up to date"
 fi
+
+# --- numba's disk cache ----------------------------------------------------------------------------
+# numba checks a cached kernel against its own source file only: after a change elsewhere in the core
+# (a state tuple, a kernel it calls or inlines) a stale entry can crash the process, so the cache goes
+# whenever the core's sources change (the kernels compile again at the next start).
+CORE_HASH="$(cd "$ROOT" && find src -path '*/sph_tissue_sim/core/*.py' -not -path '*/__pycache__/*' | sort \
+    | xargs sha256sum | sha256sum | cut -d' ' -f1)"
+CSTAMP="$ROOT/install/.sph_core.sha256"
+if [[ ! -f "$CSTAMP" || "$(cat "$CSTAMP")" != "$CORE_HASH" ]]; then
+  find "$ROOT/src" \( -name '*.nbi' -o -name '*.nbc' \) -delete
+  echo "$CORE_HASH" > "$CSTAMP"
+  log "core sources changed: numba cache cleared"
+fi
 log "ready (source scripts/env.sh to use the workspace)"
