@@ -1,8 +1,10 @@
-"""Backward-Euler Kelvin-Voigt dashpots for ``tlsph`` (``SolverConfig.viscosity = 'implicit'``).
+"""Backward Euler for the Kelvin-Voigt dashpots of ``tlsph`` (``SolverConfig.viscosity =
+'implicit'``) and for the pushing contacts (``contact_integration = 'implicit'``, the terms of
+:mod:`.implicit_contact`), one conjugate-gradient solve per sub-step (:class:`BackwardEuler`).
 
 An explicit sub-step must resolve the dashpots' fastest mode, ``dt <= C rho h^2 / eta``, which
 shrinks with the square of the spacing while the CFL bound shrinks with the spacing: on the 100k
-liver it asks for 13 sub-steps per millisecond where the waves ask for 6. Here the elastic,
+liver it asks for 12 sub-steps per millisecond where the waves ask for 5. Here the elastic,
 hourglass and contact forces stay explicit and the dashpots are implicit, one linear solve per
 sub-step::
 
@@ -20,8 +22,9 @@ held as they are. One product ``C p`` is the scheme's two gathers without the el
     f_i = sum_j V_i V_j (P_i L_i^-T + P_j L_j^-T) DWIJ0        (= -(C p)_i)
 
 with ``F_i`` the scheme's deformation gradient of this sub-step. The dashpot is then stable at
-any ``dt`` and the sub-step follows the CFL and contact bounds alone; a creep that the viscosity
-sets (time constant eta / G) stays exact because the solve is the force balance itself.
+any ``dt`` and the sub-step follows the CFL and contact bounds alone (the CFL bound alone with the
+contacts in the same solve); a creep that the viscosity sets (time constant eta / G) stays exact
+because the solve is the force balance itself.
 """
 
 from __future__ import annotations

@@ -157,7 +157,8 @@ def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, rea
     A sample inside the tool gets ``f = max(0, k d - c (v_s - v_tool) . n) n`` (``d`` the overlap,
     ``n`` from the tool's closest point to the sample, ``k``, ``c`` the sample's stiffness and
     damping), spread on its particles' accelerations by its weights; the reaction is accumulated
-    in ``react``. Returns the largest overlap [m] (0 without contact).
+    in ``react`` and a pushing sample recorded in ``touches`` (:class:`~.state.Touches`, for an
+    implicit contact update). Returns the largest overlap [m] (0 without contact).
     """
     x, v, acc, fixed, inv_mass = motion.x, motion.v, motion.acc, body.fixed, body.inv_mass
     start, w_start, w_idx, w_val, off = (samples.start, samples.w_start, samples.w_idx, samples.w_val,
