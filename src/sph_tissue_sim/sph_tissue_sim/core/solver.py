@@ -472,6 +472,16 @@ class Solver:
         return self._last_sets.n_stress if self._last_sets is not None else 0
 
     @property
+    def pair_visits_last(self) -> int:
+        """Neighbour pairs one sub-step of the last finished frame gathered over: the reference
+        neighbours of its stressed particles (stress pass) and of its solved ones (force pass)."""
+        s = self._last_sets
+        if s is None:
+            return 0
+        deg = np.diff(self.offsets)
+        return int(deg[s.stress[:s.n_stress]].sum() + deg[s.sph[:s.n_sph]].sum())
+
+    @property
     def n_particles(self) -> int:
         return self.n
 
