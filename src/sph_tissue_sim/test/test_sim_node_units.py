@@ -243,6 +243,14 @@ def test_the_viscosity_parameters_reach_the_solver_config_and_bad_ones_are_refus
     assert 'must be one of' in check_value('contact_integration', 'semi')
 
 
+
+def test_gradient_order_reaches_the_solver_config_and_bad_values_are_refused():
+    assert build_config(defaults()).gradient_order == 1
+    assert build_config(defaults(gradient_order=2)).gradient_order == 2
+    for bad in (dict(gradient_order=3), dict(gradient_order=2, scheme='mass_spring')):
+        with pytest.raises(ConfigError, match='gradient_order'):
+            build_config(defaults(**bad))
+
 def test_check_value_catches_bad_choices_and_vectors():
     assert check_value('mode', 'local') is None
     assert 'must be one of' in check_value('mode', 'diagonal')

@@ -18,8 +18,8 @@ and ``C`` is symmetric positive semi-definite: ``M + dt C`` is solved matrix-fre
 gradients over ``sets.sph``, the other particles' velocities (still particles, transmission layers)
 held as they are. One product ``C p`` is the scheme's two gathers without the elastic part:
 
-    dF_i = [sum_j V_j (p_j - p_i) (x) DWIJ0] L_i^-1,   P_i = F_i S_v(sym(F_i^T dF_i)),
-    f_i = sum_j V_i V_j (P_i L_i^-T + P_j L_j^-T) DWIJ0        (= -(C p)_i)
+    dF_i = sum_j (p_j - p_i) (x) g_ij,   P_i = F_i S_v(sym(F_i^T dF_i)),
+    f_i = V_i P_i sum_j g_ij - sum_j V_j P_j g_ji        (= -(C p)_i)
 
 with ``F_i`` the scheme's deformation gradient of this sub-step. The dashpot is then stable at
 any ``dt`` and the sub-step follows the CFL and contact bounds alone (the CFL bound alone with the
@@ -56,9 +56,9 @@ class BackwardEuler(NamedTuple):
     dashpots: bool
     offsets: np.ndarray
     indices: np.ndarray
-    dw: np.ndarray
-    gv: np.ndarray
-    Linv: np.ndarray
+    g: np.ndarray
+    gr: np.ndarray
+    gsum: np.ndarray
     F: np.ndarray
     A: np.ndarray
     volume: float
@@ -78,27 +78,16 @@ class BackwardEuler(NamedTuple):
 
 @njit(cache=True, fastmath=True)
 def dashpot_stress_one(i, s, vel):
-    """``A_i = V^2 P_i L_i^-T`` of the dashpots alone for the velocity field ``vel`` (``s`` an
+    """``A_i = V P_i`` of the dashpots alone for the velocity field ``vel`` (``s`` an
     :class:`BackwardEuler`), with the deformation gradient ``s.F[i]`` of this sub-step."""
-    gv, offsets, indices, Linv, F = s.gv, s.offsets, s.indices, s.Linv, s.F
+    g, offsets, indices, F = s.g, s.offsets, s.indices, s.F
     b = ZERO3X3
     vi0 = vel[i, 0]; vi1 = vel[i, 1]; vi2 = vel[i, 2]
     for k in range(offsets[i], offsets[i + 1]):
         j = indices[k]
-        b = add_outer(b, vel[j, 0] - vi0, vel[j, 1] - vi1, vel[j, 2] - vi2, gv[k, 0], gv[k, 1], gv[k, 2])
-    b00, b01, b02, b10, b11, b12, b20, b21, b22 = b
-    Li = Linv[i]
+        b = add_outer(b, vel[j, 0] - vi0, vel[j, 1] - vi1, vel[j, 2] - vi2, g[k, 0], g[k, 1], g[k, 2])
+    h00, h01, h02, h10, h11, h12, h20, h21, h22 = b      # dF/dt
     Fm = F[i]
-    # dF/dt = b L^-1, as scalars (no temporaries: this runs per particle per CG iteration)
-    h00 = b00 * Li[0, 0] + b01 * Li[1, 0] + b02 * Li[2, 0]
-    h01 = b00 * Li[0, 1] + b01 * Li[1, 1] + b02 * Li[2, 1]
-    h02 = b00 * Li[0, 2] + b01 * Li[1, 2] + b02 * Li[2, 2]
-    h10 = b10 * Li[0, 0] + b11 * Li[1, 0] + b12 * Li[2, 0]
-    h11 = b10 * Li[0, 1] + b11 * Li[1, 1] + b12 * Li[2, 1]
-    h12 = b10 * Li[0, 2] + b11 * Li[1, 2] + b12 * Li[2, 2]
-    h20 = b20 * Li[0, 0] + b21 * Li[1, 0] + b22 * Li[2, 0]
-    h21 = b20 * Li[0, 1] + b21 * Li[1, 1] + b22 * Li[2, 1]
-    h22 = b20 * Li[0, 2] + b21 * Li[1, 2] + b22 * Li[2, 2]
     f00 = Fm[0, 0]; f01 = Fm[0, 1]; f02 = Fm[0, 2]
     f10 = Fm[1, 0]; f11 = Fm[1, 1]; f12 = Fm[1, 2]
     f20 = Fm[2, 0]; f21 = Fm[2, 1]; f22 = Fm[2, 2]
@@ -125,47 +114,40 @@ def dashpot_stress_one(i, s, vel):
     p20 = f20 * s00 + f21 * s01 + f22 * s02
     p21 = f20 * s01 + f21 * s11 + f22 * s12
     p22 = f20 * s02 + f21 * s12 + f22 * s22
-    # A = V^2 P L^-T
-    v2 = s.volume * s.volume
+    vol = s.volume
     Am = s.A[i]
-    for q in range(3):
-        l0 = Li[q, 0]; l1 = Li[q, 1]; l2 = Li[q, 2]
-        Am[0, q] = v2 * (p00 * l0 + p01 * l1 + p02 * l2)
-        Am[1, q] = v2 * (p10 * l0 + p11 * l1 + p12 * l2)
-        Am[2, q] = v2 * (p20 * l0 + p21 * l1 + p22 * l2)
+    Am[0, 0] = vol * p00; Am[0, 1] = vol * p01; Am[0, 2] = vol * p02
+    Am[1, 0] = vol * p10; Am[1, 1] = vol * p11; Am[1, 2] = vol * p12
+    Am[2, 0] = vol * p20; Am[2, 1] = vol * p21; Am[2, 2] = vol * p22
 
 
 @njit(cache=True, fastmath=True)
-def dashpot_force_one(i, s, X):
+def dashpot_force_one(i, s):
     """Dashpot force on particle ``i`` from the stresses ``s.A`` (``-(C p)_i``)."""
-    offsets, indices, dw, A = s.offsets, s.indices, s.dw, s.A
-    Xi0 = X[i, 0]; Xi1 = X[i, 1]; Xi2 = X[i, 2]
+    offsets, indices, gr, A = s.offsets, s.indices, s.gr, s.A
     f0 = 0.0; f1 = 0.0; f2 = 0.0
-    s0 = 0.0; s1 = 0.0; s2 = 0.0
     for k in range(offsets[i], offsets[i + 1]):
-        j = indices[k]
-        d = dw[k]
-        X0 = X[j, 0] - Xi0; X1 = X[j, 1] - Xi1; X2 = X[j, 2] - Xi2
-        s0 += d * X0; s1 += d * X1; s2 += d * X2
-        Aj = A[j]
-        f0 -= d * (Aj[0, 0] * X0 + Aj[0, 1] * X1 + Aj[0, 2] * X2)
-        f1 -= d * (Aj[1, 0] * X0 + Aj[1, 1] * X1 + Aj[1, 2] * X2)
-        f2 -= d * (Aj[2, 0] * X0 + Aj[2, 1] * X1 + Aj[2, 2] * X2)
+        Aj = A[indices[k]]
+        r0 = gr[k, 0]; r1 = gr[k, 1]; r2 = gr[k, 2]
+        f0 -= Aj[0, 0] * r0 + Aj[0, 1] * r1 + Aj[0, 2] * r2
+        f1 -= Aj[1, 0] * r0 + Aj[1, 1] * r1 + Aj[1, 2] * r2
+        f2 -= Aj[2, 0] * r0 + Aj[2, 1] * r1 + Aj[2, 2] * r2
     Ai = A[i]
-    f0 -= Ai[0, 0] * s0 + Ai[0, 1] * s1 + Ai[0, 2] * s2
-    f1 -= Ai[1, 0] * s0 + Ai[1, 1] * s1 + Ai[1, 2] * s2
-    f2 -= Ai[2, 0] * s0 + Ai[2, 1] * s1 + Ai[2, 2] * s2
+    gs = s.gsum[i]
+    f0 += Ai[0, 0] * gs[0] + Ai[0, 1] * gs[1] + Ai[0, 2] * gs[2]
+    f1 += Ai[1, 0] * gs[0] + Ai[1, 1] * gs[1] + Ai[1, 2] * gs[2]
+    f2 += Ai[2, 0] * gs[0] + Ai[2, 1] * gs[1] + Ai[2, 2] * gs[2]
     return f0, f1, f2
 
 
 @njit(cache=True, fastmath=True)
-def _apply(s, X, vel, sets, scale, base, out):
+def _apply(s, vel, sets, scale, base, out):
     """``out_i = base_i - scale f_visc(vel)_i`` for ``i`` in ``sets.sph`` (``base`` may be ``out``)."""
     for t in range(sets.n_stress):
         dashpot_stress_one(sets.stress[t], s, vel)
     for t in range(sets.n_sph):
         i = sets.sph[t]
-        f0, f1, f2 = dashpot_force_one(i, s, X)
+        f0, f1, f2 = dashpot_force_one(i, s)
         out[i, 0] = base[i, 0] - scale * f0
         out[i, 1] = base[i, 1] - scale * f1
         out[i, 2] = base[i, 2] - scale * f2
@@ -188,7 +170,7 @@ def backward_euler_step(s, body, motion, sets):
     ``|v*|`` (or the first residual; at most ``s.max_iter`` iterations), the reaction corrected,
     ``x += dt v'``. Compiled without ``fastmath`` (its passes have their own flags) so that the
     stopping tests keep their meaning for a NaN."""
-    X, x, v, acc = body.X, motion.x, motion.v, motion.acc
+    x, v, acc = motion.x, motion.v, motion.acc
     sph, n = sets.sph, sets.n_sph
     dt = s.dt
     scale = dt * body.inv_mass
@@ -212,7 +194,7 @@ def backward_euler_step(s, body, motion, sets):
             v0[i, a] = v[i, a]
             v[i, a] = u[i, a]
     if s.dashpots:
-        _apply(s, X, v, sets, -scale, r, r)
+        _apply(s, v, sets, -scale, r, r)
     unorm = math.sqrt(_dot(u, u, sph, n))
     for k in range(n):
         i = sph[k]
@@ -229,7 +211,7 @@ def backward_euler_step(s, body, motion, sets):
                 w[i, a] = p[i, a]
                 q[i, a] = p[i, a]
         if s.dashpots:
-            _apply(s, X, w, sets, scale, p, q)     # q = (I + dt/m C) p
+            _apply(s, w, sets, scale, p, q)     # q = (I + dt/m C) p
         if touched:
             contact_apply(c, body.inv_mass, dt, w, q)
         pq = _dot(p, q, sph, n)
@@ -290,8 +272,8 @@ class BackwardSolve:
         self.stats = np.zeros(2)
         self.eta_s = self.eta_v = 0.0
         if scheme is None:
-            self._none = (np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0),
-                          np.zeros((0, 3)), np.zeros((n, 3, 3)), np.zeros((n, 3, 3)))
+            self._none = (np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
+                          np.zeros((0, 3)), np.zeros((n, 3)), np.zeros((n, 3, 3)))
 
     def set_material(self, material) -> None:
         self.eta_s, self.eta_v = material.eta_shear, material.eta_bulk
@@ -303,11 +285,11 @@ class BackwardSolve:
             contact = no_contact_terms()
         sc = self.scheme
         if sc is None:
-            offsets, indices, dw, gv, Linv, F = self._none
+            offsets, indices, g, gr, gsum, F = self._none
             volume = 0.0
         else:
-            offsets, indices, dw, gv, Linv, F, volume = sc.offsets, sc.indices, sc.dw, sc.gv, sc.Linv, sc.F, sc.volume
-        return BackwardEuler(dt, sc is not None, offsets, indices, dw, gv, Linv, F, self.A, volume,
+            offsets, indices, g, gr, gsum, F, volume = sc.offsets, sc.indices, sc.g, sc.gr, sc.gsum, sc.F, sc.volume
+        return BackwardEuler(dt, sc is not None, offsets, indices, g, gr, gsum, F, self.A, volume,
                              self.eta_s, self.eta_v, self.tol, self.max_iter, self.u, self.r, self.p, self.q,
                              self.w, self.v0, self.stats, contact)
 

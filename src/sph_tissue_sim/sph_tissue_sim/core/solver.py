@@ -75,7 +75,7 @@ CONFIG_RANGES = {
     'paper_momentum': (12, 14, 'int'), 'parallel_min_particles': (0, math.inf, 'int'),
     'far_field': (0.0, 2.0, 'closed'), 'max_tool_speed': (0.0, math.inf, 'open'),
     'contact_samples': (0, 5, 'int'),
-    'viscous_tol': (0.0, 1.0, 'open'),
+    'viscous_tol': (0.0, 1.0, 'open'), 'gradient_order': (1, 2, 'int'),
 }
 
 
@@ -150,6 +150,8 @@ class SolverConfig:
         viscous_tol: the implicit dashpots' solve stops at this residual relative to ``|v*|``.
         contact_integration: ``explicit`` (default) or ``implicit``: the pushing contacts backward
             along their normals (:mod:`.implicit_contact`), no contact sub-step bound.
+        gradient_order: ``tlsph``'s corrected gradients (:mod:`.gradients`): 1 (Bonet-Lok, exact
+            for linear fields) or 2 (also exact for quadratic fields, which bending is).
         max_tool_speed: the simulated tool follows the requested tool pose at most this fast
             [m/s]: a frame moves its tip, and the far end of a shaft, by at most about
             ``max_tool_speed * dt`` towards the request (a
@@ -199,6 +201,7 @@ class SolverConfig:
     viscosity: str = 'explicit'
     viscous_tol: float = 1e-3
     contact_integration: str = 'explicit'
+    gradient_order: int = 1
 
     def validate(self) -> 'SolverConfig':
         """Check ranges (:data:`CONFIG_RANGES`); raises :class:`ConfigError` naming the bad field.
@@ -224,6 +227,8 @@ class SolverConfig:
             raise ConfigError(f'k1_min ({self.k1_min}) must be <= k1_max ({self.k1_max})')
         if self.contact_samples > 0 and self.contact_disc > 0.0:
             raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
+        if self.gradient_order > 1 and self.scheme != 'tlsph':
+            raise ConfigError(f'gradient_order {self.gradient_order} needs scheme tlsph, got {self.scheme!r}')
         if self.viscosity == 'implicit' and self.scheme != 'tlsph':
             raise ConfigError(f'viscosity implicit needs scheme tlsph, got {self.scheme!r}')
         if self.paper_momentum not in (12, 14):
@@ -359,7 +364,8 @@ class Solver:
         if cfg.scheme == 'mass_spring':
             return MassSpringScheme(self.X, self.model.spacing, cfg.spring_radius)
         return TlsphScheme(self.X, self.offsets, self.indices, self.h, self.volume, cfg.hourglass,
-                           self.par_min, explicit_dashpots=cfg.viscosity == 'explicit')
+                           self.par_min, explicit_dashpots=cfg.viscosity == 'explicit',
+                           gradient_order=cfg.gradient_order)
 
     def interrupt(self) -> None:
         """Make the step running in another thread stop before its next sub-step (it then raises
@@ -414,6 +420,11 @@ class Solver:
         # implicit dashpots are stable at any sub-step: no viscous bound
         implicit_dashpots = cfg.viscosity == 'implicit'
         eta_long = 0.0 if implicit_dashpots else material.eta_longitudinal
+        if isinstance(self.scheme, TlsphScheme) and cfg.gradient_order > 1:
+            # second-order gradients stiffen the surface modes (TlsphScheme.stiffness_gain)
+            gain = self.scheme.stiffness_gain(self.body, self.area.global_sets(-1))
+            c *= math.sqrt(gain)
+            eta_long *= gain
         self.dt_bounds = substep_bounds(self.h, c, material.rho, eta_long, self.mass,
                                         cfg.contact_stiffness * self.sample_factor, cfg.cfl)
         if implicit_dashpots:
