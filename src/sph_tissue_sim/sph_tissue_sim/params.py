@@ -99,8 +99,9 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                         'bound; contact_samples 3 then costs 2 sub-steps, not 8)',
                             CONTACT_INTEGRATIONS, False, 'solver'),
     'gradient_order': (1, 'tlsph corrected gradients: 1 (Bonet-Lok) | 2 (exact for quadratic fields: '
-                          'thin parts bend right, within 3 % at 10 particles across instead of -6 %; '
-                          'stiffer surface modes: sqrt(gain) more sub-steps)', (1, 2), False, 'solver'),
+                          'thin parts bend right, within 3 % at 10 particles across instead of -6 %, '
+                          'but a point contact is half as stiff, and the liver needs 4x the '
+                          'sub-steps)', (1, 2), False, 'solver'),
     'paper_momentum': (14, 'paper scheme: momentum equation 14 (the paper\'s eq. 14) or 12 (eq. 12, '
                            'steadier at free surfaces)', (12, 14), False, 'solver'),
     'far_field': (1.0, 'local mode: still particles next to the solved ones follow this times the '
