@@ -7,7 +7,7 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
 * ``creep``: a free Kelvin-Voigt bar under constant end traction, eps(t) = sigma0/E (1 - exp(-t/tau));
 * ``uniaxial``: the same bar at rest, E and nu from Hooke's law;
 * ``cantilever``: first bending frequency of a clamped beam 4 / 8 / 10 particles tall (L/H = 8)
-  against Euler-Bernoulli (and Timoshenko, printed), with first- and second-order gradients
+  against Timoshenko (the target; Euler-Bernoulli printed), with first- and second-order gradients
   (``gradient_order`` 1 and 2);
 * ``hertz``: a rigid 15 mm sphere pressed 1.5 mm into a bottom-fixed block 80 x 80 x 40 mm at
   spacings 4 / 3 / 2.5 mm (global): log-log slope of force against depth (1.5) and force at 1.5 mm
@@ -117,12 +117,15 @@ def check_cantilever(quick: bool, out: Path) -> list[dict]:
     for order, color in ((1, '#1f77b4'), (2, '#d62728')):
         pts = []
         for n in ((4,) if quick else (4, 8, 10)):
-            f, f_eb, f_t = cases.cantilever_frequency(n, 8.0, n_wide=2 if n < 10 else 4, gradient_order=order)
+            # 4 wide: the second order needs 3 particles or more in every direction
+            f, f_eb, f_t = cases.cantilever_frequency(n, 8.0, n_wide=4, gradient_order=order)
+            # the target is held against Timoshenko: at L/H = 8 shear and rotary inertia lower f1
+            # by 1.2 %, which the 3D body has and Euler-Bernoulli ignores
             target = '|error| <= 3 %' if n == 10 else 'reported'
-            met = abs(f / f_eb - 1.0) <= 0.03 if n == 10 else None
+            met = abs(f / f_t - 1.0) <= 0.03 if n == 10 else None
             label = f'{n} across, gradient_order {order}'
-            rows.append(row('cantilever', f'{label}, f1 vs Euler-Bernoulli', f, f_eb, 'Hz', target, met))
-            rows.append(row('cantilever', f'{label}, f1 vs Timoshenko', f, f_t, 'Hz', 'reported', None))
+            rows.append(row('cantilever', f'{label}, f1 vs Timoshenko', f, f_t, 'Hz', target, met))
+            rows.append(row('cantilever', f'{label}, f1 vs Euler-Bernoulli', f, f_eb, 'Hz', 'reported', None))
             pts.append((n, f / f_eb - 1.0, f / f_t - 1.0))
         n, e_eb, e_t = (np.array(v) for v in zip(*pts))
         ax.plot(n, 100 * e_eb, 'o-', color=color, label=f'order {order} vs Euler-Bernoulli')
