@@ -127,3 +127,28 @@ def test_threads_under_load_benchmark_writes_rows_and_finds_threaded_steps_bit_i
     for r in rows:
         assert r['identical'] == 'True' and int(r['frames']) > 0
         assert 0.0 < float(r['median_ms']) <= float(r['p99_ms']) <= float(r['max_ms'])
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(name, ROOT / 'benchmarks' / f'{name}.py')
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_pysph_comparison_runs_our_plate_at_pysphs_time_step():
+    """Our half of ``pysph_compare.py`` (PySPH itself is not installed here): the plate extruded to
+    3D takes sub-steps of exactly PySPH's 1e-5 s, and the run counts its steps and particles."""
+    mod = _load('pysph_compare')
+    res = mod.run_ours(3, 200)
+    assert res['steps'] == 200
+    assert res['particles'] == (100 + 25) * 11 * 3 and res['moving'] == 100 * 11 * 3
+    assert res['seconds'] > 0.0 and math.isfinite(res['seconds'])
+
+
+def test_pysph_comparison_says_clearly_when_pysph_is_missing():
+    proc = subprocess.run([sys.executable, str(ROOT / 'benchmarks' / 'pysph_compare.py'),
+                           '--pysph-python', sys.executable, '--steps', '10', '--rounds', '1'],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode != 0
+    assert 'PySPH run failed' in proc.stderr and 'pysph' in proc.stderr
