@@ -255,12 +255,21 @@ class SimNode(Node):
         return (f'model {self.model.name} ({s.n_particles} particles, {int(s.fixed.sum())} fixed, '
                 f'spacing {self.model.spacing * 1e3:.2f} mm, h {s.smoothing_length * 1e3:.2f} mm), '
                 f'tool {s.tool.name} (radius {s.tool.radius * 1e3:g} mm), '
-                f'scheme {c.scheme}, mode {c.mode}, material {m.name} (E {m.E:.4g} Pa, nu {m.nu:g}, '
+                f'scheme {c.scheme}{self._describe_gradients()}, mode {c.mode}, material {m.name} '
+                f'(E {m.E:.4g} Pa, nu {m.nu:g}, '
                 f'eta_shear {m.eta_shear:g} Pa s), timing {self.p["timing_mode"]}, pose QoS '
                 f'{"reliable" if self.io_qos.reliability == ReliabilityPolicy.RELIABLE else "best effort"}'
                 f' depth {self.io_qos.depth}, haptic {self._describe_haptic()}, force_limit '
                 f'{self.p["force_limit"]:g} N, device origin '
                 f'-> tissue ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) m')
+
+    def _describe_gradients(self) -> str:
+        s = self.solver
+        if s.config.scheme != 'tlsph' or s.config.gradient_order == 1:
+            return ''
+        return (f' (second-order gradients: {s.scheme.fallen} particles keep first order, the '
+                f'stiffest mode {s.stiffness_gain:.2f}x stiffer, sub-step {s.dt_max_free * 1e3:.3f} ms '
+                f'without a tool)')
 
     def _describe_haptic(self) -> str:
         if self.haptic is None:

@@ -425,11 +425,13 @@ class Solver:
         # implicit dashpots are stable at any sub-step: no viscous bound
         implicit_dashpots = cfg.viscosity == 'implicit'
         eta_long = 0.0 if implicit_dashpots else material.eta_longitudinal
+        #: how much stiffer the stiffest mode is than with first-order gradients (1: those)
+        self.stiffness_gain = 1.0
         if isinstance(self.scheme, TlsphScheme) and cfg.gradient_order > 1:
             # second-order gradients stiffen the surface modes (TlsphScheme.stiffness_gain)
-            gain = self.scheme.stiffness_gain(self.body, self.area.global_sets(-1))
-            c *= math.sqrt(gain)
-            eta_long *= gain
+            self.stiffness_gain = self.scheme.stiffness_gain(self.body, self.area.global_sets(-1))
+            c *= math.sqrt(self.stiffness_gain)
+            eta_long *= self.stiffness_gain
         self.dt_bounds = substep_bounds(self.h, c, material.rho, eta_long, self.mass,
                                         cfg.contact_stiffness * self.sample_factor, cfg.cfl)
         if implicit_dashpots:
