@@ -36,7 +36,7 @@ import numpy as np
 from numba import njit
 from numba.extending import overload
 
-from .kernel import ZERO3X3, add_outer
+from .kernel import ZERO3X3, add_outer, strain_rate
 from .implicit_contact import contact_apply, contact_reaction, contact_residual, no_contact_terms
 from .protocols import advance, is_state
 
@@ -86,19 +86,11 @@ def dashpot_stress_one(i, s, vel):
     for k in range(offsets[i], offsets[i + 1]):
         j = indices[k]
         b = add_outer(b, vel[j, 0] - vi0, vel[j, 1] - vi1, vel[j, 2] - vi2, g[k, 0], g[k, 1], g[k, 2])
-    h00, h01, h02, h10, h11, h12, h20, h21, h22 = b      # dF/dt
     Fm = F[i]
     f00 = Fm[0, 0]; f01 = Fm[0, 1]; f02 = Fm[0, 2]
     f10 = Fm[1, 0]; f11 = Fm[1, 1]; f12 = Fm[1, 2]
     f20 = Fm[2, 0]; f21 = Fm[2, 1]; f22 = Fm[2, 2]
-    # dE/dt = sym(F^T dF/dt), the sums tlsph_stress_one writes inline (shared through a helper, the
-    # explicit pass's fast-math rounding moved by 3e-15 N and the bit-identical goldens with it)
-    r00 = h00 * f00 + h10 * f10 + h20 * f20
-    r11 = h01 * f01 + h11 * f11 + h21 * f21
-    r22 = h02 * f02 + h12 * f12 + h22 * f22
-    r01 = 0.5 * (h00 * f01 + h10 * f11 + h20 * f21 + f00 * h01 + f10 * h11 + f20 * h21)
-    r02 = 0.5 * (h00 * f02 + h10 * f12 + h20 * f22 + f00 * h02 + f10 * h12 + f20 * h22)
-    r12 = 0.5 * (h01 * f02 + h11 * f12 + h21 * f22 + f01 * h02 + f11 * h12 + f21 * h22)
+    r00, r11, r22, r01, r02, r12 = strain_rate((f00, f01, f02, f10, f11, f12, f20, f21, f22), b)
     # S_v = 2 eta_s dE/dt + (eta_v - 2 eta_s / 3) tr(dE/dt) I
     eta2 = 2.0 * s.eta_s
     lam_v = (s.eta_v - eta2 / 3.0) * (r00 + r11 + r22)

@@ -80,6 +80,20 @@ def add_outer(m, d0, d1, d2, g0, g1, g2):
             m[6] + d2 * g0, m[7] + d2 * g1, m[8] + d2 * g2)
 
 
+@njit(cache=True, fastmath=True, inline='always')
+def strain_rate(f, h):
+    """``dE/dt = sym(F^T dF/dt)`` (the Green-Lagrange strain rate) as ``(r00, r11, r22, r01, r02,
+    r12)`` from ``F`` and ``dF/dt`` as row-major 9-tuples (scalars: no temporaries per particle)."""
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = f
+    h00, h01, h02, h10, h11, h12, h20, h21, h22 = h
+    return (h00 * f00 + h10 * f10 + h20 * f20,
+            h01 * f01 + h11 * f11 + h21 * f21,
+            h02 * f02 + h12 * f12 + h22 * f22,
+            0.5 * (h00 * f01 + h10 * f11 + h20 * f21 + f00 * h01 + f10 * h11 + f20 * h21),
+            0.5 * (h00 * f02 + h10 * f12 + h20 * f22 + f00 * h02 + f10 * h12 + f20 * h22),
+            0.5 * (h01 * f02 + h11 * f12 + h21 * f22 + f01 * h02 + f11 * h12 + f21 * h22))
+
+
 @njit(cache=True)
 def kernel_w_array(r: np.ndarray, h: float) -> np.ndarray:
     """:func:`kernel_w` over an array of distances (the surface discs' pair weights)."""

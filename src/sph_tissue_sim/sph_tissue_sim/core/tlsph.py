@@ -41,7 +41,7 @@ from numba import njit, prange
 from numba.extending import overload
 
 from .gradients import corrected_gradients, reverse_pairs
-from .kernel import ZERO3X3, add_outer
+from .kernel import ZERO3X3, add_outer, strain_rate
 from .material import Material
 from .protocols import STATUS_OK, FixedStateScheme, internal_forces, is_state
 from .state import Motion
@@ -96,14 +96,7 @@ def tlsph_stress_one(i, s, x, v):
     Fdm[0, 0] = h00; Fdm[0, 1] = h01; Fdm[0, 2] = h02
     Fdm[1, 0] = h10; Fdm[1, 1] = h11; Fdm[1, 2] = h12
     Fdm[2, 0] = h20; Fdm[2, 1] = h21; Fdm[2, 2] = h22
-    # rate of the Green-Lagrange strain, dE/dt = (Fd^T F + F^T Fd)/2, as scalars (no temporaries:
-    # this runs for every particle every sub-step; the elastic part below needs F alone)
-    r00 = h00 * f00 + h10 * f10 + h20 * f20
-    r11 = h01 * f01 + h11 * f11 + h21 * f21
-    r22 = h02 * f02 + h12 * f12 + h22 * f22
-    r01 = 0.5 * (h00 * f01 + h10 * f11 + h20 * f21 + f00 * h01 + f10 * h11 + f20 * h21)
-    r02 = 0.5 * (h00 * f02 + h10 * f12 + h20 * f22 + f00 * h02 + f10 * h12 + f20 * h22)
-    r12 = 0.5 * (h01 * f02 + h11 * f12 + h21 * f22 + f01 * h02 + f11 * h12 + f21 * h22)
+    r00, r11, r22, r01, r02, r12 = strain_rate(a, b)
     # viscous part: Kelvin-Voigt dashpots on the Green-Lagrange strain rate, P_v = F S_v
     lam_v = (eta_v - 2.0 * eta_s / 3.0) * (r00 + r11 + r22)
     s00 = 2.0 * eta_s * r00 + lam_v
