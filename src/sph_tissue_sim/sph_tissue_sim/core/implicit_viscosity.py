@@ -49,7 +49,9 @@ class BackwardEuler(NamedTuple):
     dashpot stresses; ``u, r, p, q, w, v0`` (N, 3) scratch vectors of the solve (``w`` stays zero
     off the solved set); ``stats`` (2,) accumulates CG iterations and solves; ``contact`` the
     pushing contacts solved with the dashpots (:class:`~.implicit_contact.ContactTerms`; none
-    recorded with explicit contact).
+    recorded with explicit contact). With ``stiffness`` (the implicit integrator) the elastic
+    forces are backward too: ``G, K`` the spring's moduli, ``w0, hg_k, hg_c`` the hourglass bonds'
+    weights, stiffness and damping (:class:`~.tlsph.Tlsph`).
     """
 
     dt: float
@@ -74,6 +76,73 @@ class BackwardEuler(NamedTuple):
     v0: np.ndarray
     stats: np.ndarray
     contact: tuple
+    stiffness: bool
+    G: float
+    K: float
+    w0: np.ndarray
+    hg_k: float
+    hg_c: float
+
+
+@njit(cache=True, fastmath=True, inline='always')
+def spring_tangent(f, b, G, K):
+    """``dP_e = dP_e/dF : b`` of the compressible neo-Hookean spring of :mod:`.tlsph`,
+    ``P_e = G F + t cof(F)`` with ``t = (lam ln J - G) / J``, at ``F`` (row-major 9-tuples):
+
+        dP_e = G b + t'(J) (cof(F) : b) cof(F) + t dcof(F)[b],   t' = (lam + G - lam ln J) / J^2
+
+    (``dcof`` the cofactor's derivative, bilinear in ``F`` and ``b``). Below ``J = 0.05`` the
+    scheme holds ``t`` at its value there, so ``t'`` is 0. At ``F = I`` this is the linear spring
+    ``G (b + b^T) + lam tr(b) I``. Symmetric (``P_e`` is the derivative of an energy), so the
+    stiffness matrix it builds is too."""
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = f
+    b00, b01, b02, b10, b11, b12, b20, b21, b22 = b
+    c00 = f11 * f22 - f12 * f21; c01 = f12 * f20 - f10 * f22; c02 = f10 * f21 - f11 * f20
+    c10 = f02 * f21 - f01 * f22; c11 = f00 * f22 - f02 * f20; c12 = f01 * f20 - f00 * f21
+    c20 = f01 * f12 - f02 * f11; c21 = f02 * f10 - f00 * f12; c22 = f00 * f11 - f01 * f10
+    J = f00 * c00 + f01 * c01 + f02 * c02
+    lam = K - 2.0 * G / 3.0
+    if J < 0.05:
+        J = 0.05
+        tp = 0.0
+    else:
+        tp = (lam + G - lam * math.log(J)) / (J * J)
+    t = (lam * math.log(J) - G) / J
+    e = tp * (c00 * b00 + c01 * b01 + c02 * b02 + c10 * b10 + c11 * b11 + c12 * b12
+              + c20 * b20 + c21 * b21 + c22 * b22)
+    return (G * b00 + e * c00 + t * (b11 * f22 + f11 * b22 - b12 * f21 - f12 * b21),
+            G * b01 + e * c01 + t * (b12 * f20 + f12 * b20 - b10 * f22 - f10 * b22),
+            G * b02 + e * c02 + t * (b10 * f21 + f10 * b21 - b11 * f20 - f11 * b20),
+            G * b10 + e * c10 + t * (b02 * f21 + f02 * b21 - b01 * f22 - f01 * b22),
+            G * b11 + e * c11 + t * (b00 * f22 + f00 * b22 - b02 * f20 - f02 * b20),
+            G * b12 + e * c12 + t * (b01 * f20 + f01 * b20 - b00 * f21 - f00 * b21),
+            G * b20 + e * c20 + t * (b01 * f12 + f01 * b12 - b02 * f11 - f02 * b11),
+            G * b21 + e * c21 + t * (b02 * f10 + f02 * b10 - b00 * f12 - f00 * b12),
+            G * b22 + e * c22 + t * (b00 * f11 + f00 * b11 - b01 * f10 - f01 * b10))
+
+
+@njit(cache=True, fastmath=True)
+def bond_force_one(i, s, x, vel, c):
+    """``-(L vel)_i`` of the hourglass bonds' Laplacian along the current bonds ``x'_k``:
+    ``sum_k c w0_k ((vel_j - vel_i) . x'_k) x'_k / |x'_k|^2`` (symmetric positive semi-definite).
+
+    It stands in for the hourglass terms' Jacobian in the implicit integrator: the bonds' central
+    springs and dashpots without the (unsymmetric) part through ``F``, which vanishes for the
+    particle-scale modes the bonds exist to hold."""
+    offsets, indices, w0 = s.offsets, s.indices, s.w0
+    xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
+    vi0 = vel[i, 0]; vi1 = vel[i, 1]; vi2 = vel[i, 2]
+    f0 = 0.0; f1 = 0.0; f2 = 0.0
+    for k in range(offsets[i], offsets[i + 1]):
+        j = indices[k]
+        y0 = x[j, 0] - xi0; y1 = x[j, 1] - xi1; y2 = x[j, 2] - xi2
+        yy = y0 * y0 + y1 * y1 + y2 * y2
+        if yy > 0.0:
+            d = c * w0[k] * ((vel[j, 0] - vi0) * y0 + (vel[j, 1] - vi1) * y1 + (vel[j, 2] - vi2) * y2) / yy
+            f0 += d * y0
+            f1 += d * y1
+            f2 += d * y2
+    return f0, f1, f2
 
 
 @njit(cache=True, fastmath=True)
@@ -106,6 +175,14 @@ def dashpot_stress_one(i, s, vel):
     p20 = f20 * s00 + f21 * s01 + f22 * s02
     p21 = f20 * s01 + f21 * s11 + f22 * s12
     p22 = f20 * s02 + f21 * s12 + f22 * s22
+    if s.stiffness:
+        # the spring's change over the sub-step, dt dP_e[b] (b = dF/dt for the velocities vel)
+        d00, d01, d02, d10, d11, d12, d20, d21, d22 = spring_tangent(
+            (f00, f01, f02, f10, f11, f12, f20, f21, f22), b, s.G, s.K)
+        dt = s.dt
+        p00 += dt * d00; p01 += dt * d01; p02 += dt * d02
+        p10 += dt * d10; p11 += dt * d11; p12 += dt * d12
+        p20 += dt * d20; p21 += dt * d21; p22 += dt * d22
     vol = s.volume
     Am = s.A[i]
     Am[0, 0] = vol * p00; Am[0, 1] = vol * p01; Am[0, 2] = vol * p02
@@ -133,16 +210,32 @@ def dashpot_force_one(i, s):
 
 
 @njit(cache=True, fastmath=True)
-def _apply(s, vel, sets, scale, base, out):
-    """``out_i = base_i - scale f_visc(vel)_i`` for ``i`` in ``sets.sph`` (``base`` may be ``out``)."""
+def _apply(s, x, vel, sets, scale, base, out):
+    """``out_i = base_i - scale f(vel)_i`` for ``i`` in ``sets.sph`` (``base`` may be ``out``):
+    ``f = -C vel`` (the dashpots), with ``stiffness`` ``-(C + dt K + (hg_c + dt hg_k) L) vel``."""
     for t in range(sets.n_stress):
         dashpot_stress_one(sets.stress[t], s, vel)
+    bond = s.hg_c + s.dt * s.hg_k
     for t in range(sets.n_sph):
         i = sets.sph[t]
         f0, f1, f2 = dashpot_force_one(i, s)
+        if s.stiffness:
+            b0, b1, b2 = bond_force_one(i, s, x, vel, bond)
+            f0 += b0; f1 += b1; f2 += b2
         out[i, 0] = base[i, 0] - scale * f0
         out[i, 1] = base[i, 1] - scale * f1
         out[i, 2] = base[i, 2] - scale * f2
+
+
+@njit(cache=True, fastmath=True)
+def _bonds_at(s, x, vel, sets, scale, out):
+    """``out_i -= scale (L vel)_i`` with the bonds' damping ``hg_c`` (:func:`bond_force_one`)."""
+    for t in range(sets.n_sph):
+        i = sets.sph[t]
+        f0, f1, f2 = bond_force_one(i, s, x, vel, s.hg_c)
+        out[i, 0] += scale * f0
+        out[i, 1] += scale * f1
+        out[i, 2] += scale * f2
 
 
 @njit(cache=True, fastmath=True)
@@ -177,6 +270,10 @@ def backward_euler_step(s, body, motion, sets):
             r[i, a] = 0.0
     if touched:
         contact_residual(c, body.inv_mass, dt, v, w, r)
+    if s.stiffness:
+        # the bonds' dashpots are in a (at the velocities v of the sub-step's start); the solve's
+        # stand-in for their Jacobian acts on v' - v
+        _bonds_at(s, x, v, sets, -scale, r)
     # from the guess u = v*: the dashpots' share of r = b - (I + dt/m C) u with b = v* - dt/m C_B v_B
     # is, by linearity, dt/m f_visc(v* on the solved particles, the held velocities elsewhere)
     for k in range(n):
@@ -186,7 +283,7 @@ def backward_euler_step(s, body, motion, sets):
             v0[i, a] = v[i, a]
             v[i, a] = u[i, a]
     if s.dashpots:
-        _apply(s, v, sets, -scale, r, r)
+        _apply(s, x, v, sets, -scale, r, r)
     unorm = math.sqrt(_dot(u, u, sph, n))
     for k in range(n):
         i = sph[k]
@@ -203,7 +300,7 @@ def backward_euler_step(s, body, motion, sets):
                 w[i, a] = p[i, a]
                 q[i, a] = p[i, a]
         if s.dashpots:
-            _apply(s, w, sets, scale, p, q)     # q = (I + dt/m C) p
+            _apply(s, x, w, sets, scale, p, q)     # q = (I + dt/m C) p
         if touched:
             contact_apply(c, body.inv_mass, dt, w, q)
         pq = _dot(p, q, sph, n)
@@ -253,11 +350,15 @@ class BackwardSolve:
     """The solve's buffers for one solver (built once; :meth:`integrator` per frame).
 
     ``scheme``: the ``tlsph`` scheme whose dashpots are solved, or None (the contacts alone; the
-    dashpot arrays are then placeholders the step never reads).
+    dashpot arrays are then placeholders the step never reads). ``stiffness``: its elastic forces
+    too (the implicit integrator; needs ``scheme``).
     """
 
-    def __init__(self, scheme, n: int, tol: float, max_iter: int) -> None:
+    def __init__(self, scheme, n: int, tol: float, max_iter: int, stiffness: bool = False) -> None:
+        if stiffness and scheme is None:
+            raise ValueError('the elastic forces need the scheme')
         self.scheme = scheme
+        self.stiffness = stiffness
         self.tol, self.max_iter = float(tol), int(max_iter)
         self.A = np.zeros((n, 3, 3))
         self.u, self.r, self.p, self.q, self.w, self.v0 = (np.zeros((n, 3)) for _ in range(6))
@@ -279,11 +380,15 @@ class BackwardSolve:
         if sc is None:
             offsets, indices, g, gr, gsum, F = self._none
             volume = 0.0
+            G = K = hg_k = hg_c = 0.0
+            w0 = g[:, 0]
         else:
             offsets, indices, g, gr, gsum, F, volume = sc.offsets, sc.indices, sc.g, sc.gr, sc.gsum, sc.F, sc.volume
+            st = sc.state(None, None, 0)
+            G, K, w0, hg_k, hg_c = st.G, st.K, st.w0, st.hg_k, st.hg_c
         return BackwardEuler(dt, sc is not None, offsets, indices, g, gr, gsum, F, self.A, volume,
                              self.eta_s, self.eta_v, self.tol, self.max_iter, self.u, self.r, self.p, self.q,
-                             self.w, self.v0, self.stats, contact)
+                             self.w, self.v0, self.stats, contact, self.stiffness, G, K, w0, hg_k, hg_c)
 
     def mean_iterations(self) -> float:
         """CG iterations per sub-step since the last :meth:`reset_stats`."""

@@ -44,9 +44,12 @@ from .tools import NO_ROTATION, TOOLS, make_tool
 SCHEMES = ('paper', 'tlsph', 'mass_spring')
 #: conjugate-gradient iterations of one implicit dashpot solve at most
 DASHPOT_MAX_ITER = 200
+#: the implicit integrator's solve (stiffer: its condition number grows with (dt / CFL step)^2)
+IMPLICIT_MAX_ITER = 2000
 MODES = ('global', 'local')
 VISCOSITIES = ('explicit', 'implicit')
 CONTACT_INTEGRATIONS = ('explicit', 'implicit')
+INTEGRATORS = ('explicit', 'implicit')
 #: relative residual of the implicit contact's solve (cheap: it spans the particles under the tool)
 CONTACT_TOL = 1e-8
 
@@ -76,6 +79,7 @@ CONFIG_RANGES = {
     'far_field': (0.0, 2.0, 'closed'), 'max_tool_speed': (0.0, math.inf, 'open'),
     'contact_samples': (0, 5, 'int'),
     'viscous_tol': (0.0, 1.0, 'open'), 'gradient_order': (1, 2, 'int'),
+    'implicit_max_dt': (0.0, 1.0, 'open'),
 }
 
 
@@ -157,6 +161,15 @@ class SolverConfig:
             contact is about half as stiff (Hertz block at 5 mm spacing: 0.041 N instead of
             0.084 N, Hertz 0.062 N), and the stiffest surface modes are 4.5-5.6x stiffer, which
             the sub-step bounds follow (3670 liver: 8 sub-steps per ms instead of 2).
+        integrator: ``explicit`` (default: symplectic Euler, sub-steps bounded by the CFL,
+            viscous and contact bounds) or ``implicit`` (``tlsph`` only): linearly implicit backward
+            Euler on everything, the elastic spring, the dashpots and the pushing contacts (one
+            conjugate-gradient solve per sub-step, :mod:`.implicit_viscosity`), stable at any
+            sub-step; a frame then takes sub-steps of at most ``implicit_max_dt``. Backward Euler
+            damps what it cannot resolve (motions faster than about ``1 / dt``), so it suits
+            quasi-static presses and large visual frames, not a vibration at the frame rate.
+            ``viscosity`` and ``contact_integration`` are then implicit whatever they say.
+        implicit_max_dt: the implicit integrator's largest sub-step [s].
         max_tool_speed: the simulated tool follows the requested tool pose at most this fast
             [m/s]: a frame moves its tip, and the far end of a shaft, by at most about
             ``max_tool_speed * dt`` towards the request (a
@@ -207,12 +220,15 @@ class SolverConfig:
     viscous_tol: float = 1e-3
     contact_integration: str = 'explicit'
     gradient_order: int = 1
+    integrator: str = 'explicit'
+    implicit_max_dt: float = 0.016
 
     def validate(self) -> 'SolverConfig':
         """Check ranges (:data:`CONFIG_RANGES`); raises :class:`ConfigError` naming the bad field.
         Returns self, with the integer fields as ``int``."""
         for name, choices in (('scheme', SCHEMES), ('mode', MODES), ('tool_shape', tuple(TOOLS)),
-                              ('viscosity', VISCOSITIES), ('contact_integration', CONTACT_INTEGRATIONS)):
+                              ('viscosity', VISCOSITIES), ('contact_integration', CONTACT_INTEGRATIONS),
+                              ('integrator', INTEGRATORS)):
             if getattr(self, name) not in choices:
                 raise ConfigError(f'{name} must be one of {choices}, got {getattr(self, name)!r}')
         for name, (lo, hi, kind) in CONFIG_RANGES.items():
@@ -236,6 +252,8 @@ class SolverConfig:
             raise ConfigError(f'gradient_order {self.gradient_order} needs scheme tlsph, got {self.scheme!r}')
         if self.viscosity == 'implicit' and self.scheme != 'tlsph':
             raise ConfigError(f'viscosity implicit needs scheme tlsph, got {self.scheme!r}')
+        if self.integrator == 'implicit' and self.scheme != 'tlsph':
+            raise ConfigError(f'integrator implicit needs scheme tlsph, got {self.scheme!r}')
         if self.paper_momentum not in (12, 14):
             raise ConfigError(f'paper_momentum must be 12 or 14 (paper eq. 12 or 14), got {self.paper_momentum}')
         return self
@@ -324,9 +342,12 @@ class Solver:
         self.par_min = pm if pm > 0 and numba.get_num_threads() > 1 else self.n + 1
         self.scheme = self._make_scheme()
         # backward Euler for the dashpots and/or the pushing contacts (one solve), or None
-        dashpots, contacts = cfg.viscosity == 'implicit', cfg.contact_integration == 'implicit'
+        stiffness = cfg.integrator == 'implicit'
+        dashpots = stiffness or cfg.viscosity == 'implicit'
+        contacts = stiffness or cfg.contact_integration == 'implicit'
         self.backward = (BackwardSolve(self.scheme if dashpots else None, self.n,
-                                       cfg.viscous_tol if dashpots else CONTACT_TOL, DASHPOT_MAX_ITER)
+                                       cfg.viscous_tol if dashpots else CONTACT_TOL,
+                                       IMPLICIT_MAX_ITER if stiffness else DASHPOT_MAX_ITER, stiffness)
                          if dashpots or contacts else None)
         n_samples = len(self.sample_arrays[4]) if self.sample_arrays is not None else 0
         self.touches = make_touches(self.n + n_samples) if contacts else no_touches()
@@ -369,7 +390,8 @@ class Solver:
         if cfg.scheme == 'mass_spring':
             return MassSpringScheme(self.X, self.model.spacing, cfg.spring_radius)
         return TlsphScheme(self.X, self.offsets, self.indices, self.h, self.volume, cfg.hourglass,
-                           self.par_min, explicit_dashpots=cfg.viscosity == 'explicit',
+                           self.par_min,
+                           explicit_dashpots=cfg.viscosity == 'explicit' and cfg.integrator == 'explicit',
                            gradient_order=cfg.gradient_order)
 
     def interrupt(self) -> None:
@@ -445,6 +467,9 @@ class Solver:
             # the pushing contacts are integrated backward along their normals
             self.dt_bounds.pop('contact', None)
             self.dt_bounds.pop('contact_damping', None)
+        if cfg.integrator == 'implicit':
+            # stable at any sub-step: only the accuracy the caller asks for bounds it
+            self.dt_bounds = {'implicit': cfg.implicit_max_dt}
         self.dt_max = min(self.dt_bounds.values())
         # without a tool no contact spring or dashpot acts, so only the material bounds apply
         self.dt_max_free = min(v for k, v in self.dt_bounds.items() if not k.startswith('contact'))
