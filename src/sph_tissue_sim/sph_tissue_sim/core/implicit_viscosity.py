@@ -41,6 +41,11 @@ from .implicit_contact import contact_apply, contact_reaction, contact_residual,
 from .protocols import advance, is_state
 
 
+#: [m/s] the implicit integrator's solve measures its velocity error against the particles'
+#: speeds, and against this much per particle when they are at rest
+SPEED_FLOOR = 1e-3
+
+
 class BackwardEuler(NamedTuple):
     """Symplectic Euler with the dashpots (if ``dashpots``) and the recorded contacts (``contact``)
     backward in time; sub-step ``dt`` [s].
@@ -51,7 +56,8 @@ class BackwardEuler(NamedTuple):
     pushing contacts solved with the dashpots (:class:`~.implicit_contact.ContactTerms`; none
     recorded with explicit contact). With ``stiffness`` (the implicit integrator) the elastic
     forces are backward too: ``G, K`` the spring's moduli, ``w0, hg_k, hg_c`` the hourglass bonds'
-    weights, stiffness and damping (:class:`~.tlsph.Tlsph`).
+    weights, stiffness and damping (:class:`~.tlsph.Tlsph`); ``T`` (N, 9, 9) the spring's tangent
+    of the particles where ``projected`` (N,) is set (:func:`spring_tangents`).
     """
 
     dt: float
@@ -82,6 +88,8 @@ class BackwardEuler(NamedTuple):
     w0: np.ndarray
     hg_k: float
     hg_c: float
+    T: np.ndarray
+    projected: np.ndarray
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -119,6 +127,98 @@ def spring_tangent(f, b, G, K):
             G * b20 + e * c20 + t * (b01 * f12 + f01 * b12 - b02 * f11 - f02 * b11),
             G * b21 + e * c21 + t * (b02 * f10 + f02 * b10 - b00 * f12 - f00 * b12),
             G * b22 + e * c22 + t * (b00 * f11 + f00 * b11 - b01 * f10 - f01 * b10))
+
+
+@njit(cache=True, fastmath=True, inline='always')
+def _matvec9(T, b):
+    """``T b`` for a (9, 9) matrix and a 9-tuple."""
+    return (T[0, 0] * b[0] + T[0, 1] * b[1] + T[0, 2] * b[2] + T[0, 3] * b[3] + T[0, 4] * b[4]
+            + T[0, 5] * b[5] + T[0, 6] * b[6] + T[0, 7] * b[7] + T[0, 8] * b[8],
+            T[1, 0] * b[0] + T[1, 1] * b[1] + T[1, 2] * b[2] + T[1, 3] * b[3] + T[1, 4] * b[4]
+            + T[1, 5] * b[5] + T[1, 6] * b[6] + T[1, 7] * b[7] + T[1, 8] * b[8],
+            T[2, 0] * b[0] + T[2, 1] * b[1] + T[2, 2] * b[2] + T[2, 3] * b[3] + T[2, 4] * b[4]
+            + T[2, 5] * b[5] + T[2, 6] * b[6] + T[2, 7] * b[7] + T[2, 8] * b[8],
+            T[3, 0] * b[0] + T[3, 1] * b[1] + T[3, 2] * b[2] + T[3, 3] * b[3] + T[3, 4] * b[4]
+            + T[3, 5] * b[5] + T[3, 6] * b[6] + T[3, 7] * b[7] + T[3, 8] * b[8],
+            T[4, 0] * b[0] + T[4, 1] * b[1] + T[4, 2] * b[2] + T[4, 3] * b[3] + T[4, 4] * b[4]
+            + T[4, 5] * b[5] + T[4, 6] * b[6] + T[4, 7] * b[7] + T[4, 8] * b[8],
+            T[5, 0] * b[0] + T[5, 1] * b[1] + T[5, 2] * b[2] + T[5, 3] * b[3] + T[5, 4] * b[4]
+            + T[5, 5] * b[5] + T[5, 6] * b[6] + T[5, 7] * b[7] + T[5, 8] * b[8],
+            T[6, 0] * b[0] + T[6, 1] * b[1] + T[6, 2] * b[2] + T[6, 3] * b[3] + T[6, 4] * b[4]
+            + T[6, 5] * b[5] + T[6, 6] * b[6] + T[6, 7] * b[7] + T[6, 8] * b[8],
+            T[7, 0] * b[0] + T[7, 1] * b[1] + T[7, 2] * b[2] + T[7, 3] * b[3] + T[7, 4] * b[4]
+            + T[7, 5] * b[5] + T[7, 6] * b[6] + T[7, 7] * b[7] + T[7, 8] * b[8],
+            T[8, 0] * b[0] + T[8, 1] * b[1] + T[8, 2] * b[2] + T[8, 3] * b[3] + T[8, 4] * b[4]
+            + T[8, 5] * b[5] + T[8, 6] * b[6] + T[8, 7] * b[7] + T[8, 8] * b[8])
+
+
+@njit(cache=True)
+def _positive_definite(T, L):
+    """Whether the symmetric (9, 9) ``T`` is positive semi-definite, up to 1e-9 of its largest
+    diagonal entry: a Cholesky factorisation of ``T`` plus that much of the identity into the
+    scratch ``L`` (the spring's tangent at rest is only semi-definite: rotations cost nothing)."""
+    shift = 0.0
+    for a in range(9):
+        shift = max(shift, T[a, a])
+    shift *= 1e-9
+    for a in range(9):
+        for b in range(a + 1):
+            t = T[a, b]
+            if a == b:
+                t += shift
+            for k in range(b):
+                t -= L[a, k] * L[b, k]
+            if a == b:
+                if not t > 0.0:
+                    return False
+                L[a, a] = math.sqrt(t)
+            else:
+                L[a, b] = t / L[b, b]
+    return True
+
+
+@njit(cache=True)
+def spring_tangents(s, sets):
+    """Mark the stressed particles whose spring tangent (:func:`spring_tangent` at ``s.F``) is
+    not positive definite and store it, its negative eigenvalues set to zero, in ``s.T``.
+
+    The compressible neo-Hookean energy is not convex everywhere (strong compression, shear under
+    large stretch): an indefinite tangent would make the solve's matrix indefinite, which the
+    conjugate gradients cannot solve (seen as a blow-up when random pokes crushed the liver at
+    16 ms frames). Projecting each particle's tangent (as projected Newton methods do) keeps
+    ``K = sum_i V B_i^T T_i B_i`` positive semi-definite and equal to the exact one wherever
+    that is already convex: the test is a Cholesky factorisation, the eigen-decomposition runs
+    only where it fails. Compiled without ``fastmath``: its tests must see a NaN."""
+    Ti = np.empty((9, 9))
+    L = np.empty((9, 9))
+    for t in range(sets.n_stress):
+        i = sets.stress[t]
+        Fm = s.F[i]
+        f = (Fm[0, 0], Fm[0, 1], Fm[0, 2], Fm[1, 0], Fm[1, 1], Fm[1, 2], Fm[2, 0], Fm[2, 1], Fm[2, 2])
+        for c in range(9):
+            e = (1.0 if c == 0 else 0.0, 1.0 if c == 1 else 0.0, 1.0 if c == 2 else 0.0,
+                 1.0 if c == 3 else 0.0, 1.0 if c == 4 else 0.0, 1.0 if c == 5 else 0.0,
+                 1.0 if c == 6 else 0.0, 1.0 if c == 7 else 0.0, 1.0 if c == 8 else 0.0)
+            col = spring_tangent(f, e, s.G, s.K)
+            for a in range(9):
+                Ti[a, c] = col[a]
+        for a in range(9):
+            for c in range(a):
+                m = 0.5 * (Ti[a, c] + Ti[c, a])
+                Ti[a, c] = m
+                Ti[c, a] = m
+        if _positive_definite(Ti, L):
+            s.projected[i] = 0
+            continue
+        w, V = np.linalg.eigh(Ti)
+        for a in range(9):
+            for c in range(9):
+                acc = 0.0
+                for k in range(9):
+                    if w[k] > 0.0:
+                        acc += V[a, k] * w[k] * V[c, k]
+                s.T[i, a, c] = acc
+        s.projected[i] = 1
 
 
 @njit(cache=True, fastmath=True)
@@ -177,8 +277,11 @@ def dashpot_stress_one(i, s, vel):
     p22 = f20 * s02 + f21 * s12 + f22 * s22
     if s.stiffness:
         # the spring's change over the sub-step, dt dP_e[b] (b = dF/dt for the velocities vel)
-        d00, d01, d02, d10, d11, d12, d20, d21, d22 = spring_tangent(
-            (f00, f01, f02, f10, f11, f12, f20, f21, f22), b, s.G, s.K)
+        if s.projected[i]:
+            d00, d01, d02, d10, d11, d12, d20, d21, d22 = _matvec9(s.T[i], b)
+        else:
+            d00, d01, d02, d10, d11, d12, d20, d21, d22 = spring_tangent(
+                (f00, f01, f02, f10, f11, f12, f20, f21, f22), b, s.G, s.K)
         dt = s.dt
         p00 += dt * d00; p01 += dt * d01; p02 += dt * d02
         p10 += dt * d10; p11 += dt * d11; p12 += dt * d12
@@ -253,8 +356,11 @@ def backward_euler_step(s, body, motion, sets):
     dashpots if ``s.dashpots``, the contact terms of :mod:`.implicit_contact` for what the contact
     kernels recorded) by conjugate gradients from ``v*`` until the residual is ``s.tol`` times
     ``|v*|`` (or the first residual; at most ``s.max_iter`` iterations), the reaction corrected,
-    ``x += dt v'``. Compiled without ``fastmath`` (its passes have their own flags) so that the
-    stopping tests keep their meaning for a NaN."""
+    ``x += dt v'``. With ``s.stiffness`` the matrix also holds ``dt^2/m K`` (the spring's projected
+    tangent, :func:`spring_tangents`, and the hourglass bonds' stand-in), the solve starts from
+    ``v`` and stops at ``s.tol`` times ``|v|`` (at least :data:`SPEED_FLOOR` per particle).
+    Compiled without ``fastmath`` (its passes have their own flags) so that the stopping tests
+    keep their meaning for a NaN."""
     x, v, acc = motion.x, motion.v, motion.acc
     sph, n = sets.sph, sets.n_sph
     dt = s.dt
@@ -268,9 +374,22 @@ def backward_euler_step(s, body, motion, sets):
             u[i, a] = v[i, a] + dt * acc[i, a]
             w[i, a] = u[i, a] - v[i, a]
             r[i, a] = 0.0
+    vnorm = 0.0
+    if s.stiffness:
+        # stiff: v* = v + dt a overshoots by far (the step's forces change within it), so the
+        # solve starts from v, and its residual r = b - A u bounds the velocity error |A^-1 r|
+        # <= |r| (A >= I): stop at tol times the speeds of the sub-step's start (or a floor)
+        vnorm = math.sqrt(_dot(v, v, sph, n))
+        for k in range(n):
+            i = sph[k]
+            for a in range(3):
+                r[i, a] = w[i, a]
+                w[i, a] = 0.0
+                u[i, a] = v[i, a]
     if touched:
         contact_residual(c, body.inv_mass, dt, v, w, r)
     if s.stiffness:
+        spring_tangents(s, sets)
         # the bonds' dashpots are in a (at the velocities v of the sub-step's start); the solve's
         # stand-in for their Jacobian acts on v' - v
         _bonds_at(s, x, v, sets, -scale, r)
@@ -292,6 +411,8 @@ def backward_euler_step(s, body, motion, sets):
     rr = _dot(r, r, sph, n)
     # relative to |v*| (or to the first residual, should v* vanish)
     limit = s.tol * max(unorm, math.sqrt(rr))
+    if s.stiffness:
+        limit = s.tol * max(vnorm, SPEED_FLOOR * math.sqrt(n))
     it = 0
     while it < s.max_iter and math.sqrt(rr) > limit:
         for k in range(n):
@@ -361,6 +482,9 @@ class BackwardSolve:
         self.stiffness = stiffness
         self.tol, self.max_iter = float(tol), int(max_iter)
         self.A = np.zeros((n, 3, 3))
+        m = n if stiffness else 1
+        self.T = np.zeros((m, 9, 9))
+        self.projected = np.zeros(m, dtype=np.int8)
         self.u, self.r, self.p, self.q, self.w, self.v0 = (np.zeros((n, 3)) for _ in range(6))
         self.stats = np.zeros(2)
         self.eta_s = self.eta_v = 0.0
@@ -388,7 +512,8 @@ class BackwardSolve:
             G, K, w0, hg_k, hg_c = st.G, st.K, st.w0, st.hg_k, st.hg_c
         return BackwardEuler(dt, sc is not None, offsets, indices, g, gr, gsum, F, self.A, volume,
                              self.eta_s, self.eta_v, self.tol, self.max_iter, self.u, self.r, self.p, self.q,
-                             self.w, self.v0, self.stats, contact, self.stiffness, G, K, w0, hg_k, hg_c)
+                             self.w, self.v0, self.stats, contact, self.stiffness, G, K, w0, hg_k, hg_c,
+                             self.T, self.projected)
 
     def mean_iterations(self) -> float:
         """CG iterations per sub-step since the last :meth:`reset_stats`."""
