@@ -70,7 +70,7 @@ CSV_FIELDS = ('table', 'label', 'scheme', 'mode', 'model', 'n_target', 'n_partic
               'frames', 'warm_frames', 'setup_s', 'first_frame_ms', 'step_ms', 'step_p90_ms',
               'substeps', 'substep_us', 'n_active', 'n_stress', 'ns_per_particle_substep',
               'pair_visits', 'ns_per_pair_pass', 'realtime_factor',
-              'force_N', 'k1', 'paper_ms', 'speedup_vs_paper')
+              'force_N', 'k1', 'paper_ms', 'speedup_vs_paper', 'frame_ms', 'cg_iterations')
 
 
 # ---------------------------------------------------------------------------------------------
@@ -96,6 +96,7 @@ class Settings:
     memory_n: int = 100000
     targets_local_big: int = 100000
     targets_global_big: int = 50000
+    targets_global_huge: int = 100000   # the implicit integrator's 30 Hz target
     model_kind: str = 'liver'
 
     @classmethod
@@ -104,7 +105,7 @@ class Settings:
                    timed_frames=10, min_timed_frames=3,
                    warm_budget_s=0.5, timed_budget_s=0.5, sizes=(289, 572), h_values=(0.3, 0.6),
                    scaling_sizes=(289, 1289), scaling_global_max=1289, memory_n=1289,
-                   targets_local_big=1289, targets_global_big=1289)
+                   targets_local_big=1289, targets_global_big=1289, targets_global_huge=1289)
 
 
 @dataclass
@@ -125,6 +126,8 @@ class Case:
     parallel_min: int = 0                # SolverConfig.parallel_min_particles (0: serial)
     viscosity: str = 'explicit'          # SolverConfig.viscosity
     contact_integration: str = 'explicit'  # SolverConfig.contact_integration
+    integrator: str = 'explicit'         # SolverConfig.integrator
+    frame_dt: float = FRAME_DT           # [s] simulated time per frame (the implicit integrator: 16 ms)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -166,7 +169,7 @@ class PressScript:
     over ``press_frames`` frames, then palpate (sinusoid of ``amp`` at ``hz``) around that depth."""
 
     def __init__(self, model: TissueModel, reach: float, depth: float, press_frames: int,
-                 amp: float, hz: float) -> None:
+                 amp: float, hz: float, frame_dt: float = FRAME_DT) -> None:
         P = model.positions
         free = ~model.fixed
         cx, cy = (0.0, 0.0) if model.name == 'liver' else (float(P[:, 0].mean()), float(P[:, 1].mean()))
@@ -178,12 +181,13 @@ class PressScript:
         self.xy = np.array([cx + 0.13 * s, cy + 0.07 * s])
         self.z0 = float(P[col, 2].max()) + reach
         self.depth, self.press_frames, self.amp, self.hz = depth, max(1, press_frames), amp, hz
+        self.frame_dt = frame_dt
 
     def at(self, k: int) -> np.ndarray:
         if k < self.press_frames:
             d = self.depth * (k + 1) / self.press_frames
         else:
-            d = self.depth + self.amp * math.sin(2.0 * math.pi * self.hz * (k - self.press_frames) * FRAME_DT)
+            d = self.depth + self.amp * math.sin(2.0 * math.pi * self.hz * (k - self.press_frames) * self.frame_dt)
         return np.array([self.xy[0], self.xy[1], self.z0 - d])
 
 
@@ -195,7 +199,8 @@ class Runner:
         self.case, self.model, self.st = case, model, settings
         cfg = SolverConfig(scheme=case.scheme, mode=case.mode, n_layers=case.n_layers,
                            k1_gain=case.k1_gain, parallel_min_particles=case.parallel_min,
-                           viscosity=case.viscosity, contact_integration=case.contact_integration)
+                           viscosity=case.viscosity, contact_integration=case.contact_integration,
+                           integrator=case.integrator)
         if case.h_ratio is not None:
             cfg.h_ratio = float(case.h_ratio)
         if case.k1_pinned is not None:
@@ -210,11 +215,12 @@ class Runner:
         self.first_ms = float('nan')
         self.warm = 0
         self.script: PressScript | None = None
+        self.cg: list[float] = []    # conjugate-gradient iterations per sub-step, per timed frame
 
     def _frame(self) -> float:
         tool = self.script.at(self.k)
         t0 = time.perf_counter()
-        res = self.solver.step(tool, FRAME_DT)
+        res = self.solver.step(tool, self.case.frame_dt)
         dt = time.perf_counter() - t0
         self.k += 1
         return dt, res
@@ -223,7 +229,7 @@ class Runner:
         """First frame (timed alone) sets the press length from the warm-up budget."""
         st = self.st
         self.script = PressScript(self.model, self.solver.contact_reach, st.depth, 1, st.palpate_amp,
-                                  st.palpate_hz)
+                                  st.palpate_hz, self.case.frame_dt)
         try:
             dt, _ = self._frame()
         except ConfigError as exc:
@@ -266,6 +272,10 @@ class Runner:
                 self.status = f'unstable at frame {self.k}'
                 return
             self.times.append(dt)
+            backward = self.solver.backward
+            if backward is not None:
+                self.cg.append(backward.mean_iterations())
+                backward.reset_stats()
             self.results.append((res.substeps, res.n_active, float(np.linalg.norm(res.force)), res.k1,
                                  getattr(self.solver, 'n_stress_last', 0),
                                  # reference pairs: what tlsph gathers (the other schemes search their own)
@@ -298,8 +308,9 @@ class Runner:
                        pair_visits=float(np.median(r[:, 5])),
                        ns_per_pair_pass=(float(np.median(t / (r[:, 0] * r[:, 5]))) * 1e9
                                          if np.all(r[:, 5] > 0) else None),
-                       # simulated seconds per wall second (each frame simulates FRAME_DT)
-                       realtime_factor=FRAME_DT / step,
+                       # simulated seconds per wall second (each frame simulates frame_dt)
+                       realtime_factor=c.frame_dt / step, frame_ms=c.frame_dt * 1e3,
+                       cg_iterations=float(np.median(self.cg)) if self.cg else None,
                        force_N=float(np.median(r[:, 2])), k1=float(np.median(r[:, 3])))
             if c.paper_s is not None:
                 row['speedup_vs_paper'] = c.paper_s / step
@@ -398,6 +409,13 @@ def run_targets(st: Settings, models: Models, material, progress) -> list[dict]:
         cases += [Case('targets', f'{c.label} threads', c.scheme, c.mode, c.n_target, paper_s=c.paper_s,
                        parallel_min=1) for c in cases if c.scheme == 'tlsph']
     cases += implicit
+    # the implicit integrator at a visual frame rate (16 ms frames, one sub-step each)
+    cases += [Case('targets', f'global tlsph{size} 16ms', 'tlsph', 'global', n_big, integrator='implicit',
+                   frame_dt=0.016)
+              for size, n_big in (('', n), (' 50k', st.targets_global_big), (' 100k', st.targets_global_huge))]
+    if _numba_threads() > 1:
+        cases += [Case('targets', 'global tlsph 16ms threads', 'tlsph', 'global', n, integrator='implicit',
+                       frame_dt=0.016, parallel_min=1)]
     runners = []
     for c in cases:
         try:
@@ -465,6 +483,17 @@ def target_lines(rows: list[dict]) -> list[str]:
                    f'{si["substeps"]:.0f} sub-steps), big {lbi:.4f} ms ({lbi / lb:.2f}x explicit, '
                    f'{bi["substeps"]:.0f} sub-steps against {by["local tlsph big"]["substeps"]:.0f}) = '
                    f'{lbi / li:.2f}x the implicit {n}-particle step; target <= 2x: {verdict(lbi / li <= 2.0)}')
+    for size, budget, rate in (('', 1000.0 / 60.0, '60 Hz'), (' 50k', 16.0, '60 Hz'), (' 100k', 33.0, '30 Hz')):
+        r = by.get(f'global tlsph{size} 16ms')
+        gi = ms(f'global tlsph{size} 16ms')
+        if gi is None:
+            continue
+        explicit = ms('global tlsph' + (' 50k' if size == ' 50k' else '')) if size != ' 100k' else None
+        vs = (f'; 16 explicit 1 ms frames take {16.0 * explicit:.1f} ms ({16.0 * explicit / gi:.2f}x this)'
+              if explicit else '')
+        out.append(f'implicit integrator, global, {r["n_particles"]} particles, 16 ms frames: {gi:.1f} ms per frame '
+                   f'({r["substeps"]:.0f} sub-step, {r.get("cg_iterations") or 0:.0f} CG iterations){vs}; '
+                   f'target <= {budget:.0f} ms ({rate}): {verdict(gi <= budget)}')
     lp, gp, lbp, gbp = (ms(f'{k} threads') for k in ('local tlsph', 'global tlsph', 'local tlsph big',
                                                        'global tlsph 50k'))
     if lp is not None and lt is not None:
@@ -665,15 +694,18 @@ def print_tables(rows: list[dict], meta: dict) -> str:
         p('Targets and ratios (one interleaved run: all solvers alive, stepped round-robin)')
         if meta.get('quick'):
             p('  (--quick: small stand-in sizes, so the verdicts below do not judge the real targets)')
-        p(f"{'config':<20} {'N':>7} {'step ms':>9} {'p90':>8} {'sub':>3} {'us/sub':>8} {'n_active':>8} {'ns/p-sub':>8} "
-          f"{'ns/pair':>7} {'RT x':>6} {'status'}")
+        p(f"{'config':<26} {'N':>7} {'frame':>5} {'step ms':>9} {'p90':>8} {'sub':>3} {'CG':>4} {'us/sub':>8} "
+          f"{'n_active':>8} {'ns/p-sub':>8} {'ns/pair':>7} {'RT x':>6} {'status'}")
         for r in tg:
-            p(f"{r['label']:<20} {r.get('n_particles', ''):>7} {_cell(r):>9} {_cell(r, 'step_p90_ms'):>8} "
-              f"{_f(r.get('substeps'), '{:.0f}'):>3} {_cell(r, 'substep_us'):>8} {_f(r.get('n_active'), '{:.0f}'):>8} "
+            p(f"{r['label']:<26} {r.get('n_particles', ''):>7} {_f(r.get('frame_ms'), '{:.0f}'):>5} {_cell(r):>9} "
+              f"{_cell(r, 'step_p90_ms'):>8} {_f(r.get('substeps'), '{:.0f}'):>3} "
+              f"{_f(r.get('cg_iterations'), '{:.0f}', ''):>4} {_cell(r, 'substep_us'):>8} "
+              f"{_f(r.get('n_active'), '{:.0f}'):>8} "
               f"{_cell(r, 'ns_per_particle_substep'):>8} {_f(r.get('ns_per_pair_pass'), '{:.2f}'):>7} "
               f"{_f(r.get('realtime_factor'), '{:.3f}'):>6} {r.get('status')}")
-        p('  (ns/pair: sub-step time per neighbour pair of the stress and force passes; RT x: simulated '
-          'seconds per wall second, 1 = real time)')
+        p('  (frame: simulated ms per step; CG: conjugate-gradient iterations per sub-step of the implicit '
+          'solves; ns/pair: sub-step time per neighbour pair of the stress and force passes, the implicit '
+          'solves\' passes included; RT x: simulated seconds per wall second, 1 = real time)')
         for line in target_lines(rows):
             p('  - ' + line)
     text = '\n'.join(lines)
@@ -806,7 +838,7 @@ def main(argv: list[str] | None = None) -> int:
     meta['model_kind'] = models.kind
     meta['h_unit_mm'] = h_unit(models) * 1e3
     cases = build_cases(tables, st, models)
-    n_total = len(cases) + ((15 if _numba_threads() > 1 else 11) if 'targets' in tables else 0) + (1 if 'memory' in tables else 0)
+    n_total = len(cases) + ((19 if _numba_threads() > 1 else 14) if 'targets' in tables else 0) + (1 if 'memory' in tables else 0)
     rows: list[dict] = []
     with tqdm(total=n_total, desc='bench', unit='case', file=sys.stderr, dynamic_ncols=True) as bar:
         for case in cases:

@@ -136,7 +136,7 @@ class SimNode(Node):
         t0 = time.perf_counter()
         if p['warmup']:
             try:
-                warmup(config.scheme, config.viscosity, config.contact_integration)
+                warmup(config.scheme, config.viscosity, config.contact_integration, config.integrator)
             except SimError as exc:  # the probe step below still compiles what this model needs
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
         self.solver = make_solver(self.model, self.material, config, p['nominal_dt'])

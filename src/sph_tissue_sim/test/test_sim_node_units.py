@@ -244,6 +244,17 @@ def test_the_viscosity_parameters_reach_the_solver_config_and_bad_ones_are_refus
 
 
 
+def test_the_integrator_reaches_the_solver_config_and_bad_values_are_refused():
+    cfg = build_config(defaults(integrator='implicit', implicit_max_dt=0.004))
+    assert (cfg.integrator, cfg.implicit_max_dt) == ('implicit', 0.004)
+    assert build_config(defaults()).integrator == 'explicit'
+    for bad, match in ((dict(integrator='verlet'), 'integrator'),
+                       (dict(integrator='implicit', scheme='paper'), 'integrator implicit needs scheme tlsph'),
+                       (dict(implicit_max_dt=0.0), 'implicit_max_dt')):
+        with pytest.raises(ConfigError, match=match):
+            build_config(defaults(**bad))
+
+
 def test_gradient_order_reaches_the_solver_config_and_bad_values_are_refused():
     assert build_config(defaults()).gradient_order == 1
     assert build_config(defaults(gradient_order=2)).gradient_order == 2

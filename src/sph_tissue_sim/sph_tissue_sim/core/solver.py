@@ -745,9 +745,10 @@ class Solver:
 
 
 def warmup(scheme: str | None = None, viscosity: str = 'explicit',
-           contact_integration: str = 'explicit') -> float:
+           contact_integration: str = 'explicit', integrator: str = 'explicit') -> float:
     """Compile every numba kernel on a tiny block (numba caches to disk); returns seconds taken.
-    ``viscosity`` and ``contact_integration`` pick the integrator's specialisation of the frame loop."""
+    ``viscosity``, ``contact_integration`` and ``integrator`` pick the integrator's specialisation
+    of the frame loop."""
     from .models import make_block
 
     t0 = time.perf_counter()
@@ -758,8 +759,10 @@ def warmup(scheme: str | None = None, viscosity: str = 'explicit',
         for mode in MODES:
             try:
                 visc = viscosity if sch == 'tlsph' else 'explicit'
+                integ = integrator if sch == 'tlsph' else 'explicit'
                 solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode, viscosity=visc,
-                                                         contact_integration=contact_integration))
+                                                         contact_integration=contact_integration,
+                                                         integrator=integ))
             except ConfigError:
                 continue
             top = model.positions[:, 2].max()
