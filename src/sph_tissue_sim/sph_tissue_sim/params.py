@@ -103,6 +103,8 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                'and contacts, one solve per sub-step, stable at any sub-step: for large '
                                'frames, e.g. 16 ms visual ones)', INTEGRATORS, False, 'solver'),
     'implicit_max_dt': (0.016, '[s] implicit integrator: largest sub-step', (1e-5, 1.0), False, 'solver'),
+    'implicit_tol': (0.01, 'implicit integrator: the solve stops at this velocity error relative to the '
+                           'velocities', (1e-9, 0.1), False, 'solver'),
     'gradient_order': (1, 'tlsph corrected gradients: 1 (Bonet-Lok) | 2 (exact for quadratic fields: '
                           'thin parts bend right, within 3 % at 10 particles across instead of -6 %, '
                           'but a point contact is half as stiff, and the liver needs 4x the '
@@ -291,7 +293,8 @@ def build_config(p: dict) -> SolverConfig:
                        viscosity=p['viscosity'], viscous_tol=float(p['viscous_tol']),
                        contact_integration=p['contact_integration'],
                        gradient_order=int(p['gradient_order']),
-                       integrator=p['integrator'], implicit_max_dt=float(p['implicit_max_dt']))
+                       integrator=p['integrator'], implicit_max_dt=float(p['implicit_max_dt']),
+                       implicit_tol=float(p['implicit_tol']))
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')

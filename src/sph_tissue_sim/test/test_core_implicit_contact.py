@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sph_tissue_sim.core.errors import ConfigError
-from sph_tissue_sim.core.implicit_viscosity import backward_euler_step
+from sph_tissue_sim.core.backward_euler import backward_euler_step
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig

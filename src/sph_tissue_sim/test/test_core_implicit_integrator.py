@@ -1,4 +1,4 @@
-"""The implicit integrator (``integrator: implicit``, :mod:`.core.implicit_viscosity`): its
+"""The implicit integrator (``integrator: implicit``, :mod:`.core.backward_euler`): its
 stiffness product against finite differences of the elastic forces, the symmetry the conjugate
 gradients need, and a press on the liver at 16 ms frames against the explicit scheme at 1 ms.
 The validation cases (creep, uniaxial, cantilever, local against global, random poking) run it
@@ -9,7 +9,7 @@ import pytest
 
 from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.factory import make_model
-from sph_tissue_sim.core.implicit_viscosity import _apply
+from sph_tissue_sim.core.backward_euler import _apply
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig

@@ -1,11 +1,11 @@
-"""Backward-Euler dashpots (``viscosity: implicit``, :mod:`.core.implicit_viscosity`): the solve
+"""Backward-Euler dashpots (``viscosity: implicit``, :mod:`.core.backward_euler`): the solve
 against a dense one, the damping matrix's symmetry, and stability beyond the explicit viscous bound."""
 
 import numpy as np
 import pytest
 
 from sph_tissue_sim.core.errors import ConfigError
-from sph_tissue_sim.core.implicit_viscosity import _apply, backward_euler_step
+from sph_tissue_sim.core.backward_euler import _apply, backward_euler_step
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
@@ -94,7 +94,7 @@ def test_ten_times_the_viscosity_needs_no_viscous_sub_steps_and_holds_the_same_f
     assert f_imp[2] == pytest.approx(f_exp[2], rel=0.02)
 
 
-def test_implicit_viscosity_needs_the_tlsph_scheme():
+def test_backward_euler_needs_the_tlsph_scheme():
     with pytest.raises(ConfigError, match='viscosity'):
         SolverConfig(scheme='paper', viscosity='implicit').validate()
     with pytest.raises(ConfigError, match='viscosity'):

@@ -245,8 +245,8 @@ def test_the_viscosity_parameters_reach_the_solver_config_and_bad_ones_are_refus
 
 
 def test_the_integrator_reaches_the_solver_config_and_bad_values_are_refused():
-    cfg = build_config(defaults(integrator='implicit', implicit_max_dt=0.004))
-    assert (cfg.integrator, cfg.implicit_max_dt) == ('implicit', 0.004)
+    cfg = build_config(defaults(integrator='implicit', implicit_max_dt=0.004, implicit_tol=1e-3))
+    assert (cfg.integrator, cfg.implicit_max_dt, cfg.implicit_tol) == ('implicit', 0.004, 1e-3)
     assert build_config(defaults()).integrator == 'explicit'
     for bad, match in ((dict(integrator='verlet'), 'integrator'),
                        (dict(integrator='implicit', scheme='paper'), 'integrator implicit needs scheme tlsph'),

@@ -16,7 +16,7 @@ where ``Phi_t v`` is the contact point's velocity (a particle's own, or a sample
     (M + sum_t (dt^2 k + dt c) Phi_t^T n n^T Phi_t) v'' = M v* + sum_t dt c Phi_t^T n n^T Phi_t v
 
 with ``v* = v + dt a``. The matrix is symmetric positive definite and touches only the particles
-under the tool; it is solved by the conjugate gradients of :mod:`.implicit_viscosity` (alone a few
+under the tool; it is solved by the conjugate gradients of :mod:`.backward_euler` (alone a few
 iterations over that handful of particles, no SPH pass; with implicit dashpots, in the same
 system). The tangential (curvature) part of the
 penalty's stiffness stays explicit, and a contact that would release within the sub-step is

@@ -344,7 +344,7 @@ class TlsphScheme(FixedStateScheme):
         hourglass: the hourglass coefficient alpha [-].
         par_min: stressed particles from which a sub-step uses the thread pool.
         explicit_dashpots: False leaves the material's dashpots out of the forces (an implicit
-            integrator applies them, :mod:`.implicit_viscosity`); the hourglass dashpot stays.
+            integrator applies them, :mod:`.backward_euler`); the hourglass dashpot stays.
         gradient_order: 1 (Bonet-Lok) or 2 (exact for quadratic fields), see :mod:`.gradients`.
     """
 

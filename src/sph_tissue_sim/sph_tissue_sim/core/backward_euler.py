@@ -25,6 +25,21 @@ with ``F_i`` the scheme's deformation gradient of this sub-step. The dashpot is 
 any ``dt`` and the sub-step follows the CFL and contact bounds alone (the CFL bound alone with the
 contacts in the same solve); a creep that the viscosity sets (time constant eta / G) stays exact
 because the solve is the force balance itself.
+
+The implicit integrator (``SolverConfig.integrator = 'implicit'``, ``stiffness``) puts the
+elastic forces in the same solve, linearised at the sub-step's start (one Newton step of
+backward Euler)::
+
+    (M + dt C + dt^2 K + (dt hg_c + dt^2 hg_k) L) v' = M v* + dt hg_c L v,   x <- x + dt v'
+
+``K p`` is the same two gathers with the spring's tangent ``dP_e = dP_e/dF : dF`` added to the
+dashpots' stress (:func:`spring_tangent`; ``K`` is the Hessian of the discrete elastic energy, so
+symmetric), projected to positive semi-definite per particle where strong compression makes it
+indefinite (:func:`spring_tangents`); ``L`` is the hourglass bonds' Laplacian along the current
+bonds (:func:`bond_force_one`), a symmetric stand-in for their Jacobian, whose explicit dashpot
+part is moved to ``v' - v``. The matrix is then symmetric positive definite (``>= M``): stable at
+any sub-step, and the equilibrium is exact whatever stand-in the matrix uses, since at rest the
+right-hand side is the explicit force balance.
 """
 
 from __future__ import annotations
@@ -39,11 +54,6 @@ from numba.extending import overload
 from .kernel import ZERO3X3, add_outer, strain_rate
 from .implicit_contact import contact_apply, contact_reaction, contact_residual, no_contact_terms
 from .protocols import advance, is_state
-
-
-#: [m/s] the implicit integrator's solve measures its velocity error against the particles'
-#: speeds, and against this much per particle when they are at rest
-SPEED_FLOOR = 1e-3
 
 
 class BackwardEuler(NamedTuple):
@@ -247,8 +257,9 @@ def bond_force_one(i, s, x, vel, c):
 
 @njit(cache=True, fastmath=True)
 def dashpot_stress_one(i, s, vel):
-    """``A_i = V P_i`` of the dashpots alone for the velocity field ``vel`` (``s`` an
-    :class:`BackwardEuler`), with the deformation gradient ``s.F[i]`` of this sub-step."""
+    """``A_i = V P_i`` of the dashpots for the velocity field ``vel`` (``s`` an
+    :class:`BackwardEuler`), with the deformation gradient ``s.F[i]`` of this sub-step; with
+    ``s.stiffness`` plus the spring's change ``dt dP_e`` over the sub-step."""
     g, offsets, indices, F = s.g, s.offsets, s.indices, s.F
     b = ZERO3X3
     vi0 = vel[i, 0]; vi1 = vel[i, 1]; vi2 = vel[i, 2]
@@ -358,7 +369,8 @@ def backward_euler_step(s, body, motion, sets):
     ``|v*|`` (or the first residual; at most ``s.max_iter`` iterations), the reaction corrected,
     ``x += dt v'``. With ``s.stiffness`` the matrix also holds ``dt^2/m K`` (the spring's projected
     tangent, :func:`spring_tangents`, and the hourglass bonds' stand-in), the solve starts from
-    ``v`` and stops at ``s.tol`` times ``|v|`` (at least :data:`SPEED_FLOOR` per particle).
+    ``v`` and stops at ``s.tol`` times the larger of ``|v|`` and the current ``|v'|`` (or at
+    ``s.tol^2`` times the first residual, for a solution at rest).
     Compiled without ``fastmath`` (its passes have their own flags) so that the stopping tests
     keep their meaning for a NaN."""
     x, v, acc = motion.x, motion.v, motion.acc
@@ -378,7 +390,7 @@ def backward_euler_step(s, body, motion, sets):
     if s.stiffness:
         # stiff: v* = v + dt a overshoots by far (the step's forces change within it), so the
         # solve starts from v, and its residual r = b - A u bounds the velocity error |A^-1 r|
-        # <= |r| (A >= I): stop at tol times the speeds of the sub-step's start (or a floor)
+        # <= |r| (A >= I): stop at tol times the speeds, of the start or of the solution
         vnorm = math.sqrt(_dot(v, v, sph, n))
         for k in range(n):
             i = sph[k]
@@ -412,7 +424,8 @@ def backward_euler_step(s, body, motion, sets):
     # relative to |v*| (or to the first residual, should v* vanish)
     limit = s.tol * max(unorm, math.sqrt(rr))
     if s.stiffness:
-        limit = s.tol * max(vnorm, SPEED_FLOOR * math.sqrt(n))
+        floor = s.tol * s.tol * math.sqrt(rr)
+        limit = max(s.tol * vnorm, floor)
     it = 0
     while it < s.max_iter and math.sqrt(rr) > limit:
         for k in range(n):
@@ -441,6 +454,9 @@ def backward_euler_step(s, body, motion, sets):
             for a in range(3):
                 p[i, a] = r[i, a] + beta * p[i, a]
         it += 1
+        if s.stiffness:
+            # the velocities being solved for set the scale (from rest |v| says nothing)
+            limit = max(s.tol * max(vnorm, math.sqrt(_dot(u, u, sph, n))), floor)
     if touched:
         for k in range(n):
             i = sph[k]
