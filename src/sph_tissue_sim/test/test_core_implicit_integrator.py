@@ -40,7 +40,7 @@ def _forces(s: Solver, sets, x: np.ndarray) -> np.ndarray:
 def _operator(s: Solver, sets, integ, p: np.ndarray) -> np.ndarray:
     """``-f(p)`` of the solve's operator: ``(C + dt K + (hg_c + dt hg_k) L) p`` on ``sets.sph``."""
     out = np.zeros_like(p)
-    _apply(integ, s.motion.x, p, sets, 1.0, np.zeros_like(p), out)
+    _apply(integ.op, s.motion.x, p, sets, 1.0, np.zeros_like(p), out)
     return out
 
 
@@ -123,3 +123,20 @@ def test_a_frame_takes_sub_steps_of_at_most_implicit_max_dt():
     assert s.dt_bounds == {'implicit': 0.004}
     assert s.step(None, 0.016).substeps == 4
     assert s.step(None, 0.001).substeps == 1
+
+
+def test_the_threaded_solve_is_bit_identical_to_the_serial_one():
+    """``parallel_min_particles`` moves the solve's passes (and the scheme's) onto numba's thread
+    pool; both loops are gathers in the serial order, so 30 frames of 16 ms pressing the 1289
+    liver leave bit-identical positions and forces. (With one numba thread both runs are serial.)"""
+    model = make_model('liver', n_particles=1289)
+    runs = []
+    for par in (0, 1):
+        s = Solver(model, LIVER, SolverConfig(mode='global', integrator='implicit', parallel_min_particles=par))
+        start = first_touch(model, s.contact_reach, (-0.034, 0.0), (1e-3, 5e-4))
+        forces = [s.step(start - np.array([0.0, 0.0, 0.0003 * (k + 1)]), 0.016).force_raw.copy()
+                  for k in range(30)]
+        runs.append((s.positions.copy(), np.array(forces)))
+    assert np.array_equal(runs[0][0], runs[1][0])
+    assert np.array_equal(runs[0][1], runs[1][1])
+    assert runs[0][1][-1, 2] > 0.1

@@ -36,7 +36,7 @@ def _damping_matrix(s: Solver, sets, integ) -> np.ndarray:
     for k in range(3 * n):
         vel[:] = 0.0
         vel[sph[k // 3], k % 3] = 1.0
-        _apply(integ, s.motion.x, vel, sets, 1.0, zero, out)
+        _apply(integ.op, s.motion.x, vel, sets, 1.0, zero, out)
         C[:, k] = out[sph].ravel()
     return C
 

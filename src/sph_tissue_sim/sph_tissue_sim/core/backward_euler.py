@@ -48,7 +48,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from numba.extending import overload
 
 from .kernel import ZERO3X3, add_outer, strain_rate
@@ -56,22 +56,19 @@ from .implicit_contact import contact_apply, contact_reaction, contact_residual,
 from .protocols import advance, is_state
 
 
-class BackwardEuler(NamedTuple):
-    """Symplectic Euler with the dashpots (if ``dashpots``) and the recorded contacts (``contact``)
-    backward in time; sub-step ``dt`` [s].
+class Operator(NamedTuple):
+    """The solve's matrix, applied matrix-free (:func:`_apply`): the dashpots (``C``) and, with
+    ``stiffness`` (the implicit integrator), the elastic forces (``dt K``, ``L``) of sub-step ``dt``.
 
     ``F`` (N, 3, 3) is the scheme's deformation gradient (read), ``A`` (N, 3, 3) scratch for the
-    dashpot stresses; ``u, r, p, q, w, v0`` (N, 3) scratch vectors of the solve (``w`` stays zero
-    off the solved set); ``stats`` (2,) accumulates CG iterations and solves; ``contact`` the
-    pushing contacts solved with the dashpots (:class:`~.implicit_contact.ContactTerms`; none
-    recorded with explicit contact). With ``stiffness`` (the implicit integrator) the elastic
-    forces are backward too: ``G, K`` the spring's moduli, ``w0, hg_k, hg_c`` the hourglass bonds'
-    weights, stiffness and damping (:class:`~.tlsph.Tlsph`); ``T`` (N, 9, 9) the spring's tangent
-    of the particles where ``projected`` (N,) is set (:func:`spring_tangents`).
+    stresses; ``G, K`` the spring's moduli, ``w0, hg_k, hg_c`` the hourglass bonds' weights,
+    stiffness and damping (:class:`~.tlsph.Tlsph`); ``T`` (N, 9, 9) the spring's tangent of the
+    particles where ``projected`` (N,) is set (:func:`spring_tangents`); ``par_min`` stressed
+    particles from which it runs on the thread pool. Its own tuple of arrays and numbers, which is
+    what numba's parallel loops take.
     """
 
     dt: float
-    dashpots: bool
     offsets: np.ndarray
     indices: np.ndarray
     g: np.ndarray
@@ -82,6 +79,31 @@ class BackwardEuler(NamedTuple):
     volume: float
     eta_s: float
     eta_v: float
+    stiffness: bool
+    G: float
+    K: float
+    w0: np.ndarray
+    hg_k: float
+    hg_c: float
+    T: np.ndarray
+    projected: np.ndarray
+    par_min: int
+
+
+class BackwardEuler(NamedTuple):
+    """Symplectic Euler with the dashpots (if ``dashpots``) and the recorded contacts (``contact``)
+    backward in time, and with ``stiffness`` the elastic forces too; sub-step ``dt`` [s].
+
+    ``op`` the matrix (:class:`Operator`); ``u, r, p, q, w, v0`` (N, 3) scratch vectors of the
+    solve (``w`` stays zero off the solved set); ``stats`` (2,) accumulates CG iterations and
+    solves; ``contact`` the pushing contacts solved with the dashpots
+    (:class:`~.implicit_contact.ContactTerms`; none recorded with explicit contact).
+    """
+
+    dt: float
+    dashpots: bool
+    stiffness: bool
+    op: Operator
     tol: float
     max_iter: int
     u: np.ndarray
@@ -92,14 +114,6 @@ class BackwardEuler(NamedTuple):
     v0: np.ndarray
     stats: np.ndarray
     contact: tuple
-    stiffness: bool
-    G: float
-    K: float
-    w0: np.ndarray
-    hg_k: float
-    hg_c: float
-    T: np.ndarray
-    projected: np.ndarray
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -258,7 +272,7 @@ def bond_force_one(i, s, x, vel, c):
 @njit(cache=True, fastmath=True)
 def dashpot_stress_one(i, s, vel):
     """``A_i = V P_i`` of the dashpots for the velocity field ``vel`` (``s`` an
-    :class:`BackwardEuler`), with the deformation gradient ``s.F[i]`` of this sub-step; with
+    :class:`Operator`), with the deformation gradient ``s.F[i]`` of this sub-step; with
     ``s.stiffness`` plus the spring's change ``dt dP_e`` over the sub-step."""
     g, offsets, indices, F = s.g, s.offsets, s.indices, s.F
     b = ZERO3X3
@@ -341,6 +355,34 @@ def _apply(s, x, vel, sets, scale, base, out):
         out[i, 2] = base[i, 2] - scale * f2
 
 
+@njit(cache=True, fastmath=True, parallel=True)
+def _apply_parallel(s, x, vel, sets, scale, base, out):
+    """:func:`_apply` over numba's thread pool: both loops are gathers in the serial order, so
+    the result is bit-identical (its own function: a serial solve must not wake the pool)."""
+    stress, sph = sets.stress, sets.sph
+    for t in prange(sets.n_stress):
+        dashpot_stress_one(stress[t], s, vel)
+    bond = s.hg_c + s.dt * s.hg_k
+    for t in prange(sets.n_sph):
+        i = sph[t]
+        f0, f1, f2 = dashpot_force_one(i, s)
+        if s.stiffness:
+            b0, b1, b2 = bond_force_one(i, s, x, vel, bond)
+            f0 += b0; f1 += b1; f2 += b2
+        out[i, 0] = base[i, 0] - scale * f0
+        out[i, 1] = base[i, 1] - scale * f1
+        out[i, 2] = base[i, 2] - scale * f2
+
+
+@njit(cache=True)
+def _operator(s, x, vel, sets, scale, base, out):
+    """:func:`_apply`, on the thread pool from ``s.par_min`` stressed particles."""
+    if sets.n_stress >= s.par_min:
+        _apply_parallel(s, x, vel, sets, scale, base, out)
+    else:
+        _apply(s, x, vel, sets, scale, base, out)
+
+
 @njit(cache=True, fastmath=True)
 def _bonds_at(s, x, vel, sets, scale, out):
     """``out_i -= scale (L vel)_i`` with the bonds' damping ``hg_c`` (:func:`bond_force_one`)."""
@@ -401,10 +443,10 @@ def backward_euler_step(s, body, motion, sets):
     if touched:
         contact_residual(c, body.inv_mass, dt, v, w, r)
     if s.stiffness:
-        spring_tangents(s, sets)
+        spring_tangents(s.op, sets)
         # the bonds' dashpots are in a (at the velocities v of the sub-step's start); the solve's
         # stand-in for their Jacobian acts on v' - v
-        _bonds_at(s, x, v, sets, -scale, r)
+        _bonds_at(s.op, x, v, sets, -scale, r)
     # from the guess u = v*: the dashpots' share of r = b - (I + dt/m C) u with b = v* - dt/m C_B v_B
     # is, by linearity, dt/m f_visc(v* on the solved particles, the held velocities elsewhere)
     for k in range(n):
@@ -414,7 +456,7 @@ def backward_euler_step(s, body, motion, sets):
             v0[i, a] = v[i, a]
             v[i, a] = u[i, a]
     if s.dashpots:
-        _apply(s, x, v, sets, -scale, r, r)
+        _operator(s.op, x, v, sets, -scale, r, r)
     unorm = math.sqrt(_dot(u, u, sph, n))
     for k in range(n):
         i = sph[k]
@@ -434,7 +476,7 @@ def backward_euler_step(s, body, motion, sets):
                 w[i, a] = p[i, a]
                 q[i, a] = p[i, a]
         if s.dashpots:
-            _apply(s, x, w, sets, scale, p, q)     # q = (I + dt/m C) p
+            _operator(s.op, x, w, sets, scale, p, q)     # q = (I + dt/m C) p
         if touched:
             contact_apply(c, body.inv_mass, dt, w, q)
         pq = _dot(p, q, sph, n)
@@ -522,14 +564,16 @@ class BackwardSolve:
             volume = 0.0
             G = K = hg_k = hg_c = 0.0
             w0 = g[:, 0]
+            par_min = len(F) + 1
         else:
             offsets, indices, g, gr, gsum, F, volume = sc.offsets, sc.indices, sc.g, sc.gr, sc.gsum, sc.F, sc.volume
             st = sc.state(None, None, 0)
             G, K, w0, hg_k, hg_c = st.G, st.K, st.w0, st.hg_k, st.hg_c
-        return BackwardEuler(dt, sc is not None, offsets, indices, g, gr, gsum, F, self.A, volume,
-                             self.eta_s, self.eta_v, self.tol, self.max_iter, self.u, self.r, self.p, self.q,
-                             self.w, self.v0, self.stats, contact, self.stiffness, G, K, w0, hg_k, hg_c,
-                             self.T, self.projected)
+            par_min = st.par_min
+        op = Operator(dt, offsets, indices, g, gr, gsum, F, self.A, volume, self.eta_s, self.eta_v,
+                      self.stiffness, G, K, w0, hg_k, hg_c, self.T, self.projected, par_min)
+        return BackwardEuler(dt, sc is not None, self.stiffness, op, self.tol, self.max_iter, self.u, self.r,
+                             self.p, self.q, self.w, self.v0, self.stats, contact)
 
     def mean_iterations(self) -> float:
         """CG iterations per sub-step since the last :meth:`reset_stats`."""
