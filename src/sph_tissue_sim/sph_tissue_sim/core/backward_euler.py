@@ -154,26 +154,17 @@ def spring_tangent(f, b, G, K):
 
 
 @njit(cache=True, fastmath=True, inline='always')
+def _row(T, a, b):
+    """Row ``a`` of a (9, 9) matrix times a 9-tuple."""
+    return (T[a, 0] * b[0] + T[a, 1] * b[1] + T[a, 2] * b[2] + T[a, 3] * b[3] + T[a, 4] * b[4]
+            + T[a, 5] * b[5] + T[a, 6] * b[6] + T[a, 7] * b[7] + T[a, 8] * b[8])
+
+
+@njit(cache=True, fastmath=True, inline='always')
 def _matvec9(T, b):
     """``T b`` for a (9, 9) matrix and a 9-tuple."""
-    return (T[0, 0] * b[0] + T[0, 1] * b[1] + T[0, 2] * b[2] + T[0, 3] * b[3] + T[0, 4] * b[4]
-            + T[0, 5] * b[5] + T[0, 6] * b[6] + T[0, 7] * b[7] + T[0, 8] * b[8],
-            T[1, 0] * b[0] + T[1, 1] * b[1] + T[1, 2] * b[2] + T[1, 3] * b[3] + T[1, 4] * b[4]
-            + T[1, 5] * b[5] + T[1, 6] * b[6] + T[1, 7] * b[7] + T[1, 8] * b[8],
-            T[2, 0] * b[0] + T[2, 1] * b[1] + T[2, 2] * b[2] + T[2, 3] * b[3] + T[2, 4] * b[4]
-            + T[2, 5] * b[5] + T[2, 6] * b[6] + T[2, 7] * b[7] + T[2, 8] * b[8],
-            T[3, 0] * b[0] + T[3, 1] * b[1] + T[3, 2] * b[2] + T[3, 3] * b[3] + T[3, 4] * b[4]
-            + T[3, 5] * b[5] + T[3, 6] * b[6] + T[3, 7] * b[7] + T[3, 8] * b[8],
-            T[4, 0] * b[0] + T[4, 1] * b[1] + T[4, 2] * b[2] + T[4, 3] * b[3] + T[4, 4] * b[4]
-            + T[4, 5] * b[5] + T[4, 6] * b[6] + T[4, 7] * b[7] + T[4, 8] * b[8],
-            T[5, 0] * b[0] + T[5, 1] * b[1] + T[5, 2] * b[2] + T[5, 3] * b[3] + T[5, 4] * b[4]
-            + T[5, 5] * b[5] + T[5, 6] * b[6] + T[5, 7] * b[7] + T[5, 8] * b[8],
-            T[6, 0] * b[0] + T[6, 1] * b[1] + T[6, 2] * b[2] + T[6, 3] * b[3] + T[6, 4] * b[4]
-            + T[6, 5] * b[5] + T[6, 6] * b[6] + T[6, 7] * b[7] + T[6, 8] * b[8],
-            T[7, 0] * b[0] + T[7, 1] * b[1] + T[7, 2] * b[2] + T[7, 3] * b[3] + T[7, 4] * b[4]
-            + T[7, 5] * b[5] + T[7, 6] * b[6] + T[7, 7] * b[7] + T[7, 8] * b[8],
-            T[8, 0] * b[0] + T[8, 1] * b[1] + T[8, 2] * b[2] + T[8, 3] * b[3] + T[8, 4] * b[4]
-            + T[8, 5] * b[5] + T[8, 6] * b[6] + T[8, 7] * b[7] + T[8, 8] * b[8])
+    return (_row(T, 0, b), _row(T, 1, b), _row(T, 2, b), _row(T, 3, b), _row(T, 4, b),
+            _row(T, 5, b), _row(T, 6, b), _row(T, 7, b), _row(T, 8, b))
 
 
 @njit(cache=True)
@@ -338,21 +329,25 @@ def dashpot_force_one(i, s):
 
 
 @njit(cache=True, fastmath=True)
+def _apply_one(i, s, x, vel, scale, base, out):
+    """``out_i = base_i - scale f(vel)_i`` of :func:`_apply` for one particle (after the stresses)."""
+    f0, f1, f2 = dashpot_force_one(i, s)
+    if s.stiffness:
+        b0, b1, b2 = bond_force_one(i, s, x, vel, s.hg_c + s.dt * s.hg_k)
+        f0 += b0; f1 += b1; f2 += b2
+    out[i, 0] = base[i, 0] - scale * f0
+    out[i, 1] = base[i, 1] - scale * f1
+    out[i, 2] = base[i, 2] - scale * f2
+
+
+@njit(cache=True, fastmath=True)
 def _apply(s, x, vel, sets, scale, base, out):
     """``out_i = base_i - scale f(vel)_i`` for ``i`` in ``sets.sph`` (``base`` may be ``out``):
     ``f = -C vel`` (the dashpots), with ``stiffness`` ``-(C + dt K + (hg_c + dt hg_k) L) vel``."""
     for t in range(sets.n_stress):
         dashpot_stress_one(sets.stress[t], s, vel)
-    bond = s.hg_c + s.dt * s.hg_k
     for t in range(sets.n_sph):
-        i = sets.sph[t]
-        f0, f1, f2 = dashpot_force_one(i, s)
-        if s.stiffness:
-            b0, b1, b2 = bond_force_one(i, s, x, vel, bond)
-            f0 += b0; f1 += b1; f2 += b2
-        out[i, 0] = base[i, 0] - scale * f0
-        out[i, 1] = base[i, 1] - scale * f1
-        out[i, 2] = base[i, 2] - scale * f2
+        _apply_one(sets.sph[t], s, x, vel, scale, base, out)
 
 
 @njit(cache=True, fastmath=True, parallel=True)
@@ -362,16 +357,8 @@ def _apply_parallel(s, x, vel, sets, scale, base, out):
     stress, sph = sets.stress, sets.sph
     for t in prange(sets.n_stress):
         dashpot_stress_one(stress[t], s, vel)
-    bond = s.hg_c + s.dt * s.hg_k
     for t in prange(sets.n_sph):
-        i = sph[t]
-        f0, f1, f2 = dashpot_force_one(i, s)
-        if s.stiffness:
-            b0, b1, b2 = bond_force_one(i, s, x, vel, bond)
-            f0 += b0; f1 += b1; f2 += b2
-        out[i, 0] = base[i, 0] - scale * f0
-        out[i, 1] = base[i, 1] - scale * f1
-        out[i, 2] = base[i, 2] - scale * f2
+        _apply_one(sph[t], s, x, vel, scale, base, out)
 
 
 @njit(cache=True)
