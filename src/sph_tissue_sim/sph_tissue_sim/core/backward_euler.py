@@ -434,8 +434,9 @@ def backward_euler_step(s, body, motion, sets):
         # the bonds' dashpots are in a (at the velocities v of the sub-step's start); the solve's
         # stand-in for their Jacobian acts on v' - v
         _bonds_at(s.op, x, v, sets, -scale, r)
-    # from the guess u = v*: the dashpots' share of r = b - (I + dt/m C) u with b = v* - dt/m C_B v_B
-    # is, by linearity, dt/m f_visc(v* on the solved particles, the held velocities elsewhere)
+    # from the guess u (v*, or v when stiff): the operator's share of r = b - (I + dt/m C) u with
+    # b = v* - dt/m C_B v_B is, by linearity, dt/m f(u on the solved particles, the held
+    # velocities elsewhere)
     for k in range(n):
         i = sph[k]
         for a in range(3):
@@ -450,7 +451,7 @@ def backward_euler_step(s, body, motion, sets):
         for a in range(3):
             p[i, a] = r[i, a]
     rr = _dot(r, r, sph, n)
-    # relative to |v*| (or to the first residual, should v* vanish)
+    # relative to |v*| (or to the first residual, should v* vanish); stiff: see above
     limit = s.tol * max(unorm, math.sqrt(rr))
     if s.stiffness:
         floor = s.tol * s.tol * math.sqrt(rr)
