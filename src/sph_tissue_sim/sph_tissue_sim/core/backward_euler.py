@@ -236,7 +236,7 @@ def spring_tangents(s, sets):
         s.projected[i] = 1
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, inline='always')
 def bond_force_one(i, s, x, vel, c):
     """``-(L vel)_i`` of the hourglass bonds' Laplacian along the current bonds ``x'_k``:
     ``sum_k c w0_k ((vel_j - vel_i) . x'_k) x'_k / |x'_k|^2`` (symmetric positive semi-definite).
@@ -260,7 +260,7 @@ def bond_force_one(i, s, x, vel, c):
     return f0, f1, f2
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, inline='always')
 def dashpot_stress_one(i, s, vel):
     """``A_i = V P_i`` of the dashpots for the velocity field ``vel`` (``s`` an
     :class:`Operator`), with the deformation gradient ``s.F[i]`` of this sub-step; with
@@ -309,7 +309,7 @@ def dashpot_stress_one(i, s, vel):
     Am[2, 0] = vol * p20; Am[2, 1] = vol * p21; Am[2, 2] = vol * p22
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, inline='always')
 def dashpot_force_one(i, s):
     """Dashpot force on particle ``i`` from the stresses ``s.A`` (``-(C p)_i``)."""
     offsets, indices, gr, A = s.offsets, s.indices, s.gr, s.A
@@ -328,7 +328,7 @@ def dashpot_force_one(i, s):
     return f0, f1, f2
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, inline='always')
 def _apply_one(i, s, x, vel, scale, base, out):
     """``out_i = base_i - scale f(vel)_i`` of :func:`_apply` for one particle (after the stresses)."""
     f0, f1, f2 = dashpot_force_one(i, s)

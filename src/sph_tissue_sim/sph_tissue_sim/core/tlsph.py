@@ -70,7 +70,7 @@ class Tlsph(NamedTuple):
     par_min: int           # stressed particles from which a sub-step runs on the thread pool
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, inline='always')
 def tlsph_stress_one(i, s, x, v):
     """F_i, dF_i/dt, ``A_i = V P_i`` and the hourglass map ``H_i = hg_k F_i + hg_c dF_i/dt``
     for particle ``i`` (writes rows of ``s.F``, ``s.Fd``, ``s.A``, ``s.H``; ``s`` a :class:`Tlsph`)."""
@@ -136,7 +136,7 @@ def tlsph_stress_one(i, s, x, v):
             Hm[p, q] = hg_k * Fm[p, q] + hg_c * Fdm[p, q]
 
 
-@njit(cache=True, fastmath=True)
+@njit(cache=True, fastmath=True, inline='always')
 def tlsph_force_one(i, s, X, x, v):
     """Internal force ``(f0, f1, f2)`` [N] on particle ``i`` (gather over its reference neighbours).
 
@@ -186,7 +186,7 @@ def tlsph_force_one(i, s, X, x, v):
     return f0, f1, f2
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=True)
 def tlsph_pass(s, body, motion, sets):
     """One sub-step of TLSPH internal forces (``s`` a :class:`Tlsph`): stresses of
     ``sets.stress``, then ``acc = f / m`` of ``sets.sph`` (serial: no thread-pool wake-up on small sets)."""
@@ -201,7 +201,7 @@ def tlsph_pass(s, body, motion, sets):
         acc[i, 2] = f2 * inv_mass
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, fastmath=True, parallel=True)
 def tlsph_pass_parallel(s, body, motion, sets):
     """:func:`tlsph_pass` over numba's thread pool (``prange``).
 
