@@ -85,7 +85,8 @@ def record(name: str, input_bag: Path, raw_out: Path, timeout: float) -> None:
         drv.start()
         code = drv.wait(timeout)
         if code != 0:
-            raise SystemExit(f'make_bags: omni_driver exited with {code}:\n{drv.output()[-3000:]}')
+            # e.g. a lockstep reply that never came on a loaded machine: the run is lost, not the session
+            raise IncompleteRecording(f'omni_driver exited with {code}:\n{drv.output()[-3000:]}')
         log(f'{name}: lockstep replay took {time.monotonic() - t0:.1f} s')
         time.sleep(0.5)  # the last force is in flight to the recorder as well
         rec.stop(30)
@@ -173,7 +174,8 @@ def stream_digest(bag: Path, topic: str) -> tuple[int, str]:
 
 
 def make(name: str, out_dir: Path, geometry: Geometry) -> dict:
-    """Script -> lockstep recording -> ``out_dir/name`` (retried if the recording is incomplete)."""
+    """Script -> lockstep recording -> ``out_dir/name`` (retried if the recording is incomplete or
+    the driver gave up on a reply)."""
     rate, seed, t0 = PLAN[name]
     out = out_dir / name
     with tempfile.TemporaryDirectory(prefix=f'make_bags_{name}_') as tmp:
@@ -184,10 +186,10 @@ def make(name: str, out_dir: Path, geometry: Geometry) -> dict:
         log(f'{name}: script of {n} poses ({n / rate:.1f} s at {rate:g} Hz); recording')
         for attempt in range(1, 4):
             raw = Path(tmp) / f'{name}_raw{attempt}'
-            record(name, input_bag, raw, timeout=max(120.0, 0.02 * n))
             if out.exists():
                 shutil.rmtree(out)
             try:
+                record(name, input_bag, raw, timeout=max(120.0, 0.02 * n))
                 counts = finalise(raw, out, n)
                 break
             except IncompleteRecording as exc:

@@ -75,3 +75,33 @@ def test_bundled_bag_poses_are_exactly_the_session_script(name):
 def test_bundled_bags_stay_small():
     total = sum(f.stat().st_size for f in graph.BAGS.rglob('*') if f.is_file())
     assert total < 8e6, f'bags/ is {total / 1e6:.1f} MB'
+
+
+def test_make_bags_retries_a_recording_whose_driver_gave_up(monkeypatch, tmp_path):
+    calls = []
+
+    def record(name, input_bag, raw, timeout):
+        calls.append(raw.name)
+        if len(calls) == 1:   # the driver's lockstep wait ran out (a loaded machine)
+            raise make_bags.IncompleteRecording('omni_driver exited with 3')
+
+    def finalise(raw, out, expected):
+        out.mkdir(parents=True)
+        (out / 'metadata.yaml').write_text(raw.name)
+        return {'poses': expected}
+
+    monkeypatch.setattr(make_bags, 'record', record)
+    monkeypatch.setattr(make_bags, 'finalise', finalise)
+    counts = make_bags.make('press', tmp_path, Geometry())
+    assert calls == ['press_raw1', 'press_raw2']
+    assert (tmp_path / 'press' / 'metadata.yaml').read_text() == 'press_raw2'
+    assert counts['poses'] > 1000
+
+
+def test_make_bags_stops_after_three_failed_recordings(monkeypatch, tmp_path):
+    def record(name, input_bag, raw, timeout):
+        raise make_bags.IncompleteRecording('omni_driver exited with 3')
+
+    monkeypatch.setattr(make_bags, 'record', record)
+    with pytest.raises(SystemExit, match='no complete recording in 3 attempts'):
+        make_bags.make('press', tmp_path, Geometry())
