@@ -38,7 +38,8 @@ if [[ $FORCE == 1 || ! -f "$STAMP" || "$(cat "$STAMP")" != "$REQ_HASH" ]]; then
     -r "$ROOT/requirements/ros-jazzy.txt" -r "$ROOT/requirements/python.txt"
   # Wheel quirk: the rosidl Python export files name the wheel builder's include dirs.
   NPINC="$("$VENV/bin/python" -c 'import numpy; print(numpy.get_include())')"
-  grep -l '/opt/python/cp311-cp311' "$VENV"/share/*/cmake/export_*__rosidl_generator_pyExport.cmake 2>/dev/null \
+  # (grep finds nothing once patched: a reinstall after a requirements change must not stop here)
+  { grep -l '/opt/python/cp311-cp311' "$VENV"/share/*/cmake/export_*__rosidl_generator_pyExport.cmake 2>/dev/null || true; } \
     | xargs -r sed -i -E \
         -e "s#/opt/python/cp311-cp311/include/python3\.11#$INC#g" \
         -e "s#/opt/python/cp311-cp311/lib/python3\.11/site-packages/numpy/_core/include#$NPINC#g"
