@@ -13,6 +13,7 @@ FORCE=0
 
 die() { echo "setup.sh: error: $*" >&2; exit 1; }
 log() { echo "setup.sh: $*"; }
+trap 'echo "setup.sh: error: \"$BASH_COMMAND\" failed (line $LINENO)" >&2' ERR
 
 # --- prerequisites -------------------------------------------------------------------------------
 command -v "$PY" >/dev/null 2>&1 || die "$PY not found. The ROS 2 Jazzy wheels are cp311: install Python 3.11 (Debian: apt-get install python3.11 python3.11-venv python3.11-dev)."
