@@ -289,7 +289,7 @@ def _press_and_hold(mode: str, depth: float, **config) -> np.ndarray:
 
 @pytest.mark.parametrize('k1_min,far_field,n_layers,integrator', [
     (1.0, 0.0, 2, 'explicit'), (3.0, 0.0, 2, 'explicit'), (1.0, 1.0, 2, 'explicit'),
-    (1.75, 1.0, 1, 'explicit'), (1.75, 1.0, 1, 'implicit')])
+    (1.75, 0.9, 1, 'explicit'), (1.75, 0.9, 1, 'implicit')])
 def test_local_area_contact_force_matches_global_at_same_indentation(k1_min, far_field, n_layers, integrator):
     """Quasi-static press: the local-area model gives the global model's force within 10 %.
 
@@ -297,7 +297,7 @@ def test_local_area_contact_force_matches_global_at_same_indentation(k1_min, far
     1.7 ms, so the hold is quasi-static). ``k1_min`` bounds the interaction radius Dr = k1 h from
     below; the paper's k1 = f/2 (f in N) gives k1 < 1 at these forces. ``far_field`` 0 is the
     paper's still region beyond the layers, 1 the half-space response; the last case is the
-    default (k1_min 1.75, one layer, far field), also with the implicit integrator in both modes.
+    default (k1_min 1.75, one layer, far field 0.9), also with the implicit integrator in both modes.
     """
     f_global = _press_and_hold('global', 0.004, k1_min=k1_min, integrator=integrator)
     f_local = _press_and_hold('local', 0.004, k1_min=k1_min, far_field=far_field, n_layers=n_layers,
@@ -354,10 +354,11 @@ def test_local_area_force_on_the_liver_matches_global():
     With the paper's still region (far_field 0) the area is stiffer than the whole organ, the more
     so the smaller it is: k1_min 1 with two layers (the defaults before 2026-11-26) gives up to
     +24 % (printed); k1_min = 3 with two layers (Dr >= 3h beyond the touched patch, 0.7-1.9 ms per
-    frame) keeps it within 10 % everywhere (measured: at most +8.6 %). The default (far_field 1:
-    the still neighbours follow the half-space response to the contact force; k1_min 1.75, one
-    layer) is within 7 % at every depth (measured -5.1 ... +1.7 %, the worst at 4 mm on the
-    thinnest lobe). Global runs use numba threads when there are two (bit-identical to serial,
+    frame) keeps it within 10 % everywhere (measured: at most +8.6 %). The default (far_field 0.9:
+    the still neighbours follow 0.9 times the half-space response to the contact force, an organ
+    on a fixed base being stiffer than a half-space; k1_min 1.75, one layer) is within 5 % at
+    every depth (measured -3.9 ... +3.5 %, the worst at 4 mm on the thinnest lobe; with
+    far_field 1 -5.1 ... +1.7 %). Global runs use numba threads when there are two (bit-identical to serial,
     only faster).
     """
     model = make_model('liver', n_particles=3670)
@@ -376,4 +377,4 @@ def test_local_area_force_on_the_liver_matches_global():
         worst_k3 = max(worst_k3, abs(err_k3))
         worst_ff = max(worst_ff, abs(err_ff))
     assert worst_k3 < 0.10
-    assert worst_ff < 0.07
+    assert worst_ff < 0.05
