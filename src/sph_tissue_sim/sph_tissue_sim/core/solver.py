@@ -97,9 +97,8 @@ class SolverConfig:
             The defaults (k1_min 1.75, one layer, with ``far_field`` 0.9) were chosen on the
             3671-particle liver pressed 2 / 4 / 10 mm at four places (local within 5 % of global
             at 12 of 12, worst -3.9 %; at four other places 11 of 12, worst +11 % at a 2 mm press
-            that meets 0.012 N) at 1.3x the
-            cost of k1_min 1 with two layers and the still region (up to +33 % there); see
-            ``benchmarks/README.md``.
+            that meets 0.012 N) at 1.3x the cost of k1_min 1 with two layers and the still region
+            (up to +33 % there); see ``benchmarks/README.md``.
         tool_shape: ``sphere`` (default: a probe tip) or ``capsule`` (a shaft of ``tool_length``
             with a rounded tip, along the tool frame's +z), see :mod:`.tools`.
         tool_radius: radius of the tool's sphere, or of the capsule's shaft [m].
@@ -186,14 +185,14 @@ class SolverConfig:
             rest (0: the paper's still region). The default, 0.9, is below 1 because an organ
             bonded to a fixed base is stiffer than a half-space (the thin lobe: -5.1 % with 1,
             -3.9 % with 0.9; 0.85 ... 0.925 meet every local-global and drag target, 0.95
-            misses the drag's by 0.04 %). Holding them still makes the area
-            stiffer than the whole organ: on the 3671-particle liver pressed 2/4/10 mm at four
-            places, with k1_min 1 and two layers, the local force is within 5 % of global at 7 of
-            12 presses with 1 (-13.7 ... +6.2 %, the worst at 2 mm on the thinnest lobe, where
-            the half-space is too soft), at 2 of 12 with 0 (-6.7 ... +23.7 %), at the same cost
-            per frame; with the default area (see ``n_layers``) at 11 of 12. Dragging over a
-            coarse block (7.5 mm spacing), the tool's passage between particles changes the force
-            by 8 % of Fz with the defaults (global 4 %).
+            misses the drag's by 0.04 %). Holding them still makes the area stiffer than the
+            whole organ: on the 3671-particle liver pressed 2/4/10 mm at four places, with k1_min 1
+            and two layers, the local force is within 5 % of global at 7 of 12 presses with 1
+            (-13.7 ... +6.2 %, the worst at 2 mm on the thinnest lobe, where the half-space is too
+            soft), at 2 of 12 with 0 (-6.7 ... +23.7 %), at the same cost per frame; with the
+            default area (see ``n_layers``) at 11 of 12 with 1 and 12 of 12 with 0.9. Dragging over
+            a coarse block (7.5 mm spacing), the tool's passage between particles changed the force
+            by 8 % of Fz with 1 (global 4 %).
     """
 
     scheme: str = 'tlsph'
