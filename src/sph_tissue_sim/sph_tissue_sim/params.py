@@ -88,7 +88,9 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'contact_samples': (0, 'contact with the material surface: this many samples per side of a '
                            'surface particle\'s patch (0 = the tool touches particle balls); 3 stops '
                            'the tool slipping between particles (no pop-through to ~30 mm on the '
-                           'liver) at about 4x the sub-steps', (0, 5), False, 'solver'),
+                           '3670 liver; on coarse models, tool radius under about half a spacing, '
+                           'the tool sinks through: 743 liver at 5 mm) at about 4x the sub-steps '
+                           'unless contact_integration is implicit', (0, 5), False, 'solver'),
     'viscosity': ('explicit', 'tlsph dashpots: explicit (sub-step bounded by rho h^2 / eta) | implicit '
                               '(backward Euler by conjugate gradients: no viscous bound; fewer sub-steps '
                               'on fine models, each dearer)', VISCOSITIES, False, 'solver'),

@@ -141,14 +141,16 @@ class SolverConfig:
             particle on the material's surface, half a spacing outside the particle centres, which
             move with the particles around them and spread the force back to them by kernel
             weights (:mod:`.surface_contact`): the tool cannot slip between particles. On the
-            3671-particle liver (3, with ``far_field`` 1, pressed straight down at the top of the
-            dome) the force rises monotonically to 3.7 N at 31 mm (particles: 0.39 N at 10 mm, then
-            falling to nothing), the pressed surface slips 1.2 mm instead of 6.4 mm at 10 mm, and
-            local mode is within 5 % of global at 9 of 12 presses (2 of 12 as balls). But the
-            surface, interpolated over a kernel width, makes the tool a blunter indenter (Hertz
-            block: +36 % at 2.5 mm spacing), and the samples are 9 times stiffer per area: the
-            explicit step needs about 4x the sub-steps (local step 2.8 ms instead of 0.64 ms on this
-            liver); with ``contact_integration`` implicit it keeps the material's (0.78 ms).
+            3671-particle liver (3, pressed straight down at the top of the dome) the force rises
+            monotonically to 3.7 N at 31 mm (particles: 0.39 N at 10 mm, then falling to nothing),
+            the pressed surface slips 1.3-1.4 mm instead of 6.2 mm at 10 mm, and local mode is
+            within 5 % of global at 10 of 12 presses (as balls 12 of 12). But the surface,
+            interpolated over a kernel width, makes the tool a blunter indenter (Hertz block: +36 %
+            at 2.5 mm spacing); on coarse models (the 743 liver, tool radius 0.43 spacings) the
+            tool sinks through the surface layer by 6 mm; and the samples are 9 times stiffer per
+            area: the explicit step needs about 4x the sub-steps (local step 2.8 ms instead of
+            0.64 ms on this liver); with ``contact_integration`` implicit it keeps the material's
+            (0.78 ms).
         viscosity: ``explicit`` (default) or ``implicit``: the ``tlsph`` dashpots backward Euler
             (:mod:`.backward_euler`), no viscous sub-step bound; slower on the bundled models.
         viscous_tol: the implicit dashpots' solve stops at this residual relative to ``|v*|``.
