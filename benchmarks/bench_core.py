@@ -89,6 +89,10 @@ class Settings:
     min_timed_frames: int = 5
     warm_budget_s: float = 3.0      # wall-clock budgets per case (expensive cases take fewer frames)
     timed_budget_s: float = 3.0
+    # a local case whose first frame takes at most this [ms] runs the whole press and palpation
+    # whatever the machine: its cost follows the press's phase (the active set), so two runs must
+    # time the same frames; dearer cases, and global ones (whose cost does not), use the budgets
+    fixed_frames_max_ms: float = 50.0
     sizes: tuple = PAPER_SIZES
     h_values: tuple = PAPER_H
     scaling_sizes: tuple = (3670, 10000, 25000, 50000, 100000, 150000)
@@ -241,7 +245,7 @@ class Runner:
         self.first_ms = dt * 1e3
         floor = st.min_press_frames if self.case.mode == 'local' else st.min_press_frames_global
         press = int(min(st.press_frames, max(floor, st.warm_budget_s / max(dt, 1e-6))))
-        self.script.press_frames = press
+        self.script.press_frames = st.press_frames if self.fixed_frames else press
         self.k = 0
         self.solver.reset()
 
@@ -255,10 +259,17 @@ class Runner:
         except SimError:
             self.status = f'unstable at frame {self.k}'
 
+    @property
+    def fixed_frames(self) -> bool:
+        """Whether this case runs the full press and palpation (see ``Settings.fixed_frames_max_ms``)."""
+        return self.case.mode == 'local' and self.first_ms <= self.st.fixed_frames_max_ms
+
     def budget_frames(self) -> int:
         st = self.st
         if not self.ok:
             return 0
+        if self.fixed_frames:
+            return st.timed_frames
         per = max(self.first_ms * 1e-3, 1e-6)
         return int(min(st.timed_frames, max(st.min_timed_frames, st.timed_budget_s / per)))
 

@@ -26,8 +26,9 @@ def test_local_area_force_changes_smoothly_while_the_tool_is_dragged_across_part
     jumped by 0.17 N (half of Fz) in one frame: a buzz on the device.
 
     The largest change is the frame where the 5 mm tool passes between two surface particles of
-    this coarse lattice (7.5 mm): 12 mN in the global model, 22 mN (8 % of Fz) in the local area
-    (defaults; with k1_min 1 and two layers: 16 mN held still, 27 mN with the far field)."""
+    this coarse lattice (7.5 mm): 12 mN in the global model, 24 mN (9 % of Fz) in the local area
+    (defaults; 22 mN with ``far_field: 1``; with k1_min 1 and two layers: 16 mN held still, 27 mN
+    with the far field)."""
     jump_global, fz_global = _press_then_pull('global')
     jump_local, fz_local = _press_then_pull('local')
     print(f'max force jump while dragging: global {jump_global:.4f} N, local {jump_local:.4f} N '
