@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from ..core.errors import SimError
 from ..core.material import Material
 from ..core.models import TissueModel, make_beam, make_block
 from ..core.solver import Solver, SolverConfig
@@ -230,6 +231,10 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
     answers each device sample and the solver steps at its proxy (the lockstep schedule of the
     node, one step per sample); then ``tool`` is the simulated tool's depth [m] and ``device`` the
     force sent to the device along +z [N] (``normal`` stays the solver's).
+
+    A step that goes unstable (:class:`~..core.errors.SimError`, e.g. the crushed tissue round a
+    deep tool) ends the press: the arrays then stop at the last good frame and ``unstable_at`` is
+    the depth [m] of the failed one (``None`` otherwise).
     """
     solver = Solver(model, material, config)
     P = model.positions
@@ -245,7 +250,12 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
             answer = renderer.answer(tip, dt)
             out['device'][k] = answer.force[2]
             tip = answer.proxy
-        res = solver.step(tip, dt)
+        try:
+            res = solver.step(tip, dt)
+        except SimError:
+            out = {key: val[:k] for key, val in out.items()}
+            out['unstable_at'] = d
+            return out
         f = res.force_raw
         if renderer is not None:
             renderer.refresh(res.tool_segment[0] if res.tool_segment is not None else tip, f)
@@ -258,4 +268,13 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
         out['over'][k] = np.count_nonzero((np.hypot(x[:, 0] - at[0], x[:, 1] - at[1]) < radius)
                                           & (x[:, 2] > at[2]))
         out['slip'][k] = math.hypot(x[first, 0] - P[first, 0], x[first, 1] - P[first, 1])
+    out['unstable_at'] = None
     return out
+
+
+def gives_way(depth: np.ndarray, force: np.ndarray, tolerance: float = 0.02) -> float:
+    """Depth [m] where a press's force first falls below its running maximum by more than
+    ``tolerance`` of its largest force (``inf`` if it never does: the force rises monotonically
+    within that tolerance): where the tissue stops holding the tool."""
+    fell = np.flatnonzero(np.maximum.accumulate(force) - force > tolerance * float(np.max(force, initial=0.0)))
+    return float(depth[fell[0]]) if len(fell) else math.inf
