@@ -402,6 +402,7 @@ class LocalArea:
         self.n_active = 0
         self.n_ff = 0
         self.n_touch = 0
+        self.ff_load[:] = 0.0
         if global_mode:
             self.region[self.free] = 1
 
@@ -452,12 +453,20 @@ class LocalArea:
         return sets, n_inter, n_relax
 
     def far_field(self, body: Body, x: np.ndarray, sets: Sets, react: np.ndarray, factor: float, G: float,
-                  nu: float) -> None:
+                  nu: float, blend: float = 1.0) -> None:
         """Place the stress shell at the half-space response to the load ``-factor * react``
-        (:func:`far_field_shell`); returns the shell to rest once ``factor`` is 0."""
+        (:func:`far_field_shell`), low-passed: the load moves ``blend`` (0..1] of the way to it
+        each frame; returns the shell to rest once ``factor`` is 0.
+
+        Why the low pass: the shell's displacement follows the force, which follows the shell.
+        Near the load (a small area: ``k1 h`` shrinks with the spacing) that loop's gain passes 1
+        and the force rings and grows from frame to frame (30k liver, surface samples, 11 mm deep:
+        by up to 1 N); relaxing the load (a few ms, well below the organ's shear-wave time of tens
+        of ms) damps it and leaves the quasi-static response as it was.
+        """
         if factor <= 0.0 and self.n_ff == 0:
             return
-        np.multiply(react, -factor, out=self.ff_load)
+        self.ff_load += blend * (-factor * react - self.ff_load)
         n = len(self.X)
         if len(self.ff_list) != n:
             self.ff_list = np.zeros(n, dtype=np.int32)
