@@ -724,6 +724,12 @@ def print_tables(rows: list[dict], meta: dict) -> str:
     return text
 
 
+def _legend(ax, **kw) -> None:
+    """A legend for the panels that drew something (``--tables`` may leave a panel empty)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(**kw)
+
+
 def plot(rows: list[dict], path: Path) -> None:
     import matplotlib
     matplotlib.use('Agg')
@@ -744,7 +750,7 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.bar(xs, [v * 1e3 for v in vals if v], w, label=lab)
     ax.set_xticks([j + 0.4 - w / 2 for j in range(len(ns))], [f'N={n}' for n in ns])
     ax.set_yscale('log'); ax.set_ylabel('ms per frame'); ax.set_title('Table 1: mass-spring vs global SPH')
-    ax.legend(fontsize=7)
+    _legend(ax, fontsize=7)
     for ax, tab, ref, title in ((axes[0, 1], '2', PAPER_T2, 'Table 2: global'), (axes[0, 2], '3', PAPER_T3, 'Table 3: local')):
         tr = [r for r in ok if r['table'] == tab and r['scheme'] == 'tlsph']
         for k, h in enumerate(sorted({r['h_paper'] for r in tr})):
@@ -756,7 +762,7 @@ def plot(rows: list[dict], path: Path) -> None:
             if pa:
                 ax.plot(*zip(*pa), 'x:', color=line.get_color(), label=f'paper-scheme h={h}')
         ax.set_xscale('log'); ax.set_yscale('log'); ax.set_xlabel('particles'); ax.set_ylabel('ms per frame')
-        ax.set_title(title); ax.legend(fontsize=6, ncol=2)
+        ax.set_title(title); _legend(ax, fontsize=6, ncol=2)
     ax = axes[1, 0]
     xs_all, labels = [], []
     for tab, key, ref, xlab in (('4', 'k1_gain', PAPER_T4, 'k1='), ('5', 'n_layers', PAPER_T5, 'N=')):
@@ -773,7 +779,7 @@ def plot(rows: list[dict], path: Path) -> None:
         xs_all += list(xs)
         labels += [f'T{tab} {xlab}{r[key]}' for r in tr]
     ax.set_xticks(xs_all, labels, rotation=30, fontsize=7)
-    ax.set_yscale('log'); ax.set_ylabel('ms per frame'); ax.set_title('Tables 4 and 5 (h = 0.6)'); ax.legend(fontsize=7)
+    ax.set_yscale('log'); ax.set_ylabel('ms per frame'); ax.set_title('Tables 4 and 5 (h = 0.6)'); _legend(ax, fontsize=7)
     ax = axes[1, 1]
     sc = [r for r in ok if r['table'] == 'scaling']
     for mode, mk in (('global', 'o-'), ('local', 's-')):
@@ -784,7 +790,7 @@ def plot(rows: list[dict], path: Path) -> None:
             ax.plot(a[:, 0], a[:, 2] * 1e-3, mk.replace('-', ':'), label=f'{mode}: per sub-step')
     ax.axhline(1.0, color='k', lw=0.5, ls='--'); ax.axhline(16.0, color='r', lw=0.5, ls='--')
     ax.set_xscale('log'); ax.set_yscale('log'); ax.set_xlabel('particles'); ax.set_ylabel('ms')
-    ax.set_title('Scaling, tlsph (1 ms and 16 ms lines)'); ax.legend(fontsize=7)
+    ax.set_title('Scaling, tlsph (1 ms and 16 ms lines)'); _legend(ax, fontsize=7)
     ax = axes[1, 2]
     pts = [r for r in ok if r['table'] in ('scaling', 'area') and r['mode'] == 'local']
     if pts:
@@ -796,7 +802,7 @@ def plot(rows: list[dict], path: Path) -> None:
                     ax.annotate(f'{int(n)}', (x, y), fontsize=6)
         ax.set_xlabel('particles whose stress is computed per sub-step (n_stress)')
         ax.set_ylabel('us per sub-step'); ax.set_xscale('log'); ax.set_yscale('log')
-        ax.set_title('Local cost follows the interaction area, not the model size'); ax.legend(fontsize=7)
+        ax.set_title('Local cost follows the interaction area, not the model size'); _legend(ax, fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
