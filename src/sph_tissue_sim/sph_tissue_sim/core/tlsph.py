@@ -411,6 +411,18 @@ class TlsphScheme(FixedStateScheme):
                 a[:] = b
         return self._gains[key]
 
+    def dashpots_only(self) -> Tlsph:
+        """The state of the last :meth:`set_material` with the elastic and hourglass springs off and
+        tensors of its own: a pass over it gives the forces of the explicit dashpots alone, ``-C v``
+        at the positions given (:class:`~.stability.DashpotRate`). None when the dashpots are
+        integrated implicitly."""
+        st = self._state
+        if not self.explicit_dashpots or st is None:
+            return None
+        n = len(self.F)
+        return st._replace(G=0.0, K=0.0, hg_k=0.0, F=np.zeros((n, 3, 3)), Fd=np.zeros((n, 3, 3)),
+                           A=np.zeros((n, 3, 3)), H=np.zeros((n, 3, 3)))
+
     def hourglass_damping_bound(self, mass: float, cfl: float) -> float:
         """Stable explicit sub-step of the hourglass dashpot alone [s]: ``C m / max_i sum_j
         W0_ij hg_c`` (its bonds' damping summed per particle; Gershgorin). Far looser than the
