@@ -205,8 +205,8 @@ class SolverConfig:
             the next with 0, by 14 mN with 3 ms (global 3.6 mN).
         dashpot_rate_every: frames between two power iterations that follow the explicit
             dashpots' largest rate ``c`` at the current deformation (:mod:`.stability`; every
-            frame once ``c dt >= 1``); the sub-step then also keeps ``c dt <= 1.6`` (0: the
-            reference bounds alone). Deformed
+            frame while it rises past ``c dt = 1``); the sub-step then also keeps ``c dt <= 1.6``
+            (0: the reference bounds alone). Deformed
             tissue has faster dashpots: the 12k liver pressed 30 mm deep reached ``c dt`` = 2.1
             at the reference bounds' sub-step and its force rang by up to 1 N per frame.
     """
@@ -497,7 +497,7 @@ class Solver:
         if cfg.integrator == 'implicit':
             # stable at any sub-step: only the accuracy the caller asks for bounds it
             self.dt_bounds = {'implicit': cfg.implicit_max_dt}
-        dashpots = getattr(self.scheme, 'dashpots_only', lambda: None)()
+        dashpots = self.scheme.dashpots_only() if isinstance(self.scheme, TlsphScheme) else None
         every = cfg.dashpot_rate_every
         #: follows the explicit dashpots' rate as the tissue deforms (None: no explicit dashpots)
         self.dashpot_rate = DashpotRate(dashpots, self.n, every) if dashpots is not None and every else None

@@ -12,8 +12,9 @@ from one frame to the next (the elastic part's rate grew 4.3x, but its ``omega d
 1.16 of the 2 it may).
 
 :class:`DashpotRate` follows ``c`` at the current positions by power iteration, one pass of the
-dashpots alone every few frames over the particles being solved, warm-started from the previous
-frame's vector, and bounds the sub-step by ``DASHPOT_LIMIT / c``. At rest it leaves the
+dashpots alone over the particles being solved every few frames (every frame while the rate
+rises near the limit), warm-started from the previous vector, and bounds the sub-step by
+``DASHPOT_LIMIT / c``. At rest it leaves the
 reference bounds in charge; it only adds sub-steps where the deformation has made the dashpots
 faster than they allow.
 """
@@ -32,9 +33,13 @@ from .tlsph import Tlsph, tlsph_pass, tlsph_pass_parallel
 #: room for the springs acting in the same modes (at rest the bounds give 1.24-1.56 on the liver)
 DASHPOT_LIMIT = 1.6
 
-#: from this ``c dt`` on the rate is followed every frame (it can grow by 10 % per 0.5 mm of a deep
-#: press); below it every ``every`` frames
+#: from this ``c dt`` on a rate that rose at its last iteration is followed every frame (a deep
+#: press raised it by up to 10 % per 0.5 mm); otherwise every ``every`` frames
 CLOSE = 1.0
+
+#: a rise of the estimate by more than this fraction counts as rising (converged power iteration
+#: at a still state creeps up by less)
+RISING = 1e-3
 
 
 @njit(cache=True)
@@ -71,8 +76,8 @@ def _store(acc, u, v, idx, n):
 
 class DashpotRate:
     """The largest rate [1/s] of the explicit dashpots at the current positions, tracked by power
-    iteration: one pass of the dashpots every ``every`` frames, every frame once ``c dt`` has
-    reached :data:`CLOSE`.
+    iteration: one pass of the dashpots every ``every`` frames, every frame while it rises past
+    ``c dt`` = :data:`CLOSE`.
 
     Args:
         state: the scheme's state with only the dashpots on (:meth:`~.tlsph.TlsphScheme.dashpots_only`).
@@ -93,6 +98,7 @@ class DashpotRate:
     def reset(self) -> None:
         """Forget the state: no rate known until the next :meth:`update`."""
         self.rate = 0.0
+        self._rising = False
         self._frames = 0
         self._u[:] = 0.0
         self._rng = np.random.default_rng(0)
@@ -101,7 +107,7 @@ class DashpotRate:
         """Count a finished frame on ``sets`` with sub-steps of ``sub_dt`` [s] ending at positions
         ``x``; when due, one power iteration over ``sets.sph``. Returns the rate's estimate [1/s]."""
         self._frames += 1
-        due = self._frames >= self.every or self.rate * sub_dt >= CLOSE
+        due = self._frames >= self.every or (self._rising and self.rate * sub_dt >= CLOSE)
         if not due or sets.n_sph == 0:
             return self.rate
         self._frames = 0
@@ -116,6 +122,7 @@ class DashpotRate:
             tlsph_pass(self.state, body, self._motion(x), sets)
         rate = _store(self._acc, self._u, self._v, sets.sph, sets.n_sph)
         if math.isfinite(rate):
+            self._rising = rate > self.rate * (1.0 + RISING)
             self.rate = rate
         else:                                # a state the frame's own checks will refuse
             self._u[sets.sph[:sets.n_sph]] = 0.0

@@ -411,7 +411,7 @@ class TlsphScheme(FixedStateScheme):
                 a[:] = b
         return self._gains[key]
 
-    def dashpots_only(self) -> Tlsph:
+    def dashpots_only(self) -> Tlsph | None:
         """The state of the last :meth:`set_material` with the elastic and hourglass springs off and
         tensors of its own: a pass over it gives the forces of the explicit dashpots alone, ``-C v``
         at the positions given (:class:`~.stability.DashpotRate`). None when the dashpots are
