@@ -115,6 +115,26 @@ def contact_vector(i, x, seg, surf):
     return u0, u1, u2, s0, s1, s2, tseg
 
 
+@njit(cache=True, fastmath=True, inline='always')
+def touch_normal(i, x, seg, surf, reach):
+    """Whether particle ``i``'s contact shape lies within ``reach`` of the tool segment; returns
+    ``(touching, overlap [m], n0, n1, n2, t)``: the unit normal along which the tool pushes it and
+    where on the segment the closest point lies (see :func:`contact_vector`)."""
+    lim = reach + surf[6][i]
+    if segment_distance2(i, x, seg) >= lim * lim:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    u0, u1, u2, s0, s1, s2, ts = contact_vector(i, x, seg, surf)
+    r = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    if r >= reach:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    if r < 1e-12:
+        # the tool's closest point exactly on the particle's disc: push along its surface normal (or +z)
+        if s0 * s0 + s1 * s1 + s2 * s2 > 0.5:
+            return True, reach - r, -s0, -s1, -s2, ts
+        return True, reach - r, 0.0, 0.0, 1.0, ts
+    return True, reach - r, u0 / r, u1 / r, u2 / r, ts
+
+
 @njit(cache=True, inline='always')
 def record_touch(touches, kind, idx, n0, n1, n2):
     """Append a pushing contact to ``touches`` (:class:`~.state.Touches`)."""
@@ -148,27 +168,12 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
     """
     x, v, acc, fixed, inv_mass = motion.x, motion.v, motion.acc, body.fixed, body.inv_mass
     reach, k_c, c_c, surf = tool.reach, tool.stiffness, tool.damping, tool.surf
-    disc = surf[6]
     best = 0.0
     for t in range(n_cand):
         i = cand[t]
-        a = disc[i]
-        lim = reach + a
-        if segment_distance2(i, x, seg) >= lim * lim:
+        touching, overlap, n0, n1, n2, ts = touch_normal(i, x, seg, surf, reach)
+        if not touching:
             continue
-        u0, u1, u2, s0, s1, s2, ts = contact_vector(i, x, seg, surf)
-        r = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
-        if r >= reach:
-            continue
-        if r < 1e-12:
-            # the tool's closest point exactly on the particle's disc: push along its surface normal (or +z)
-            if s0 * s0 + s1 * s1 + s2 * s2 > 0.5:
-                n0 = -s0; n1 = -s1; n2 = -s2
-            else:
-                n0 = 0.0; n1 = 0.0; n2 = 1.0
-        else:
-            n0 = u0 / r; n1 = u1 / r; n2 = u2 / r
-        overlap = reach - r
         if overlap > best:
             best = overlap
         tv0 = seg_vel[0, 0] + ts * (seg_vel[1, 0] - seg_vel[0, 0])

@@ -665,7 +665,11 @@ class Solver:
         else:
             res = self._local_step(path, n_sub, sub_dt, dt)
         if self.dashpot_rate is not None:
-            self.dashpot_rate.update(self.body, self.x, self._last_sets, sub_dt)
+            # explicit contacts add their dashpots on the touched particles (the samples' own,
+            # spread over their particles, are left out)
+            contact = ((path.seg1, path.reach, path.surf, self.contact_damping * self.inv_mass)
+                       if tool_on and not self.touches.on and cfg.contact_damping_ratio > 0.0 else None)
+            self.dashpot_rate.update(self.body, self.x, self._last_sets, sub_dt, contact)
         force_raw = self.react.copy()
         force, clamped = clamp_norm(force_raw, cfg.force_limit)
         f0, f1, f2 = force.tolist()
