@@ -38,8 +38,9 @@ DASHPOT_LIMIT = 1.6
 #: press raised it by up to 10 % per 0.5 mm); otherwise every ``every`` frames
 CLOSE = 1.0
 
-#: a rise of the estimate by more than this fraction counts as rising (converged power iteration
-#: at a still state creeps up by less)
+#: a rise of the estimate by more than this fraction per frame since the last iteration counts as
+#: rising (a deep press: 0.2-1 % per frame; a palpating tool or a converged iteration at a still
+#: state: under 0.01 %)
 RISING = 1e-3
 
 
@@ -129,7 +130,7 @@ class DashpotRate:
         due = self._frames >= self.every or (self._rising and self.rate * sub_dt >= CLOSE)
         if not due or sets.n_sph == 0:
             return self.rate
-        self._frames = 0
+        gap, self._frames = self._frames, 0
         if not _load(self._u, self._v, sets.sph, sets.n_sph) > 0.0:
             # first time here, or the area moved on
             idx = sets.sph[:sets.n_sph]
@@ -144,7 +145,7 @@ class DashpotRate:
             _contact_dashpots(x, self._v, self._acc, sets.cand, sets.n_cand, seg, reach, surf, c_over_m)
         rate = _store(self._acc, self._u, self._v, sets.sph, sets.n_sph)
         if math.isfinite(rate):
-            self._rising = rate > self.rate * (1.0 + RISING)
+            self._rising = rate > self.rate * (1.0 + RISING * gap)
             self.rate = rate
         else:                                # a state the frame's own checks will refuse
             self._u[sets.sph[:sets.n_sph]] = 0.0
