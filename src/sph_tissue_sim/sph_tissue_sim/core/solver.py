@@ -206,9 +206,9 @@ class SolverConfig:
         dashpot_rate_every: frames between two power iterations that follow the explicit
             dashpots' largest rate ``c`` at the current deformation (:mod:`.stability`; every
             frame while it rises past ``c dt = 1``); the sub-step then also keeps ``c dt <= 1.6``
-            (0: the reference bounds alone). Deformed
-            tissue has faster dashpots: the 12k liver pressed 30 mm deep reached ``c dt`` = 2.1
-            at the reference bounds' sub-step and its force rang by up to 1 N per frame.
+            (0: the reference bounds alone). Deformed tissue has faster dashpots: the 12k liver
+            pressed 30 mm deep reached ``c dt`` = 2.1 at the reference bounds' sub-step and its
+            force rang by up to 1 N per frame.
     """
 
     scheme: str = 'tlsph'

@@ -14,9 +14,10 @@ from one frame to the next (the elastic part's rate grew 4.3x, but its ``omega d
 :class:`DashpotRate` follows ``c`` at the current positions by power iteration, one pass of the
 dashpots alone over the particles being solved every few frames (every frame while the rate
 rises near the limit), warm-started from the previous vector, and bounds the sub-step by
-``DASHPOT_LIMIT / c``. At rest it leaves the
-reference bounds in charge; it only adds sub-steps where the deformation has made the dashpots
-faster than they allow.
+``DASHPOT_LIMIT / c``. The explicit contact dashpots on the touched particles join the pass. At
+rest it leaves the reference bounds in charge; it only adds sub-steps where the deformation has
+made the dashpots faster than they allow. Its arrays take 0.36 kB per particle (36 MB on the
+100k liver, zero pages until touched: a 100k solver's RSS grows by 3 MB).
 """
 
 from __future__ import annotations
