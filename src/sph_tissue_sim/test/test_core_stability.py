@@ -134,7 +134,7 @@ def test_a_block_creeping_to_1_7_times_its_length_stays_on_the_small_step_path()
     assert np.abs(np.diff(bare)).max() > 1.5 * np.abs(np.diff(fine)).max()
 
 
-def test_the_rate_bound_keeps_c_dt_within_the_limit_and_off_it_changes_nothing():
+def test_a_shallow_press_takes_the_same_substeps_and_forces_with_the_rate_followed_or_off():
     """``dashpot_rate_every: 0`` is the reference bounds alone, and a shallow press, whose
     dashpots stay near their rate at rest, takes the same sub-steps and forces with the rate
     followed every frame; implicit dashpots have no rate to follow."""
