@@ -25,7 +25,7 @@ from .core.errors import ConfigError, ModelError
 from .core.material import Material, load_material
 from .core.factory import MODELS, make_model
 from .core.models import TissueModel
-from .core.solver import CONTACT_INTEGRATIONS, INTEGRATORS, MODES, SCHEMES, VISCOSITIES, SolverConfig
+from .core.solver import CONTACT_INTEGRATIONS, INTEGRATORS, MODES, SAMPLE_MODES, SCHEMES, VISCOSITIES, SolverConfig
 from .core.tools import TOOLS
 from .haptics.renderer import RENDERER_RANGES, RendererConfig
 from .mapping import ANCHORS, DEFAULT_ROTATION
@@ -91,6 +91,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                            '3670 liver; on coarse models, tool radius under about half a spacing, '
                            'the tool sinks through: 743 liver at 5 mm) at about 4x the sub-steps '
                            'unless contact_integration is implicit', (0, 5), False, 'solver'),
+    'sample_mode': ('surface', 'with contact_samples: surface (the tool meets the samples) | backstop (it '
+                               'meets the particle balls first, as without samples; the samples only hold '
+                               'it out of the gaps between particles: a shallow press as the balls, no '
+                               'pop-through to ~31 mm on the 3670 liver)', SAMPLE_MODES, False, 'solver'),
     'viscosity': ('explicit', 'tlsph dashpots: explicit (sub-step bounded by rho h^2 / eta) | implicit '
                               '(backward Euler by conjugate gradients: no viscous bound; fewer sub-steps '
                               'on fine models, each dearer)', VISCOSITIES, False, 'solver'),
@@ -290,6 +294,7 @@ def build_config(p: dict) -> SolverConfig:
                        parallel_min_particles=int(p['parallel_min_particles']),
                        contact_disc=float(p['contact_disc']),
                        contact_samples=int(p['contact_samples']),
+                       sample_mode=p['sample_mode'],
                        paper_momentum=int(p['paper_momentum']),
                        far_field=float(p['far_field']),
                        max_tool_speed=float(p['max_tool_speed']),

@@ -8,7 +8,7 @@ from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import Material, liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
-from sph_tissue_sim.validation.cases import press_curve
+from sph_tissue_sim.validation.cases import gives_way, press_curve
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 LIVER_DEFAULT = liver_default()
@@ -176,3 +176,70 @@ def test_the_far_field_does_not_ring_when_a_fine_liver_is_pressed_deep():
     print(f'largest frame-to-frame change / final Fz: {jumps}')
     assert jumps[0.0] > 0.2                                  # the ring this guards against
     assert jumps[SolverConfig().far_field_tau] < 0.03
+
+
+# ----------------------------------------------------------------------------- samples as a backstop
+BACKSTOP = dict(contact_samples=3, sample_mode='backstop', contact_integration='implicit')
+
+
+def test_backstop_mode_needs_samples():
+    with pytest.raises(ConfigError, match='sample_mode'):
+        SolverConfig(sample_mode='backstop').validate()
+    with pytest.raises(ConfigError, match='sample_mode'):
+        SolverConfig(contact_samples=3, sample_mode='behind').validate()
+
+
+def test_backstop_samples_leave_a_shallow_press_to_the_balls():
+    """The balls reach half a spacing farther than the samples: until the tool is that deep, the
+    press is exactly the ball contact's (same sub-steps, same forces)."""
+    model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
+    balls = Solver(model, LIVER, SolverConfig(mode='global', contact_integration='implicit'))
+    backstop = Solver(model, LIVER, SolverConfig(mode='global', **BACKSTOP))
+    assert backstop.contact_reach == balls.contact_reach
+    X = model.positions
+    start = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean() + 5e-4, X[:, 2].max() + balls.contact_reach])
+    for k in range(150):
+        tip = start - [0.0, 0.0, 0.003 * min(1.0, (k + 1) / 100)]
+        a, b = balls.step(tip, 1e-3), backstop.step(tip, 1e-3)
+        assert a.substeps == b.substeps
+        assert np.array_equal(a.force_raw, b.force_raw), k
+    assert a.force[2] > 0.05
+
+
+def test_backstop_samples_keep_a_deep_press_rising_where_the_balls_give_way():
+    """Pressed straight into the default liver's dome (local mode, 10 mm/s): the balls are pushed
+    apart and give way by 12 mm; with the samples behind them the first millimetres are the
+    balls' and the force keeps rising to 25 mm with no particle over the tool."""
+    model = make_model('liver', n_particles=3670)
+    top = (-0.034, 0.0)
+    balls = press_curve(model, LIVER_DEFAULT, SolverConfig(), 0.025, xy=top)
+    held = press_curve(model, LIVER_DEFAULT, SolverConfig(**BACKSTOP), 0.025, xy=top)
+    f_b, f_h = balls['normal'], held['normal']
+    at5 = np.searchsorted(held['depth'], 0.005)
+    fall = np.max(np.maximum.accumulate(f_h) - f_h)
+    print(f'balls: gives way at {gives_way(balls["depth"], f_b) * 1e3:.1f} mm, Fz at 25 mm {f_b[-1]:.3f} N; '
+          f'backstop: Fz at 5 / 25 mm {f_h[at5]:.3f} / {f_h[-1]:.3f} N, largest fall {fall:.3f} N')
+    assert gives_way(balls['depth'], f_b) < 0.012 and f_b[-1] < 0.3
+    assert f_h[at5] == pytest.approx(f_b[at5], rel=0.05)
+    assert f_h[-1] > 2.0 and f_h[-1] > 8.0 * f_h[at5]
+    assert fall < 0.1 * f_h[-1]
+    assert held['over'].max() == 0
+
+
+def test_backstop_samples_hold_a_coarse_liver_as_the_balls_do():
+    """The 743 liver (11.5 mm spacing, the tool's radius 0.43 of it) pressed 6 mm at its apex: the
+    samples alone let the tool sink into the surface layer there; behind the balls they leave the
+    press to the balls."""
+    model = make_model('liver', n_particles=743)
+    X = model.positions
+    forces = {}
+    for name, config in (('balls', SolverConfig()), ('backstop', SolverConfig(**BACKSTOP))):
+        solver = Solver(model, LIVER, config)
+        start = X[np.argmax(X[:, 2])] + [0.0, 0.0, solver.contact_reach]
+        for k in range(120):
+            res = solver.step(start - [0.0, 0.0, 0.006 * min(1.0, (k + 1) / 80)], 1e-3)
+        forces[name] = res.force
+    print(forces)
+    f = forces['backstop']
+    assert f[2] > 0.2 and f[2] > 3.0 * np.hypot(f[0], f[1])
+    assert f[2] == pytest.approx(forces['balls'][2], rel=0.1)
