@@ -542,7 +542,8 @@ class Solver:
             self.dashpot_rate.reset()
         self.sim_time = 0.0
         self.f_prev = 0.0
-        #: backstop samples: one was within a frame's tool travel of the tool after the last frame
+        #: backstop samples: one came within a frame's tool travel of the tool, and the tool has
+        #: touched the tissue ever since
         self.samples_near = False
         self.tool_prev: np.ndarray | None = None     # the tip position [m] of the previous frame
         self.seg_prev: np.ndarray | None = None      # and the tool's segment (2, 3)
@@ -810,8 +811,11 @@ class Solver:
                        -math.expm1(-dt / cfg.far_field_tau) if cfg.far_field_tau > 0.0 else 1.0)
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
         if cfg.sample_mode == 'backstop':
-            self.samples_near = path.on and nearest_sample_gap(
+            near = path.on and nearest_sample_gap(
                 self.x, self.v, sets.cand, sets.n_cand, path.seg1, self.samples) < cfg.max_tool_speed * dt
+            # and while the tool still touches: shrinking the area as the samples slide past a
+            # deep tool (the tissue giving way) made the 30k liver's step blow up at 28.5 mm
+            self.samples_near = near or (self.samples_near and overlap > 0.0)
         n_active_frame = area.n_active
         md, ke = area.stats(self.x, self.v, self.mass)
         area.release(self.x, self.v, cfg.relax_disp_tol, cfg.relax_vel_tol)
