@@ -94,7 +94,8 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'sample_mode': ('surface', 'with contact_samples: surface (the tool meets the samples) | backstop (it '
                                'meets the particle balls first, as without samples; the samples only hold '
                                'it out of the gaps between particles: a shallow press as the balls, no '
-                               'pop-through to ~31 mm on the 3670 liver)', SAMPLE_MODES, False, 'solver'),
+                               'pop-through to ~32 mm on the 3670 liver; the local area widens once the '
+                               'samples carry the load)', SAMPLE_MODES, False, 'solver'),
     'viscosity': ('explicit', 'tlsph dashpots: explicit (sub-step bounded by rho h^2 / eta) | implicit '
                               '(backward Euler by conjugate gradients: no viscous bound; fewer sub-steps '
                               'on fine models, each dearer)', VISCOSITIES, False, 'solver'),

@@ -162,11 +162,14 @@ class SolverConfig:
             the samples; the particles' own balls, of the tool's size, back them up. ``backstop``:
             the particles' balls of ``contact_particle_radius``, as without samples; the samples,
             on the material's surface below the balls' reach, only hold the tool out of the gaps
-            between particles where the balls push the particles apart. Pressed straight into the
-            3671-particle liver, a shallow press is the balls' (Hertz block and the 743 liver's
-            apex as balls), and the force rises to 3.2 N at 31 mm instead of peaking at 0.39 N
-            near 10 mm; local mode is within 5 % of global at 9 of 12 presses (the misses at 10 mm
-            and on the lattice's terraces, where the samples spread the load).
+            between particles where the balls push the particles apart. Once a sample comes near
+            the tool, local mode solves every particle a touching sample reads and the area grows
+            by ``SAMPLE_AREA_GROWTH`` h (the samples spread their load) until the tool leaves the
+            tissue. Pressed straight into the 3671-particle liver, a shallow press is the balls'
+            (Hertz block and the 743 liver's apex as balls), and the force rises to 3.3 N at
+            32 mm instead of peaking at 0.39 N near 10 mm, with a dip of up to 0.28 N near 18 mm;
+            local mode is within 5 % of global at 12 of 12 presses, at 2.1-2.6x the balls'
+            step once the samples carry the load.
         viscosity: ``explicit`` (default) or ``implicit``: the ``tlsph`` dashpots backward Euler
             (:mod:`.backward_euler`), no viscous sub-step bound; slower on the bundled models.
         viscous_tol: the implicit dashpots' solve stops at this residual relative to ``|v*|``.
