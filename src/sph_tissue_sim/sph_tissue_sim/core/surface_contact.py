@@ -150,8 +150,17 @@ def no_samples(n: int) -> Samples:
 
 
 @njit(cache=True, fastmath=True, inline='always')
-def sample_point(s, x, v, samples):
-    """Position and velocity of sample ``s``: ``(y0, y1, y2, u0, u1, u2)``."""
+def samples_in_reach(i, x, seg, samples):
+    """Whether particle ``i`` owns samples that may touch the tool: a sample stays within
+    ``samples.margin`` of its owner, so test the owner first."""
+    lim = samples.radius + samples.margin
+    return samples.start[i] < samples.start[i + 1] and segment_distance2(i, x, seg) < lim * lim
+
+
+@njit(cache=True, fastmath=True, inline='always')
+def sample_offset(s, x, v, seg, samples):
+    """Sample ``s`` seen from the tool: ``(e0, e1, e2, t, u0, u1, u2)``, its offset [m] from the
+    segment's closest point (at ``t`` along it) and its velocity [m/s]."""
     w_start, w_idx, w_val, off = samples.w_start, samples.w_idx, samples.w_val, samples.offset
     y0 = off[s, 0]; y1 = off[s, 1]; y2 = off[s, 2]; u0 = 0.0; u1 = 0.0; u2 = 0.0
     for k in range(w_start[s], w_start[s + 1]):
@@ -159,7 +168,8 @@ def sample_point(s, x, v, samples):
         w = w_val[k]
         y0 += w * x[j, 0]; y1 += w * x[j, 1]; y2 += w * x[j, 2]
         u0 += w * v[j, 0]; u1 += w * v[j, 1]; u2 += w * v[j, 2]
-    return y0, y1, y2, u0, u1, u2
+    c0, c1, c2, t = closest_on_segment(y0, y1, y2, seg)
+    return y0 - c0, y1 - c1, y2 - c2, t, u0, u1, u2
 
 
 @njit(cache=True)
@@ -167,17 +177,13 @@ def nearest_sample_gap(x, v, cand, n_cand, seg, samples):
     """The smallest distance [m] between the tool (segment ``seg`` swept by ``samples.radius``)
     and a sample of ``cand[:n_cand]`` (negative: one is inside the tool; ``inf``: none within
     ``samples.margin`` of it)."""
-    start, radius = samples.start, samples.radius
-    lim = radius + samples.margin
     gap = np.inf
     for t in range(n_cand):
         i = cand[t]
-        if start[i] == start[i + 1] or segment_distance2(i, x, seg) >= lim * lim:
-            continue
-        for s in range(start[i], start[i + 1]):
-            y0, y1, y2, u0, u1, u2 = sample_point(s, x, v, samples)
-            c0, c1, c2, ts = closest_on_segment(y0, y1, y2, seg)
-            gap = min(gap, math.sqrt((y0 - c0) ** 2 + (y1 - c1) ** 2 + (y2 - c2) ** 2) - radius)
+        if samples_in_reach(i, x, seg, samples):
+            for s in range(samples.start[i], samples.start[i + 1]):
+                e0, e1, e2, ts, u0, u1, u2 = sample_offset(s, x, v, seg, samples)
+                gap = min(gap, math.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - samples.radius)
     return gap
 
 
@@ -196,16 +202,12 @@ def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, rea
     start, w_start, w_idx, w_val = samples.start, samples.w_start, samples.w_idx, samples.w_val
     radius, k_s, c_s = samples.radius, samples.stiffness, samples.damping
     best = 0.0
-    lim = radius + samples.margin
     for t in range(n_cand):
         i = cand[t]
-        # a sample stays within samples.margin of its owner: test the owner first
-        if start[i] == start[i + 1] or segment_distance2(i, x, seg) >= lim * lim:
+        if not samples_in_reach(i, x, seg, samples):
             continue
         for s in range(start[i], start[i + 1]):
-            y0, y1, y2, u0, u1, u2 = sample_point(s, x, v, samples)
-            c0, c1, c2, ts = closest_on_segment(y0, y1, y2, seg)
-            e0 = y0 - c0; e1 = y1 - c1; e2 = y2 - c2
+            e0, e1, e2, ts, u0, u1, u2 = sample_offset(s, x, v, seg, samples)
             r2 = e0 * e0 + e1 * e1 + e2 * e2
             if r2 >= radius * radius:
                 continue
