@@ -9,6 +9,7 @@ from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import Material, liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.core.surface_contact import nearest_sample_gap
 from sph_tissue_sim.validation.cases import gives_way, press_and_hold, press_curve
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
@@ -247,14 +248,22 @@ def test_backstop_samples_hold_a_coarse_liver_as_the_balls_do():
     assert f[2] == pytest.approx(forces['balls'][2], rel=0.1)
 
 
-def test_backstop_samples_near_the_tool_widen_the_local_area_so_local_stays_with_global():
-    """The samples spread their load over their kernel support: once they come near the tool the
+def test_backstop_samples_that_push_widen_the_local_area_so_local_stays_with_global():
+    """The samples spread their load over their kernel support: once one pushes the tool the
     local area solves every particle they read and grows (sized for the balls, local mode was
-    12 % softer than global at this 10 mm press); before that it is the balls' area."""
+    12 % softer than global at this 10 mm press); before that it is the balls' area, also with
+    the samples within a millimetre of the tool."""
     model = make_model('liver', n_particles=3670)
-    shallow = Solver(model, LIVER_DEFAULT, SolverConfig(**BACKSTOP))
-    press(shallow, 0.001, frames=100)
-    assert not shallow.samples_near
+    area = {}
+    for name, config in (('balls', SolverConfig()), ('backstop', SolverConfig(**BACKSTOP))):
+        solver = Solver(model, LIVER_DEFAULT, config)
+        res = press(solver, 0.0035, frames=150)
+        area[name] = res.n_active
+    everyone = np.arange(solver.n, dtype=np.int32)
+    gap = nearest_sample_gap(solver.x, solver.v, everyone, solver.n, solver.seg_prev, solver.samples)
+    assert 0.0 < gap < 1e-3
+    assert not solver.samples_push
+    assert area['backstop'] == area['balls']
     f = {mode: np.linalg.norm(press_and_hold(model, LIVER_DEFAULT, SolverConfig(mode=mode, **BACKSTOP), 0.010,
                                              xy=(0.03, 0.0)))
          for mode in ('global', 'local')}

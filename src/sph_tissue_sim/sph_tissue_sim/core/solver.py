@@ -162,14 +162,14 @@ class SolverConfig:
             the samples; the particles' own balls, of the tool's size, back them up. ``backstop``:
             the particles' balls of ``contact_particle_radius``, as without samples; the samples,
             on the material's surface below the balls' reach, only hold the tool out of the gaps
-            between particles where the balls push the particles apart. Once a sample comes near
-            the tool, local mode solves every particle a touching sample reads and the area grows
-            by ``SAMPLE_AREA_GROWTH`` h (the samples spread their load) until the tool leaves the
+            between particles where the balls push the particles apart. Once a sample pushes the
+            tool, local mode solves every particle a touching sample reads and the area grows by
+            ``SAMPLE_AREA_GROWTH`` h (the samples spread their load) until the tool leaves the
             tissue. Pressed straight into the 3671-particle liver, a shallow press is the balls'
             (Hertz block and the 743 liver's apex as balls), and the force rises to 3.3 N at
             32 mm instead of peaking at 0.39 N near 10 mm, with a dip of up to 0.28 N near 18 mm;
-            local mode is within 5 % of global at 12 of 12 presses, at 2.1-2.6x the balls'
-            step once the samples carry the load.
+            local mode is within 5 % of global at 12 of 12 presses; the step costs 1.3x the
+            balls' while no sample pushes and 2.3-2.6x once they carry the load.
         viscosity: ``explicit`` (default) or ``implicit``: the ``tlsph`` dashpots backward Euler
             (:mod:`.backward_euler`), no viscous sub-step bound; slower on the bundled models.
         viscous_tol: the implicit dashpots' solve stops at this residual relative to ``|v*|``.
@@ -435,7 +435,7 @@ class Solver:
         self.cand_reach = self.samples_reach = max(self.tool.radius + reach + support, self.ball_reach)
         if cfg.sample_mode == 'backstop':
             # a sample lies within `reach` of its owner, inside the owner's ball: until a sample
-            # comes near the tool (Solver.samples_near), the balls' candidates and area suffice
+            # pushes the tool (Solver.samples_push), the balls' candidates and area suffice
             self.cand_reach = self.ball_reach
 
     def _make_scheme(self):
@@ -545,9 +545,9 @@ class Solver:
             self.dashpot_rate.reset()
         self.sim_time = 0.0
         self.f_prev = 0.0
-        #: backstop samples: one came within a frame's tool travel of the tool, and the tool has
-        #: touched the tissue ever since
-        self.samples_near = False
+        #: backstop samples: one has pushed the tool, and the tool has touched the tissue ever since
+        #: (the local area is the samples')
+        self.samples_push = False
         self.tool_prev: np.ndarray | None = None     # the tip position [m] of the previous frame
         self.seg_prev: np.ndarray | None = None      # and the tool's segment (2, 3)
         self.last_result: StepResult | None = None
@@ -804,9 +804,10 @@ class Solver:
                 contact = deepest
         k1 = min(max(cfg.k1_gain * self.f_prev, cfg.k1_min), cfg.k1_max)
         Dr, reach = k1 * self.h, self.cand_reach
-        if self.samples_near:
+        if self.samples_push:
             # the samples spread their load over their support: solve every particle a touching
-            # sample reads, and a larger area (sized for the balls it is too stiff or too soft)
+            # sample reads, and a larger area (sized for the balls, its half-space shell is too
+            # near that load: local mode 12 % too soft or 7 % too stiff at a 10 mm press)
             Dr, reach = Dr + SAMPLE_AREA_GROWTH * self.h, self.samples_reach
         sets, n_inter, n_relax = area.prepare(self.body, path.seg0 if path.on else None, path.seg1,
                                               reach, margin, contact, Dr, cfg.scheme == 'paper')
@@ -814,11 +815,11 @@ class Solver:
                        -math.expm1(-dt / cfg.far_field_tau) if cfg.far_field_tau > 0.0 else 1.0)
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
         if cfg.sample_mode == 'backstop':
-            near = path.on and nearest_sample_gap(
-                self.x, self.v, sets.cand, sets.n_cand, path.seg1, self.samples) < cfg.max_tool_speed * dt
+            push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
+                                                  self.samples) < 0.0
             # and while the tool still touches: shrinking the area as the samples slide past a
             # deep tool (the tissue giving way) made the 30k liver's step blow up at 28.5 mm
-            self.samples_near = near or (self.samples_near and overlap > 0.0)
+            self.samples_push = push or (self.samples_push and overlap > 0.0)
         n_active_frame = area.n_active
         md, ke = area.stats(self.x, self.v, self.mass)
         area.release(self.x, self.v, cfg.relax_disp_tol, cfg.relax_vel_tol)
