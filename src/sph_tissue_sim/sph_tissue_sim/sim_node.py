@@ -265,11 +265,16 @@ class SimNode(Node):
 
     def _describe_gradients(self) -> str:
         s = self.solver
-        if s.config.scheme != 'tlsph' or s.config.gradient_order == 1:
+        if s.config.scheme != 'tlsph':
             return ''
-        return (f' (second-order gradients: {s.scheme.fallen} particles keep first order, the '
-                f'stiffest mode {s.stiffness_gain:.2f}x stiffer, sub-step {s.dt_max_free * 1e3:.3f} ms '
-                f'without a tool)')
+        if s.config.surface_extrapolation:
+            what = f'surface extrapolation at {len(s.scheme.ext)} particles'
+        elif s.config.gradient_order > 1:
+            what = f'second-order gradients: {s.scheme.fallen} particles keep first order'
+        else:
+            return ''
+        return (f' ({what}, the stiffest mode {s.stiffness_gain:.2f}x stiffer, sub-step '
+                f'{s.dt_max_free * 1e3:.3f} ms without a tool)')
 
     def _describe_haptic(self) -> str:
         if self.haptic is None:

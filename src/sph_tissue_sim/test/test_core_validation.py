@@ -159,7 +159,9 @@ def test_cantilever_first_bending_frequency_is_within_10_percent_of_euler_bernou
     - a second-order surface correction of F (F_c = F - 1/2 grad(F) : T_i with the third moment
       T_i = sum_j V_j dX dX (x) L_i^-T DWIJ0, zero in the bulk): energy 0.91, f1 -9.4 %, but it
       doubles the largest stiffness eigenvalue (CFL 0.3 blows up), gives nu = 0.475 in uniaxial
-      tension, creep +2.6 % and +14 % indentation force.
+      tension, creep +2.6 % and +14 % indentation force. With sub-step bounds that follow the
+      stiffness gain it is now the option ``surface_extrapolation`` (-3.4 % here,
+      test_core_surface_extrapolation.py).
     Second-order gradients (``gradient_order: 2``) do bend right, with sub-step bounds that follow
     their stiffer surface modes (the test below), but halve a point contact's force.
     """

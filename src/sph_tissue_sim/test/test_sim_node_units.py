@@ -340,9 +340,10 @@ def test_bringup_launch_sets_only_parameters_its_nodes_declare():
         mod.node_overrides({'backend': 'scripted', 'timing': 'lockstep'})
 
 
-def test_the_ready_line_reports_what_second_order_gradients_cost():
+def test_the_ready_line_reports_what_second_order_or_extrapolated_gradients_cost():
     """With ``gradient_order: 2`` the node's ready line says how many particles kept first order,
-    the measured stiffness gain and the sub-step it leads to; with the default, nothing."""
+    with ``surface_extrapolation`` how many are extrapolated; both the measured stiffness gain
+    and the sub-step it leads to; with the default, nothing."""
     from types import SimpleNamespace
 
     from sph_tissue_sim.core.material import liver_default
@@ -357,3 +358,7 @@ def test_the_ready_line_reports_what_second_order_gradients_cost():
         else:
             assert f'{s.scheme.fallen} particles keep first order' in text
             assert f'{s.stiffness_gain:.2f}x stiffer' in text and s.stiffness_gain > 2.0
+    s = Solver(model, liver_default(), SolverConfig(surface_extrapolation=True))
+    text = SimNode._describe_gradients(SimpleNamespace(solver=s))
+    assert f'surface extrapolation at {len(s.scheme.ext)} particles' in text and len(s.scheme.ext) > 0
+    assert f'{s.stiffness_gain:.2f}x stiffer' in text and s.stiffness_gain > 1.0

@@ -182,6 +182,14 @@ class SolverConfig:
             contact is about half as stiff (Hertz block at 5 mm spacing: 0.041 N instead of
             0.084 N, Hertz 0.062 N), and the stiffest surface modes are 4.5-5.6x stiffer, which
             the sub-step bounds follow (3670 liver: 8 sub-steps per ms instead of 2).
+        surface_extrapolation: ``tlsph`` with first-order gradients: near a free surface a
+            particle's F is the gradient at its neighbours' weighted centroid, inside the body,
+            so a bent beam's outer fibres strain too little; this moves it to the particle with
+            the Hessian taken from the neighbours' F (:func:`~.tlsph.surface_extrapolation`; the
+            forces stay the gradient of the discrete energy). Cantilever 4 / 8 / 10 particles tall
+            against Timoshenko about -8 / -3 / -2 % instead of -22 / -7 / -5 %, with the point
+            contact kept; the stiffest modes are about 1.6x stiffer (liver) and the sub-step
+            bounds follow. With implicit dashpots the dashpots stay first order.
         integrator: ``explicit`` (default: symplectic Euler, sub-steps bounded by the CFL,
             viscous and contact bounds) or ``implicit`` (``tlsph`` only): linearly implicit backward
             Euler on everything, the elastic spring, the dashpots and the pushing contacts (one
@@ -261,6 +269,7 @@ class SolverConfig:
     viscous_tol: float = 1e-3
     contact_integration: str = 'explicit'
     gradient_order: int = 1
+    surface_extrapolation: bool = False
     integrator: str = 'explicit'
     implicit_max_dt: float = 0.016
     implicit_tol: float = 0.01
@@ -294,6 +303,11 @@ class SolverConfig:
             raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
         if self.sample_mode != 'surface' and self.contact_samples == 0:
             raise ConfigError(f'sample_mode {self.sample_mode!r} needs contact_samples > 0')
+        if not isinstance(self.surface_extrapolation, (bool, np.bool_)):
+            raise ConfigError(f'surface_extrapolation must be true or false, got {self.surface_extrapolation!r}')
+        if self.surface_extrapolation and (self.scheme != 'tlsph' or self.gradient_order != 1):
+            raise ConfigError(f'surface_extrapolation needs scheme tlsph with gradient_order 1, got '
+                              f'{self.scheme!r} with {self.gradient_order}')
         if self.gradient_order > 1 and self.scheme != 'tlsph':
             raise ConfigError(f'gradient_order {self.gradient_order} needs scheme tlsph, got {self.scheme!r}')
         if self.viscosity == 'implicit' and self.scheme != 'tlsph':
@@ -448,7 +462,7 @@ class Solver:
         return TlsphScheme(self.X, self.offsets, self.indices, self.h, self.volume, cfg.hourglass,
                            self.par_min,
                            explicit_dashpots=cfg.viscosity == 'explicit' and cfg.integrator == 'explicit',
-                           gradient_order=cfg.gradient_order)
+                           gradient_order=cfg.gradient_order, extrapolate=cfg.surface_extrapolation)
 
     def interrupt(self) -> None:
         """Make the step running in another thread stop before its next sub-step (it then raises
@@ -505,8 +519,8 @@ class Solver:
         eta_long = 0.0 if implicit_dashpots else material.eta_longitudinal
         #: how much stiffer the stiffest mode is than with first-order gradients (1: those)
         self.stiffness_gain = 1.0
-        if isinstance(self.scheme, TlsphScheme) and cfg.gradient_order > 1:
-            # second-order gradients stiffen the surface modes (TlsphScheme.stiffness_gain)
+        if isinstance(self.scheme, TlsphScheme) and (cfg.gradient_order > 1 or cfg.surface_extrapolation):
+            # second-order or extrapolated gradients stiffen the surface modes (TlsphScheme.stiffness_gain)
             self.stiffness_gain = self.scheme.stiffness_gain(self.body, self.area.global_sets(-1))
             c *= math.sqrt(self.stiffness_gain)
             eta_long *= self.stiffness_gain

@@ -46,6 +46,10 @@ from .material import Material
 from .protocols import STATUS_OK, FixedStateScheme, internal_forces, is_state
 from .state import Motion
 
+#: surface_extrapolation: particles whose third moment |T_i| is at most this many h keep first order
+#: (it is 0 in a symmetric neighbourhood)
+EXTRAPOLATION_MIN = 0.02
+
 
 class Tlsph(NamedTuple):
     """The scheme's state for the frame loop: reference pairs, per-particle tensors, material."""
@@ -68,34 +72,20 @@ class Tlsph(NamedTuple):
     hg_k: float            # hourglass stiffness
     hg_c: float            # hourglass damping
     par_min: int           # stressed particles from which a sub-step runs on the thread pool
+    ext: np.ndarray        # (E,) particles whose F is extrapolated to themselves (surface_extrapolation)
+    ext_row: np.ndarray    # (N,) a particle's row in ext, -1 if none
+    m_start: np.ndarray    # (E + 1,) row r's pair maps are M[m_start[r] + k - offsets[ext[r]]]
+    M: np.ndarray          # (sum of the ext particles' pairs, 3, 3) the pairs' extrapolation maps
+    S: np.ndarray          # (E, 3, 3) sum of a row's M
+    Astar: np.ndarray      # (E, 3, 3) scratch: V P(F*)
+    ext_now: np.ndarray    # (E,) scratch: the rows extrapolated this sub-step
 
 
 @njit(cache=True, fastmath=True, inline='always')
-def tlsph_stress_one(i, s, x, v):
-    """F_i, dF_i/dt, ``A_i = V P_i`` and the hourglass map ``H_i = hg_k F_i + hg_c dF_i/dt``
-    for particle ``i`` (writes rows of ``s.F``, ``s.Fd``, ``s.A``, ``s.H``; ``s`` a :class:`Tlsph`)."""
-    g, offsets, indices, volume = s.g, s.offsets, s.indices, s.volume
-    G, K, eta_s, eta_v, hg_k, hg_c = s.G, s.K, s.eta_s, s.eta_v, s.hg_k, s.hg_c
-    F, Fd, A, H = s.F, s.Fd, s.A, s.H
-    a = ZERO3X3
-    b = ZERO3X3
-    xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
-    vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
-    for k in range(offsets[i], offsets[i + 1]):
-        j = indices[k]
-        g0 = g[k, 0]; g1 = g[k, 1]; g2 = g[k, 2]
-        a = add_outer(a, x[j, 0] - xi0, x[j, 1] - xi1, x[j, 2] - xi2, g0, g1, g2)
-        b = add_outer(b, v[j, 0] - vi0, v[j, 1] - vi1, v[j, 2] - vi2, g0, g1, g2)
+def _piola(a, b, G, K, eta_s, eta_v):
+    """First Piola-Kirchhoff stress (row-major 9-tuple) of the Kelvin-Voigt element at ``F`` = ``a``
+    and ``dF/dt`` = ``b`` (row-major 9-tuples)."""
     f00, f01, f02, f10, f11, f12, f20, f21, f22 = a
-    h00, h01, h02, h10, h11, h12, h20, h21, h22 = b
-    Fm = F[i]
-    Fdm = Fd[i]
-    Fm[0, 0] = f00; Fm[0, 1] = f01; Fm[0, 2] = f02
-    Fm[1, 0] = f10; Fm[1, 1] = f11; Fm[1, 2] = f12
-    Fm[2, 0] = f20; Fm[2, 1] = f21; Fm[2, 2] = f22
-    Fdm[0, 0] = h00; Fdm[0, 1] = h01; Fdm[0, 2] = h02
-    Fdm[1, 0] = h10; Fdm[1, 1] = h11; Fdm[1, 2] = h12
-    Fdm[2, 0] = h20; Fdm[2, 1] = h21; Fdm[2, 2] = h22
     r00, r11, r22, r01, r02, r12 = strain_rate(a, b)
     # viscous part: Kelvin-Voigt dashpots on the Green-Lagrange strain rate, P_v = F S_v
     lam_v = (eta_v - 2.0 * eta_s / 3.0) * (r00 + r11 + r22)
@@ -126,6 +116,36 @@ def tlsph_stress_one(i, s, x, v):
     p20 = f20 * s00 + f21 * s01 + f22 * s02 + G * f20 + t * c20
     p21 = f20 * s01 + f21 * s11 + f22 * s12 + G * f21 + t * c21
     p22 = f20 * s02 + f21 * s12 + f22 * s22 + G * f22 + t * c22
+    return p00, p01, p02, p10, p11, p12, p20, p21, p22
+
+
+@njit(cache=True, fastmath=True, inline='always')
+def tlsph_stress_one(i, s, x, v):
+    """F_i, dF_i/dt, ``A_i = V P_i`` and the hourglass map ``H_i = hg_k F_i + hg_c dF_i/dt``
+    for particle ``i`` (writes rows of ``s.F``, ``s.Fd``, ``s.A``, ``s.H``; ``s`` a :class:`Tlsph`)."""
+    g, offsets, indices, volume = s.g, s.offsets, s.indices, s.volume
+    G, K, eta_s, eta_v, hg_k, hg_c = s.G, s.K, s.eta_s, s.eta_v, s.hg_k, s.hg_c
+    F, Fd, A, H = s.F, s.Fd, s.A, s.H
+    a = ZERO3X3
+    b = ZERO3X3
+    xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
+    vi0 = v[i, 0]; vi1 = v[i, 1]; vi2 = v[i, 2]
+    for k in range(offsets[i], offsets[i + 1]):
+        j = indices[k]
+        g0 = g[k, 0]; g1 = g[k, 1]; g2 = g[k, 2]
+        a = add_outer(a, x[j, 0] - xi0, x[j, 1] - xi1, x[j, 2] - xi2, g0, g1, g2)
+        b = add_outer(b, v[j, 0] - vi0, v[j, 1] - vi1, v[j, 2] - vi2, g0, g1, g2)
+    f00, f01, f02, f10, f11, f12, f20, f21, f22 = a
+    h00, h01, h02, h10, h11, h12, h20, h21, h22 = b
+    Fm = F[i]
+    Fdm = Fd[i]
+    Fm[0, 0] = f00; Fm[0, 1] = f01; Fm[0, 2] = f02
+    Fm[1, 0] = f10; Fm[1, 1] = f11; Fm[1, 2] = f12
+    Fm[2, 0] = f20; Fm[2, 1] = f21; Fm[2, 2] = f22
+    Fdm[0, 0] = h00; Fdm[0, 1] = h01; Fdm[0, 2] = h02
+    Fdm[1, 0] = h10; Fdm[1, 1] = h11; Fdm[1, 2] = h12
+    Fdm[2, 0] = h20; Fdm[2, 1] = h21; Fdm[2, 2] = h22
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = _piola(a, b, G, K, eta_s, eta_v)
     Am = A[i]
     Am[0, 0] = volume * p00; Am[0, 1] = volume * p01; Am[0, 2] = volume * p02
     Am[1, 0] = volume * p10; Am[1, 1] = volume * p11; Am[1, 2] = volume * p12
@@ -187,12 +207,100 @@ def tlsph_force_one(i, s, X, x, v):
 
 
 @njit(cache=True, fastmath=True)
+def surface_extrapolate(s, sets):
+    """Second pass of ``surface_extrapolation``: the stress of each particle of ``s.ext`` at
+
+        F*_i = F_i - sum_k (F_k - F_i) M_ik = F_i (I + S_i) - sum_k F_k M_ik,
+
+    its first-order F moved from the neighbours' weighted centroid to the particle (the Hessian
+    from the neighbours' F, see :func:`surface_extrapolation`), and the same for dF/dt; then
+    ``A`` becomes the adjoint ``dE/dF`` of the energy ``sum_i V W(F*_i)``,
+
+        A_m = V P*_m (I + S_m)^T - sum_i V P*_i M_im^T,
+
+    which the force pass turns into forces as it does the first-order ``A``. In local mode only
+    the solved particles are extrapolated (their neighbours all have an F this sub-step).
+    """
+    offsets, indices, F, Fd, A, M, S, Astar, volume = (s.offsets, s.indices, s.F, s.Fd, s.A, s.M, s.S,
+                                                      s.Astar, s.volume)
+    G, K, eta_s, eta_v = s.G, s.K, s.eta_s, s.eta_v
+    rows = s.ext_now
+    n_rows = 0
+    if sets.n_stress == F.shape[0]:
+        for r in range(s.ext.shape[0]):
+            rows[n_rows] = r
+            n_rows += 1
+    else:
+        for t in range(sets.n_sph):
+            r = s.ext_row[sets.sph[t]]
+            if r >= 0:
+                rows[n_rows] = r
+                n_rows += 1
+    Fs = np.empty((3, 3))
+    Fds = np.empty((3, 3))
+    for t in range(n_rows):
+        r = rows[t]
+        i = s.ext[r]
+        for c in range(3):
+            for e in range(3):
+                acc = F[i, c, e]
+                accd = Fd[i, c, e]
+                for a in range(3):
+                    acc += F[i, c, a] * S[r, a, e]
+                    accd += Fd[i, c, a] * S[r, a, e]
+                Fs[c, e] = acc
+                Fds[c, e] = accd
+        base = s.m_start[r] - offsets[i]
+        for k in range(offsets[i], offsets[i + 1]):
+            j = indices[k]
+            for c in range(3):
+                for e in range(3):
+                    acc = 0.0
+                    accd = 0.0
+                    for a in range(3):
+                        acc += F[j, c, a] * M[base + k, a, e]
+                        accd += Fd[j, c, a] * M[base + k, a, e]
+                    Fs[c, e] -= acc
+                    Fds[c, e] -= accd
+        p = _piola((Fs[0, 0], Fs[0, 1], Fs[0, 2], Fs[1, 0], Fs[1, 1], Fs[1, 2], Fs[2, 0], Fs[2, 1], Fs[2, 2]),
+                   (Fds[0, 0], Fds[0, 1], Fds[0, 2], Fds[1, 0], Fds[1, 1], Fds[1, 2], Fds[2, 0], Fds[2, 1],
+                    Fds[2, 2]), G, K, eta_s, eta_v)
+        for c in range(3):
+            for e in range(3):
+                Astar[r, c, e] = volume * p[3 * c + e]
+    # the particles' own terms first: the scatter below adds to them
+    for t in range(n_rows):
+        r = rows[t]
+        i = s.ext[r]
+        for c in range(3):
+            for e in range(3):
+                acc = Astar[r, c, e]
+                for a in range(3):
+                    acc += Astar[r, c, a] * S[r, e, a]
+                A[i, c, e] = acc
+    for t in range(n_rows):
+        r = rows[t]
+        i = s.ext[r]
+        base = s.m_start[r] - offsets[i]
+        for k in range(offsets[i], offsets[i + 1]):
+            j = indices[k]
+            for c in range(3):
+                for e in range(3):
+                    acc = 0.0
+                    for a in range(3):
+                        acc += Astar[r, c, a] * M[base + k, e, a]
+                    A[j, c, e] -= acc
+
+
+@njit(cache=True, fastmath=True)
 def tlsph_pass(s, body, motion, sets):
     """One sub-step of TLSPH internal forces (``s`` a :class:`Tlsph`): stresses of
     ``sets.stress``, then ``acc = f / m`` of ``sets.sph`` (serial: no thread-pool wake-up on small sets)."""
     X, x, v, acc, inv_mass = body.X, motion.x, motion.v, motion.acc, body.inv_mass
     for t in range(sets.n_stress):
         tlsph_stress_one(sets.stress[t], s, x, v)
+    if s.ext.shape[0] > 0:
+        surface_extrapolate(s, sets)
     for t in range(sets.n_sph):
         i = sets.sph[t]
         f0, f1, f2 = tlsph_force_one(i, s, X, x, v)
@@ -214,6 +322,8 @@ def tlsph_pass_parallel(s, body, motion, sets):
     stress, sph = sets.stress, sets.sph
     for t in prange(sets.n_stress):
         tlsph_stress_one(stress[t], s, x, v)
+    if s.ext.shape[0] > 0:
+        surface_extrapolate(s, sets)
     for t in prange(sets.n_sph):
         i = sph[t]
         f0, f1, f2 = tlsph_force_one(i, s, X, x, v)
@@ -277,6 +387,46 @@ def tlsph_von_mises(F, Fd, G, K, eta_s, eta_v, idx, n, out):
         d2 = sig[2, 2] - tr
         out[i] = math.sqrt(1.5 * (d0 * d0 + d1 * d1 + d2 * d2
                                   + 2.0 * (sig[0, 1] ** 2 + sig[0, 2] ** 2 + sig[1, 2] ** 2)))
+
+
+def surface_extrapolation(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, g: np.ndarray,
+                          h: float) -> tuple:
+    """The maps of :func:`surface_extrapolate`: ``(ext, ext_row, m_start, M, S)``.
+
+    For a quadratic displacement the first-order corrected gradient (``sum_j d_j (x) g_ij = I``,
+    ``d_j = X_j - X_i``) is off by the Hessian ``H`` contracted with the third moment
+
+        F_i[c, e] = du_c/dX_e + sum_ab H_c[a, b] T_i[a, b, e],   T_i = 1/2 sum_j d_j d_j g_ij,
+
+    which vanishes in a symmetric neighbourhood and at a free surface places the gradient inside
+    the body: the outer fibres of a bent beam strain too little. With ``H_c[a, b] = dF[c, a]/dX_b ~
+    sum_k (F_k - F_i)[c, a] g_ik[b]`` the correction is ``sum_k (F_k - F_i) M_ik``,
+    ``M_ik[a, e] = sum_b g_ik[b] T_i[a, b, e]``. Particles with ``|T_i| <= EXTRAPOLATION_MIN h``
+    keep first order.
+    """
+    n = len(X)
+    rows = np.repeat(np.arange(n), np.diff(offsets))
+    d = X[indices] - X[rows]
+    # the third moment one component at a time (an (nnz, 3, 3, 3) temporary is 1.3 GB at 100k)
+    T = np.zeros((n, 3, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            for e in range(3):
+                T[:, a, b, e] = T[:, b, a, e] = np.bincount(rows, weights=0.5 * d[:, a] * d[:, b] * g[:, e],
+                                                            minlength=n)
+    del d
+    norm = np.sqrt((T ** 2).sum(axis=(1, 2, 3)))
+    ext = np.flatnonzero(norm > EXTRAPOLATION_MIN * h)
+    ext_row = np.full(n, -1, dtype=np.int64)
+    ext_row[ext] = np.arange(len(ext))
+    counts = offsets[ext + 1] - offsets[ext]
+    m_start = np.zeros(len(ext) + 1, dtype=np.int64)
+    np.cumsum(counts, out=m_start[1:])
+    pairs = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in ext]) if len(ext) else np.zeros(0, int)
+    M = np.einsum('kb,kabe->kae', g[pairs], T[rows[pairs]])
+    S = np.zeros((len(ext), 3, 3))
+    np.add.at(S, np.repeat(np.arange(len(ext)), counts), M)
+    return ext.astype(np.int64), ext_row, m_start, np.ascontiguousarray(M), S
 
 
 def _pair_arrays(X, offsets, indices, h, volume, order):
@@ -346,13 +496,15 @@ class TlsphScheme(FixedStateScheme):
         explicit_dashpots: False leaves the material's dashpots out of the forces (an implicit
             integrator applies them, :mod:`.backward_euler`); the hourglass dashpot stays.
         gradient_order: 1 (Bonet-Lok) or 2 (exact for quadratic fields), see :mod:`.gradients`.
+        extrapolate: with first-order gradients, move each surface particle's F from its
+            neighbours' centroid to the particle (:func:`surface_extrapolation`).
     """
 
     name = 'tlsph'
 
     def __init__(self, X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float,
                  volume: float, hourglass: float, par_min: int, explicit_dashpots: bool = True,
-                 gradient_order: int = 1) -> None:
+                 gradient_order: int = 1, extrapolate: bool = False) -> None:
         n = len(X)
         self.explicit_dashpots = explicit_dashpots
         self.offsets, self.indices, self.volume = offsets, indices, volume
@@ -365,6 +517,15 @@ class TlsphScheme(FixedStateScheme):
         self._first = (_pair_arrays(X, offsets, indices, h, volume, 1)[:3] if gradient_order > 1
                        else (self.g, self.gr, self.gsum))
         self._gains: dict = {}
+        if extrapolate:
+            self.ext, self.ext_row, self.m_start, self.M, self.S = surface_extrapolation(
+                X, offsets, indices, self.g, h)
+        else:
+            self.ext, self.ext_row, self.m_start = (np.zeros(0, dtype=np.int64), np.full(n, -1, dtype=np.int64),
+                                                    np.zeros(1, dtype=np.int64))
+            self.M, self.S = np.zeros((0, 3, 3)), np.zeros((0, 3, 3))
+        self.Astar = np.zeros((len(self.ext), 3, 3))
+        self.ext_now = np.zeros(len(self.ext), dtype=np.int64)
         self.F = np.zeros((n, 3, 3))
         self.Fd = np.zeros((n, 3, 3))
         self.A = np.zeros((n, 3, 3))
@@ -385,7 +546,8 @@ class TlsphScheme(FixedStateScheme):
         on = 1.0 if self.explicit_dashpots else 0.0
         self._state = Tlsph(self.offsets, self.indices, self.g, self.gr, self.gsum, self.w0,
                             self.F, self.Fd, self.A, self.H, self.volume, material.G, material.K,
-                            on * eta_s, on * eta_b, hg_k, hg_c, self.par_min)
+                            on * eta_s, on * eta_b, hg_k, hg_c, self.par_min, self.ext, self.ext_row,
+                            self.m_start, self.M, self.S, self.Astar, self.ext_now)
 
     def wave_speed(self, material: Material, mass: float) -> float:
         return material.wave_speed
@@ -398,13 +560,15 @@ class TlsphScheme(FixedStateScheme):
         The CFL and viscous sub-step bounds were set for first-order gradients; second-order ones
         extrapolate at free surfaces, which raises the stiffest surface modes (about 4.5x on a
         10 x 6 x 5 bar), so the bounds shrink by ``sqrt(gain)`` and ``gain``."""
-        if self.gradient_order == 1:
+        if self.gradient_order == 1 and len(self.ext) == 0:
             return 1.0
+        # against plain first-order gradients (with surface_extrapolation: the same g, no ext)
         st = self._state
         key = (st.G, st.K, st.eta_s, st.eta_v, st.hg_k, st.hg_c)
         if key not in self._gains:
             saved = [a.copy() for a in (self.F, self.Fd, self.A, self.H)]
-            first = st._replace(g=self._first[0], gr=self._first[1], gsum=self._first[2])
+            first = st._replace(g=self._first[0], gr=self._first[1], gsum=self._first[2],
+                                ext=np.zeros(0, dtype=np.int64))
             self._gains[key] = (max_stiffness_eigenvalue(st, body, sets)
                                 / max_stiffness_eigenvalue(first, body, sets))
             for a, b in zip((self.F, self.Fd, self.A, self.H), saved):
