@@ -3,37 +3,25 @@ to the particle (core/tlsph.py: surface_extrapolation, surface_extrapolate)."""
 
 import numpy as np
 import pytest
+from discrete_energy import SOFT, assert_forces_are_minus_the_energy_gradient, gradients, neo_hookean_energy
 
 from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
-from sph_tissue_sim.core.tlsph import tlsph_pass
 from sph_tissue_sim.validation.cases import E_TEST, cantilever_frequency, creep, uniaxial
-
-SOFT = Material.from_shear(1800.0, 0.45, 0.0, 0.0, rho=1060.0)
 
 
 def _solver(model, on: bool, material=SOFT, **config) -> Solver:
     return Solver(model, material, SolverConfig(mode='global', surface_extrapolation=on, **config))
 
 
-def _gradients(s: Solver, field: np.ndarray) -> np.ndarray:
-    """sum_j (f_j - f_i) (x) g_ij per particle, f (N, ...) of any trailing shape."""
-    sc = s.scheme
-    rows = np.repeat(np.arange(s.n), np.diff(sc.offsets))
-    diff = field[sc.indices] - field[rows]
-    out = np.zeros(field.shape + (3,))
-    np.add.at(out, rows, diff[..., None] * sc.g.reshape((-1,) + (1,) * (field.ndim - 1) + (3,)))
-    return out
-
-
 def _extrapolated(s: Solver, x: np.ndarray) -> np.ndarray:
     """F* from the definitions: F - H : T at the extrapolated particles, with the Hessian
     ``H[c, a, b] = sum_k (F_k - F_i)[c, a] g_ik[b]`` and ``T = 1/2 sum_j d d g_ij``."""
     sc = s.scheme
-    F = _gradients(s, x)
-    H = _gradients(s, F)
+    F = gradients(s, x)
+    H = gradients(s, F)
     rows = np.repeat(np.arange(s.n), np.diff(sc.offsets))
     d = s.X[sc.indices] - s.X[rows]
     T = np.zeros((s.n, 3, 3, 3))
@@ -41,16 +29,6 @@ def _extrapolated(s: Solver, x: np.ndarray) -> np.ndarray:
     out = F.copy()
     out[sc.ext] -= np.einsum('ncab,nabe->nce', H[sc.ext], T[sc.ext])
     return out
-
-
-def _energy(s: Solver, x: np.ndarray) -> float:
-    """sum_i V psi(F*_i), compressible neo-Hookean."""
-    F = _extrapolated(s, x)
-    G, K = s.material.G, s.material.K
-    lam = K - 2.0 * G / 3.0
-    J = np.linalg.det(F)
-    psi = 0.5 * G * (np.einsum('nab,nab->n', F, F) - 3.0) - G * np.log(J) + 0.5 * lam * np.log(J) ** 2
-    return float(s.volume * psi.sum())
 
 
 def test_only_particles_near_a_free_surface_are_extrapolated():
@@ -63,23 +41,12 @@ def test_only_particles_near_a_free_surface_are_extrapolated():
 
 
 def test_extrapolated_forces_are_minus_the_gradient_of_the_discrete_energy():
-    """The force pass with the adjoint A is -dE/dx of sum_i V psi(F*_i), F* written out from its
+    """The force pass with the adjoint A is -dE/dx of sum_i V psi(F*_i) (neo-Hookean), F* written out from its
     definition (central differences on a randomly distorted block, no hourglass, no viscosity)."""
     s = _solver(make_block(5, 4, 4, spacing=0.005, fix='none'), True, hourglass=0.0)
     assert len(s.scheme.ext) > 0
-    rng = np.random.default_rng(3)
-    x = s.X + rng.normal(0.0, 2e-4, s.X.shape)
-    s.x[:] = x
-    s.v[:] = 0.0
-    tlsph_pass(s.scheme.state(None, None, 0), s.body, s.motion, s.area.global_sets(-1))
-    f = s.acc * s.mass
-    eps = 1e-8
-    for i, a in ((0, 0), (6, 2), (21, 1), (45, 0), (79, 2)):
-        xp, xm = x.copy(), x.copy()
-        xp[i, a] += eps
-        xm[i, a] -= eps
-        dE = (_energy(s, xp) - _energy(s, xm)) / (2.0 * eps)
-        assert f[i, a] == pytest.approx(-dE, rel=1e-5, abs=1e-12 * np.abs(f).max())
+    assert_forces_are_minus_the_energy_gradient(s, lambda x: neo_hookean_energy(s, _extrapolated(s, x)),
+                                                ((0, 0), (6, 2), (21, 1), (45, 0), (79, 2)), seed=3)
 
 
 def test_a_bent_block_strains_its_surface_particles_as_the_field_does():
@@ -96,7 +63,7 @@ def test_a_bent_block_strains_its_surface_particles_as_the_field_does():
     exact[:, 0, 2] = -k * X[:, 0]
     exact[:, 2, 0] = k * X[:, 0]
     ext = s.scheme.ext
-    first = _gradients(s, u)[ext] - exact[ext]
+    first = gradients(s, u)[ext] - exact[ext]
     moved = (_extrapolated(s, s.X + u) - np.eye(3))[ext] - exact[ext]
     e1, e2 = np.abs(first).mean(), np.abs(moved).mean()
     print(f'mean |F - grad u| at the {len(ext)} surface particles: first order {e1:.3g}, extrapolated {e2:.3g}')
