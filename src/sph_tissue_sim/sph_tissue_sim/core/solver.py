@@ -187,9 +187,10 @@ class SolverConfig:
             so a bent beam's outer fibres strain too little; this moves it to the particle with
             the Hessian taken from the neighbours' F (:func:`~.tlsph.surface_extrapolation`; the
             forces stay the gradient of the discrete energy). Cantilever 4 / 8 / 10 particles tall
-            against Timoshenko about -8 / -3 / -2 % instead of -22 / -7 / -5 %, with the point
-            contact kept; the stiffest modes are about 1.6x stiffer (liver) and the sub-step
-            bounds follow. With implicit dashpots the dashpots stay first order.
+            against Timoshenko -8.3 / -3.0 / -2.2 % instead of -22 / -7 / -5 %, with most of a
+            point contact kept (Hertz block 7-12 % softer; ``gradient_order`` 2 halves it); the
+            stiffest modes are 1.6x (liver) to 2x (blocks) stiffer and the sub-step bounds follow
+            (liver: 3 sub-steps per ms instead of 2). With implicit dashpots those stay first order.
         integrator: ``explicit`` (default: symplectic Euler, sub-steps bounded by the CFL,
             viscous and contact bounds) or ``implicit`` (``tlsph`` only): linearly implicit backward
             Euler on everything, the elastic spring, the dashpots and the pushing contacts (one
