@@ -111,12 +111,14 @@ def test_creep_and_uniaxial_e_hold_with_surface_extrapolation():
 
 def test_local_mode_extrapolates_the_solved_particles_and_stays_with_global():
     """In local mode only the solved particles are extrapolated (their neighbours all have an F):
-    a press on a block within 5 % of the whole block's."""
+    a press on a block within 5 % of the whole block's, and farther from the local press without
+    the extrapolation than from the global one with it."""
     model = make_block(12, 12, 6, spacing=0.005, fix='bottom')
     material = Material.from_shear(1800.0, 0.45, 3.0, 3.0, rho=1060.0)
     forces = {}
-    for mode in ('global', 'local'):
-        s = Solver(model, material, SolverConfig(mode=mode, surface_extrapolation=True))
+    for mode, on in (('global', True), ('local', True), ('first order', False)):
+        s = Solver(model, material, SolverConfig(mode='local' if mode == 'first order' else mode,
+                                                 surface_extrapolation=on))
         c = s.X.mean(axis=0)
         top = s.X[:, 2].max()
         for k in range(300):
@@ -126,6 +128,7 @@ def test_local_mode_extrapolates_the_solved_particles_and_stays_with_global():
     print(forces)
     assert forces['global'] > 0.02
     assert forces['local'] == pytest.approx(forces['global'], rel=0.05)
+    assert abs(forces['local'] - forces['first order']) > 2.0 * abs(forces['local'] - forces['global'])
 
 
 @pytest.mark.parametrize('bad', [dict(surface_extrapolation=True, gradient_order=2),
