@@ -25,7 +25,8 @@ from .core.errors import ConfigError, ModelError
 from .core.material import Material, load_material
 from .core.factory import MODELS, make_model
 from .core.models import TissueModel
-from .core.solver import CONTACT_INTEGRATIONS, INTEGRATORS, MODES, SAMPLE_MODES, SCHEMES, VISCOSITIES, SolverConfig
+from .core.solver import (CONTACT_INTEGRATIONS, FAR_FIELD_MODELS, INTEGRATORS, MODES, SAMPLE_MODES, SCHEMES,
+                          VISCOSITIES, SolverConfig)
 from .core.tools import TOOLS
 from .haptics.renderer import RENDERER_RANGES, RendererConfig
 from .mapping import ANCHORS, DEFAULT_ROTATION
@@ -131,6 +132,12 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                        'the whole organ, up to +24 %)',
                   (0.0, 2.0), False,
                   'solver'),
+    'far_field_model': ('half_space', 'local mode: what moves the still particles next to the solved ones: '
+                                      'half_space (Boussinesq, far_field times it) | organ (the organ\'s own '
+                                      'linear response, factored at start: 3670 liver about 9 s and 0.5 GB, '
+                                      'then about 60 ms per particle first touched; with far_field 1 and the '
+                                      'backstop samples no wider area: local within 5 % of global at 12 of 12 '
+                                      'presses)', FAR_FIELD_MODELS, False, 'solver'),
     'parallel_min_particles': (0, 'tlsph: use numba threads (NUMBA_NUM_THREADS) when at least this '
                                   'many particles are stressed; 0 = never. Only on cores the sim '
                                   'has to itself: a busy core stalls every parallel sub-step',
@@ -302,7 +309,7 @@ def build_config(p: dict) -> SolverConfig:
                        contact_samples=int(p['contact_samples']),
                        sample_mode=p['sample_mode'],
                        paper_momentum=int(p['paper_momentum']),
-                       far_field=float(p['far_field']),
+                       far_field=float(p['far_field']), far_field_model=p['far_field_model'],
                        max_tool_speed=float(p['max_tool_speed']),
                        viscosity=p['viscosity'], viscous_tol=float(p['viscous_tol']),
                        contact_integration=p['contact_integration'],

@@ -25,6 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .compliance import OrganCompliance, shell_and_ring
 from .contact import contact_vector, segment_distance2
 from .neighbours import append_new, query_ball
 from .state import Area, Body, Grid, Sets, Topology
@@ -390,6 +391,9 @@ class LocalArea:
         self.ff_mark = np.zeros(0, dtype=np.int8)
         self.ff_buf = np.zeros((0, 3))
         self.ff_load = np.zeros(3)
+        # where the organ's far field applies the load (the last touched particles, their weights)
+        self.ff_at = np.zeros(0, dtype=np.int32)
+        self.ff_w = np.zeros(0)
         self.bundle = Area(self.region, self.in_area, self.in_active, self.active, self.stamp, self.sph,
                            self.layer, self.layer_w, self.stress, self.cand, self.tmp, self.touch,
                            self.touch_w, self.centre, self.layer_counts)
@@ -403,6 +407,7 @@ class LocalArea:
         self.n_ff = 0
         self.n_touch = 0
         self.ff_load[:] = 0.0
+        self.ff_at = np.zeros(0, dtype=np.int32)
         if global_mode:
             self.region[self.free] = 1
 
@@ -453,10 +458,12 @@ class LocalArea:
         return sets, n_inter, n_relax
 
     def far_field(self, body: Body, x: np.ndarray, sets: Sets, react: np.ndarray, factor: float, G: float,
-                  nu: float, blend: float = 1.0) -> None:
+                  nu: float, blend: float = 1.0, organ: OrganCompliance | None = None) -> None:
         """Place the stress shell at the half-space response to the load ``-factor * react``
-        (:func:`far_field_shell`), low-passed: the load moves ``blend`` (0..1] of the way to it
-        each frame; returns the shell to rest once ``factor`` is 0.
+        (:func:`far_field_shell`), or with ``organ`` the shell and its neighbours at the organ's
+        response to it, shared by the touched particles (:func:`~.compliance.shell_and_ring`),
+        low-passed: the load moves ``blend`` (0..1] of the way to it each frame; returns them to
+        rest once ``factor`` is 0.
 
         Why the low pass: the shell's displacement follows the force, which follows the shell.
         Near the load (a small area: ``k1 h`` shrinks with the spacing) that loop's gain passes 1
@@ -472,8 +479,17 @@ class LocalArea:
             self.ff_list = np.zeros(n, dtype=np.int32)
             self.ff_mark = np.zeros(n, dtype=np.int8)
             self.ff_buf = np.zeros((n, 3))
-        self.n_ff = far_field_shell(body, x, sets, self.ff_mark, self.ff_list, self.n_ff, self.centre,
-                                    self.ff_load, G, nu, self.buf_x, self.ff_buf)
+        if organ is None:
+            self.n_ff = far_field_shell(body, x, sets, self.ff_mark, self.ff_list, self.n_ff, self.centre,
+                                        self.ff_load, G, nu, self.buf_x, self.ff_buf)
+            return
+        if self.n_touch > 0:
+            self.ff_at = self.touch[:self.n_touch].copy()
+            self.ff_w = self.touch_w[:self.n_touch].copy()
+        self.n_ff = shell_and_ring(body, self.topo, sets, self.ff_mark, self.ff_list, self.n_ff, x)
+        if len(self.ff_at) and self.n_ff:
+            idx = self.ff_list[:self.n_ff]
+            x[idx] = self.X[idx] + organ.displacement(idx, self.ff_at, self.ff_w, self.ff_load)
 
     def save(self, x: np.ndarray, v: np.ndarray, sets: Sets) -> None:
         """Keep the state of the particles a frame on ``sets`` moves."""

@@ -1,0 +1,127 @@
+"""The organ's linear compliance as local mode's far field (``far_field_model: organ``, :mod:`.core.compliance`)."""
+
+import numpy as np
+import pytest
+
+from sph_tissue_sim.core.compliance import linear_stiffness, shell_and_ring
+from sph_tissue_sim.core.errors import ConfigError
+from sph_tissue_sim.core.material import Material
+from sph_tissue_sim.core.models import make_block
+from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.core.state import Motion
+from sph_tissue_sim.core.tlsph import tlsph_pass
+from sph_tissue_sim.validation.cases import press_and_hold
+
+SOFT = Material.from_shear(1800.0, 0.45, 3.0)
+
+
+def _block(nx: int = 7, nz: int = 4):
+    return make_block(nx, nx, nz, spacing=0.0075, fix='bottom')
+
+
+def _stiffness(solver: Solver):
+    st = solver.scheme.state(None, None, 0)
+    return linear_stiffness(solver.X, st.offsets, st.indices, st.g, st.gsum, st.w0, st.volume, st.G, st.K,
+                            st.hg_k)
+
+
+def test_the_stiffness_is_the_solvers_internal_forces_linearised_at_rest():
+    solver = Solver(_block(), SOFT, SolverConfig(mode='global'))
+    K = _stiffness(solver)
+    X, n = solver.X, solver.n_particles
+    u = np.random.default_rng(3).standard_normal((n, 3))
+    u[solver.fixed] = 0.0
+    eps = 1e-9
+    motion = Motion(X + eps * u, np.zeros_like(X), np.zeros_like(X))
+    tlsph_pass(solver.scheme.state(None, None, 0), solver.body, motion, solver.area.global_sets(-1))
+    free = ~solver.fixed
+    f = motion.acc[free] * solver.body.mass / eps
+    f_lin = -(K @ u.ravel()).reshape(n, 3)[free]
+    assert np.linalg.norm(f - f_lin) <= 1e-5 * np.linalg.norm(f)
+
+
+def test_rigid_motions_cost_no_force():
+    """A translation and an infinitesimal rotation strain nothing: ``K`` maps them to zero (the
+    elastic part sees only sym(H), the hourglass bond error ``H X' - u'`` vanishes for u = W X)."""
+    solver = Solver(_block(), SOFT, SolverConfig(mode='global'))
+    K = _stiffness(solver)
+    X = solver.X - solver.X.mean(axis=0)
+    W = np.array([[0.0, -0.3, 0.2], [0.3, 0.0, -0.1], [-0.2, 0.1, 0.0]])
+    scale = abs(K).max() * np.abs(X).max()
+    for u in (np.tile([1e-3, -2e-3, 5e-4], (len(X), 1)), X @ W.T):
+        assert np.abs(K @ u.ravel()).max() <= 1e-9 * scale
+
+
+def test_a_particles_column_is_the_organs_displacement_under_a_unit_force_on_it():
+    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
+    organ = solver.organ
+    X = solver.X
+    top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
+    c = int(top[np.argmin(np.hypot(X[top, 0] - X[:, 0].mean(), X[top, 1] - X[:, 1].mean()))])
+    col = organ.column(c)
+    K = _stiffness(solver)
+    free = ~solver.fixed
+    for axis in range(3):
+        f = -(K @ col[:, :, axis].ravel()).reshape(-1, 3)   # the internal forces balance the load
+        load = np.zeros_like(f)
+        load[c, axis] = 1.0
+        np.testing.assert_allclose(f[free] + load[free], 0.0, atol=1e-8)
+    assert np.all(col[solver.fixed] == 0.0)
+    # pulled up, the top rises under the load and less so farther away (the edges of this small,
+    # nearly incompressible block sink a little)
+    uz = col[top, 2, 2]
+    r = np.hypot(X[top, 0] - X[c, 0], X[top, 1] - X[c, 1])
+    near, far = uz[(r > 0.0) & (r < 0.01)], uz[r > 0.02]
+    assert uz[r == 0.0][0] > near.mean() > 0.0 > far.mean() > -0.1 * uz[r == 0.0][0]
+    assert organ.column(c) is col and organ.n_columns == 1
+
+
+def test_the_far_field_moves_the_shell_and_the_shells_neighbours_and_nothing_solved():
+    solver = Solver(_block(12, 5), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
+    X = solver.X
+    tip = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean(), X[:, 2].max() + solver.contact_reach - 0.003])
+    for _ in range(5):
+        solver.step(tip, 1e-3)
+    area = solver.area
+    sets = area.prepare(solver.body, tip[None].repeat(2, 0), tip[None].repeat(2, 0), solver.cand_reach, 2e-4,
+                        -1, 1.75 * solver.h, False)[0]
+    solved = set(sets.sph[:sets.n_sph].tolist()) | set(sets.layer[:sets.n_layer].tolist())
+    shell = {j for j in sets.stress[:sets.n_stress].tolist() if j not in solved and not solver.fixed[j]}
+    topo = area.topo
+    ring = {int(k) for j in shell for k in topo.indices[topo.offsets[j]:topo.offsets[j + 1]]}
+    expected = (shell | ring) - solved - set(np.flatnonzero(solver.fixed).tolist())
+    mark = np.zeros(len(X), dtype=np.int8)
+    ff_list = np.zeros(len(X), dtype=np.int32)
+    x = solver.positions.copy()
+    m = shell_and_ring(solver.body, topo, sets, mark, ff_list, 0, x)
+    assert set(ff_list[:m].tolist()) == expected and m == len(expected)
+    assert len(shell) > 0 and len(expected) > len(shell)
+    assert not mark.any()
+    # a frame later with nothing solved, the listed particles go back to rest
+    empty = sets._replace(n_sph=0, n_layer=0, n_stress=0)
+    x[ff_list[:m]] += 1e-3
+    assert shell_and_ring(solver.body, topo, empty, mark, ff_list, m, x) == 0
+    np.testing.assert_array_equal(x[ff_list[:m]], X[ff_list[:m]])
+
+
+def test_local_mode_with_the_organs_far_field_gives_the_global_force():
+    """A 4 mm press on a bottom-fixed block, held quasi-statically: with the organ's own response
+    (``far_field`` 1, no tuning) local mode is within 5 % of the whole block."""
+    block = _block(9, 5)
+    f = {}
+    for mode in ('global', 'local'):
+        cfg = SolverConfig(mode=mode, far_field_model='organ', far_field=1.0)
+        f[mode] = press_and_hold(block, SOFT, cfg, 0.004, ramp=300, hold=200)[2]
+    print(f)
+    assert f['global'] > 0.05
+    assert abs(f['local'] / f['global'] - 1.0) <= 0.05
+
+
+def test_the_organ_far_field_needs_tlsph_and_is_built_only_for_local_mode():
+    with pytest.raises(ConfigError, match='far_field_model'):
+        SolverConfig(far_field_model='whole').validate()
+    with pytest.raises(ConfigError, match='needs scheme tlsph'):
+        SolverConfig(scheme='paper', far_field_model='organ').validate()
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='global', far_field_model='organ')).organ is None
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field=0.0, far_field_model='organ')).organ is None
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local')).organ is None
