@@ -73,7 +73,16 @@ def test_a_particles_column_is_the_organs_displacement_under_a_unit_force_on_it(
     r = np.hypot(X[top, 0] - X[c, 0], X[top, 1] - X[c, 1])
     near, far = uz[(r > 0.0) & (r < 0.01)], uz[r > 0.02]
     assert uz[r == 0.0][0] > near.mean() > 0.0 > far.mean() > -0.1 * uz[r == 0.0][0]
-    assert organ.column(c) is col and organ.n_columns == 1
+    assert np.array_equal(organ.column(c), col) and organ.n_columns == 1   # solved once, kept
+    # a load shared by two particles displaces by the weighted sum of their responses
+    other = int(top[np.argmax(X[top, 0])])
+    idx = np.flatnonzero(~solver.fixed).astype(np.int32)
+    load = np.array([0.01, -0.02, -0.3])
+    x = X.copy()
+    organ.place(x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
+    expected = X[idx] + 0.75 * organ.column(c)[idx] @ load + 0.25 * organ.column(other)[idx] @ load
+    np.testing.assert_allclose(x[idx], expected, rtol=1e-12, atol=1e-15)
+    assert organ.n_columns == 2
 
 
 def test_the_far_field_moves_the_shell_and_the_shells_neighbours_and_nothing_solved():

@@ -102,33 +102,51 @@ class OrganCompliance:
         self.lu = sla.splu(k[self.free_dofs][:, self.free_dofs].tocsc(), permc_spec='MMD_AT_PLUS_A')
         self.factor_seconds = time.perf_counter() - t0
         self.factor_nnz = int(self.lu.L.nnz + self.lu.U.nnz)
-        self._columns: dict[int, np.ndarray] = {}
+        #: row of ``store`` holding particle i's response (-1: not solved yet)
+        self.slot = np.full(self.n, -1, dtype=np.int32)
+        self.store = np.zeros((0, self.n, 3, 3))
+        self.n_columns = 0
 
     def column(self, c: int) -> np.ndarray:
         """(N, 3, 3) displacement [m/N] of every particle (axis 1) under a unit force along each
         axis (axis 2) on particle ``c``; zero if ``c`` is held."""
-        col = self._columns.get(c)
-        if col is None:
+        if self.slot[c] < 0:
+            if self.n_columns == len(self.store):
+                grown = np.zeros((max(8, 2 * len(self.store)), self.n, 3, 3))
+                grown[:self.n_columns] = self.store[:self.n_columns]
+                self.store = grown
             rhs = np.zeros((3 * self.n, 3))
             rhs[3 * c:3 * c + 3] = np.eye(3)
             u = np.zeros((3 * self.n, 3))
             u[self.free_dofs] = self.lu.solve(rhs[self.free_dofs])
-            col = u.reshape(self.n, 3, 3)
-            self._columns[c] = col
-        return col
+            self.store[self.n_columns] = u.reshape(self.n, 3, 3)
+            self.slot[c] = self.n_columns
+            self.n_columns += 1
+        return self.store[self.slot[c]]
 
-    @property
-    def n_columns(self) -> int:
-        return len(self._columns)
+    def place(self, x: np.ndarray, X: np.ndarray, idx: np.ndarray, at: np.ndarray, weights: np.ndarray,
+              load: np.ndarray) -> None:
+        """Put particles ``idx`` at ``X`` plus their displacement under ``load`` [N] shared by the
+        particles ``at`` in proportion to ``weights`` (solving the responses not solved yet)."""
+        for c in at.tolist():
+            self.column(c)
+        organ_place(x, X, idx, at, weights / float(np.sum(weights)), self.slot, self.store, load)
 
-    def displacement(self, idx: np.ndarray, at: np.ndarray, weights: np.ndarray, load: np.ndarray) -> np.ndarray:
-        """(len(idx), 3) displacement [m] of particles ``idx`` under ``load`` [N] shared by the
-        particles ``at`` in proportion to ``weights``."""
-        u = np.zeros((len(idx), 3))
-        total = float(np.sum(weights))
-        for c, w in zip(at.tolist(), weights.tolist()):
-            u += (w / total) * (self.column(int(c))[idx] @ load)
-        return u
+
+@njit(cache=True, nogil=True)
+def organ_place(x, X, idx, at, w, slot, store, load):
+    """``x_j = X_j + sum_t w_t C(j, at_t) load`` for j in ``idx`` (``C`` the responses in ``store``,
+    row ``slot[at_t]``; ``w`` sums to 1)."""
+    for q in range(idx.shape[0]):
+        j = idx[q]
+        u0 = 0.0; u1 = 0.0; u2 = 0.0
+        for t in range(at.shape[0]):
+            c = store[slot[at[t]], j]
+            wt = w[t]
+            u0 += wt * (c[0, 0] * load[0] + c[0, 1] * load[1] + c[0, 2] * load[2])
+            u1 += wt * (c[1, 0] * load[0] + c[1, 1] * load[1] + c[1, 2] * load[2])
+            u2 += wt * (c[2, 0] * load[0] + c[2, 1] * load[1] + c[2, 2] * load[2])
+        x[j, 0] = X[j, 0] + u0; x[j, 1] = X[j, 1] + u1; x[j, 2] = X[j, 2] + u2
 
 
 @njit(cache=True, nogil=True)

@@ -488,8 +488,7 @@ class LocalArea:
             self.ff_w = self.touch_w[:self.n_touch].copy()
         self.n_ff = shell_and_ring(body, self.topo, sets, self.ff_mark, self.ff_list, self.n_ff, x)
         if len(self.ff_at) and self.n_ff:
-            idx = self.ff_list[:self.n_ff]
-            x[idx] = self.X[idx] + organ.displacement(idx, self.ff_at, self.ff_w, self.ff_load)
+            organ.place(x, self.X, self.ff_list[:self.n_ff], self.ff_at, self.ff_w, self.ff_load)
 
     def save(self, x: np.ndarray, v: np.ndarray, sets: Sets) -> None:
         """Keep the state of the particles a frame on ``sets`` moves."""
