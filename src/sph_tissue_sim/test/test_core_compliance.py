@@ -65,7 +65,7 @@ def test_a_particles_column_is_the_organs_displacement_under_a_unit_force_on_it(
         f = -(K @ col[:, :, axis].ravel()).reshape(-1, 3)   # the internal forces balance the load
         load = np.zeros_like(f)
         load[c, axis] = 1.0
-        np.testing.assert_allclose(f[free] + load[free], 0.0, atol=1e-8)
+        np.testing.assert_allclose(f[free] + load[free], 0.0, atol=1e-4)   # single precision
     assert np.all(col[solver.fixed] == 0.0)
     # pulled up, the top rises under the load and less so farther away (the edges of this small,
     # nearly incompressible block sink a little)
@@ -81,8 +81,11 @@ def test_a_particles_column_is_the_organs_displacement_under_a_unit_force_on_it(
     x = X.copy()
     organ.place(x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
     expected = X[idx] + 0.75 * organ.column(c)[idx] @ load + 0.25 * organ.column(other)[idx] @ load
-    np.testing.assert_allclose(x[idx], expected, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(x[idx], expected, rtol=1e-6, atol=1e-12)
     assert organ.n_columns == 2
+    # a particle next to a solved one borrows its response instead of paying a solve
+    beside = int(top[np.argmin(np.where(top == c, np.inf, np.linalg.norm(X[top] - X[c], axis=1)))])
+    assert np.array_equal(organ.column(beside), organ.column(c)) and organ.n_columns == 2
 
 
 def test_the_far_field_moves_the_shell_and_the_shells_neighbours_and_nothing_solved():
