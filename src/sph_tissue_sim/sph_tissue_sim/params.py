@@ -134,8 +134,8 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                   'solver'),
     'far_field_model': ('half_space', 'local mode: what moves the still particles next to the solved ones: '
                                       'half_space (Boussinesq, far_field times it) | organ (the organ\'s own '
-                                      'linear response, factored at start: 3670 liver about 9 s and 0.5 GB, '
-                                      'then about 60 ms per particle first touched; with far_field 1 and the '
+                                      'linear response, factored at start: 3670 liver about 5 s and 0.8 GB at '
+                                      'its peak, then about 45 ms per response solved; with far_field 1 and the '
                                       'backstop samples no wider area: local within 5 % of global at 12 of 12 '
                                       'presses)', FAR_FIELD_MODELS, False, 'solver'),
     'parallel_min_particles': (0, 'tlsph: use numba threads (NUMBA_NUM_THREADS) when at least this '

@@ -53,7 +53,7 @@ MODES = ('global', 'local')
 VISCOSITIES = ('explicit', 'implicit')
 CONTACT_INTEGRATIONS = ('explicit', 'implicit')
 SAMPLE_MODES = ('surface', 'backstop')
-#: backstop samples near the tool grow the local area's radius by this many h (with the
+#: backstop samples that push the tool grow the local area's radius by this many h (with the
 #: half-space far field)
 SAMPLE_AREA_GROWTH = 1.5
 FAR_FIELD_MODELS = ('half_space', 'organ')
@@ -238,15 +238,17 @@ class SolverConfig:
             ``half_space`` (default): the Boussinesq response (``far_field``'s docs).
             ``organ``: the organ's own linear response to the contact force, shared by the
             touched particles (:mod:`.compliance`: the material's stiffness at rest, factored
-            once when the solver is made or its material changes; a particle's response is
-            solved the first time it carries the tool), placed on the stress shell and on the
-            shell's neighbours; then ``far_field`` 1 is the organ itself, and the backstop
-            samples need no wider area. On the 3670 liver with the backstop samples, no area
-            growth and ``far_field`` 1: local within 5 % of global at 12 of 12 presses (-3.1 ...
-            +3.3 %; the half-space with the growth: -3.5 ... +3.8 %, without it 10 of 12). The
-            price is memory and a start-up factorisation (3670 liver: about 9 s and 41 M
-            factor entries, about 0.5 GB; it grows faster than the particle count) and about
-            60 ms for each particle's first touch.
+            once in single precision when the solver is made or its material changes; a
+            particle's response is solved the first time it carries the tool, unless one within
+            ``ORGAN_SHARE`` spacings has one), placed on the stress shell and on the shell's
+            neighbours; then ``far_field`` 1 is the organ itself, and the backstop samples need
+            no wider area. On the 3670 liver with the backstop samples, no area growth and
+            ``far_field`` 1: local within 5 % of global at 12 of 12 presses (-3.3 ... +3.2 %;
+            the half-space with the growth: -3.5 ... +3.8 %, without it 10 of 12) at 1.4-1.5x
+            the balls' step instead of 2.2-2.6x. The price: a start-up factorisation (3670
+            liver: about 5 s idle, 41 M factor entries, about 0.8 GB at its peak; it grows
+            faster than the particle count, so it is for livers of a few thousand particles)
+            and about 45 ms for each response solved.
         dashpot_rate_every: frames between two power iterations that follow the explicit
             dashpots' largest rate ``c`` at the current deformation (:mod:`.stability`; every
             frame while it rises past ``c dt = 1``); the sub-step then also keeps ``c dt <= 1.6``
