@@ -7,6 +7,7 @@ from sph_tissue_sim.core.compliance import linear_stiffness, shell_and_ring
 from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
+from sph_tissue_sim.core import solver as solver_module
 from sph_tissue_sim.core.solver import Solver, SolverConfig
 from sph_tissue_sim.core.state import Motion
 from sph_tissue_sim.core.tlsph import tlsph_pass
@@ -127,6 +128,13 @@ def test_local_mode_with_the_organs_far_field_gives_the_global_force():
     print(f)
     assert f['global'] > 0.05
     assert abs(f['local'] / f['global'] - 1.0) <= 0.05
+
+
+def test_a_model_too_large_to_factor_is_refused_with_a_clear_error(monkeypatch):
+    monkeypatch.setattr(solver_module, 'ORGAN_MAX_FREE', 40)
+    with pytest.raises(ConfigError, match='free particles are more than 40.*use far_field_model half_space'):
+        Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='organ'))
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='global', far_field_model='organ')).organ is None
 
 
 def test_the_organ_far_field_needs_tlsph_and_is_built_only_for_local_mode():

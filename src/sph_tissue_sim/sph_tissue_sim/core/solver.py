@@ -60,6 +60,9 @@ FAR_FIELD_MODELS = ('half_space', 'organ')
 #: the organ's far field lends a particle's response to the particles within this many spacings
 #: (a response costs a back-substitution, about 45 ms on the 3670 liver)
 ORGAN_SHARE = 1.01
+#: the organ's far field factors the whole model: beyond this many free particles its start-up
+#: and its responses cost too much (the 12k liver, 11149 free: 66 s, 4.6 GB, 0.3 s per response)
+ORGAN_MAX_FREE = 5000
 INTEGRATORS = ('explicit', 'implicit')
 #: relative residual of the implicit contact's solve (cheap: it spans the particles under the tool)
 CONTACT_TOL = 1e-8
@@ -247,8 +250,9 @@ class SolverConfig:
             the half-space with the growth: -3.5 ... +3.8 %, without it 10 of 12) at 1.4-1.5x
             the balls' step instead of 2.2-2.6x. The price: a start-up factorisation (3670
             liver: about 5 s idle, 41 M factor entries, about 0.8 GB at its peak; it grows
-            faster than the particle count, so it is for livers of a few thousand particles)
-            and about 45 ms for each response solved.
+            faster than the particle count: the 12k liver 66 s, 4.6 GB and 0.3 s per response,
+            so models with more than ``ORGAN_MAX_FREE`` free particles are refused) and about
+            45 ms for each response solved.
         dashpot_rate_every: frames between two power iterations that follow the explicit
             dashpots' largest rate ``c`` at the current deformation (:mod:`.stability`; every
             frame while it rises past ``c dt = 1``); the sub-step then also keeps ``c dt <= 1.6``
@@ -537,9 +541,16 @@ class Solver:
             self.samples = no_samples(self.n)
         self.scheme.set_material(material, self.mass)
         #: the organ's compliance for local mode's far field (None: the half-space's)
-        self.organ = (OrganCompliance(self.X, self.fixed, self.scheme.state(None, None, 0),
-                                      ORGAN_SHARE * self.model.spacing)
-                      if cfg.far_field_model == 'organ' and cfg.mode == 'local' and cfg.far_field > 0.0 else None)
+        self.organ = None
+        if cfg.far_field_model == 'organ' and cfg.mode == 'local' and cfg.far_field > 0.0:
+            n_free = int(np.count_nonzero(~self.fixed))
+            if n_free > ORGAN_MAX_FREE:
+                raise ConfigError(
+                    f'far_field_model organ factors the whole model\'s stiffness; {n_free} free particles '
+                    f'are more than {ORGAN_MAX_FREE} (3276 free: 5 s, 0.8 GB, 45 ms per response; 11149: '
+                    f'66 s, 4.6 GB, 0.3 s per response): use far_field_model half_space')
+            self.organ = OrganCompliance(self.X, self.fixed, self.scheme.state(None, None, 0),
+                                         ORGAN_SHARE * self.model.spacing)
         if self.backward is not None:
             self.backward.set_material(material)
         c = self.scheme.wave_speed(material, self.mass)
