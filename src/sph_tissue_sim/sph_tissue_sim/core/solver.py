@@ -247,8 +247,8 @@ class SolverConfig:
             neighbours; then ``far_field`` 1 is the organ itself, and the backstop samples need
             no wider area. On the 3670 liver with the backstop samples, no area growth and
             ``far_field`` 1: local within 5 % of global at 12 of 12 presses (-3.3 ... +3.2 %;
-            the half-space with the growth: -3.5 ... +3.8 %, without it 10 of 12) at 1.4-1.5x
-            the balls' step instead of 2.2-2.6x. The price: a start-up factorisation (3670
+            the half-space with the growth: -3.5 ... +3.8 %, without it 10 of 12) at 1.3-1.4x
+            the balls' step instead of 2.3-2.5x. The price: a start-up factorisation (3670
             liver: about 5 s idle, 41 M factor entries, about 0.8 GB at its peak; it grows
             faster than the particle count: the 12k liver 66 s, 4.6 GB and 0.3 s per response,
             so models with more than ``ORGAN_MAX_FREE`` free particles are refused) and about
