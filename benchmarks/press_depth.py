@@ -9,10 +9,11 @@ at 10 mm/s from first touch, one 1 ms frame at a time (``cases.press_curve``), f
 combination of
 
 * ``--particles``: the liver's resolution (3670 is the default model; 12k and 30k the finer ones);
-* ``--contacts``: ``balls`` (the default: particles as balls), ``discs`` (``contact_disc: 0.5``),
-  ``samples`` (``contact_samples: 3`` with ``contact_integration: implicit``) and ``backstop``
-  (the same samples behind the balls: ``sample_mode: backstop``), ``backstop_organ`` (those with
-  the organ's own far field, ``far_field_model: organ`` with ``far_field: 1``);
+* ``--contacts``: ``balls`` (particles as balls, the default contact before 2026-11-27:
+  ``solver.BALL_CONTACT``), ``discs`` (``contact_disc: 0.5``), ``samples`` (``contact_samples: 3``
+  with ``contact_integration: implicit``) and ``backstop`` (the same samples behind the balls:
+  ``sample_mode: backstop``), all with the half-space far field, and ``backstop_organ`` (those with
+  the organ's own far field, ``far_field_model: organ`` with ``far_field: 1``: the defaults);
 * ``--tools``: ``sphere`` (the default 5 mm probe tip) and ``capsule`` (the same tip on a 60 mm
   shaft along +z: an instrument, whose shaft fills the pit above the tip).
 
@@ -43,16 +44,18 @@ import numpy as np
 
 from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import liver_default
-from sph_tissue_sim.core.solver import SolverConfig
+from sph_tissue_sim.core.solver import BALL_CONTACT, SolverConfig
 from sph_tissue_sim.validation import cases
 
 ROOT = Path(__file__).resolve().parents[1]
 #: (x, y) [m] of the press: the top of the right lobe's dome (validate.py's LIVER_TOP)
 LIVER_TOP = (-0.034, 0.0)
-CONTACTS = {'balls': {}, 'discs': {'contact_disc': 0.5},
-            'samples': {'contact_samples': 3, 'contact_integration': 'implicit'},
-            'backstop': {'contact_samples': 3, 'sample_mode': 'backstop', 'contact_integration': 'implicit'},
-            # the same with the organ's own far field, whose area needs no widening
+CONTACTS = {'balls': dict(BALL_CONTACT), 'discs': {**BALL_CONTACT, 'contact_disc': 0.5},
+            'samples': {**BALL_CONTACT, 'contact_samples': 3, 'sample_mode': 'surface',
+                        'contact_integration': 'implicit'},
+            'backstop': {**BALL_CONTACT, 'contact_samples': 3, 'sample_mode': 'backstop',
+                         'contact_integration': 'implicit'},
+            # the same with the organ's own far field, whose area needs no widening (the defaults)
             'backstop_organ': {'contact_samples': 3, 'sample_mode': 'backstop', 'contact_integration': 'implicit',
                                'far_field_model': 'organ', 'far_field': 1.0}}
 TOOLS = {'sphere': {}, 'capsule': {'tool_shape': 'capsule', 'tool_length': 0.06}}

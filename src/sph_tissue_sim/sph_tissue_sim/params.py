@@ -86,13 +86,13 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                           'a pressed surface particle under a small tool (no sideways slip) but '
                           'spreads the load (local mode then needs k1_min >= 3)', (0.0, 0.5), False,
                      'solver'),
-    'contact_samples': (0, 'contact with the material surface: this many samples per side of a '
-                           'surface particle\'s patch (0 = the tool touches particle balls); 3 stops '
-                           'the tool slipping between particles (no pop-through to ~30 mm on the '
-                           '3670 liver; on coarse models, tool radius under about half a spacing, '
-                           'the tool sinks through: 743 liver at 5 mm) at about 4x the sub-steps '
+    'contact_samples': (3, 'contact with the material surface: this many samples per side of a '
+                           'surface particle\'s patch (0 = the tool touches particle balls alone and '
+                           'slips between them: the liver gives way near 10 mm); 3 stops the tool '
+                           'slipping between particles (with sample_mode backstop: the force rises to '
+                           'the 3.3 N limit near 30 mm on the 3670 liver) at about 4x the sub-steps '
                            'unless contact_integration is implicit', (0, 5), False, 'solver'),
-    'sample_mode': ('surface', 'with contact_samples: surface (the tool meets the samples) | backstop (it '
+    'sample_mode': ('backstop', 'with contact_samples: surface (the tool meets the samples) | backstop (it '
                                'meets the particle balls first, as without samples; the samples only hold '
                                'it out of the gaps between particles: a shallow press as the balls, no '
                                'pop-through to ~32 mm on the 3670 liver; the local area widens once the '
@@ -102,7 +102,7 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                               'on fine models, each dearer)', VISCOSITIES, False, 'solver'),
     'viscous_tol': (1e-3, 'implicit dashpots: the solve stops at this residual relative to the '
                           'velocities', (1e-9, 0.1), False, 'solver'),
-    'contact_integration': ('explicit', 'contact springs and dashpots: explicit (sub-step bounded by '
+    'contact_integration': ('implicit', 'contact springs and dashpots: explicit (sub-step bounded by '
                                         'the penalty) | implicit (backward along the normals: no contact '
                                         'bound; contact_samples 3 then costs 2 sub-steps, not 8)',
                             CONTACT_INTEGRATIONS, False, 'solver'),
@@ -124,16 +124,16 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                      'instead of 2)', None, False, 'solver'),
     'paper_momentum': (14, 'paper scheme: momentum equation 14 (the paper\'s eq. 14) or 12 (eq. 12, '
                            'steadier at free surfaces)', (12, 14), False, 'solver'),
-    'far_field': (0.9, 'local mode: still particles next to the solved ones follow this times the '
-                       'elastic half-space (Boussinesq) response to the contact force (0.9, the '
-                       'default, below 1 since an organ on a fixed base is stiffer than a '
-                       'half-space: with the default area, local force within 5 % of global at 12 '
-                       'of 12 presses on the liver); 0 = held still as in the paper (stiffer than '
-                       'the whole organ, up to +24 %)',
+    'far_field': (1.0, 'local mode: still particles next to the solved ones follow this times the '
+                       'far field model\'s response to the contact force (1, the default: the organ\'s '
+                       'own response; with the half-space 0.9 suits the balls on the liver, an organ '
+                       'on a fixed base being stiffer than a half-space); 0 = held still as in the '
+                       'paper (stiffer than the whole organ, up to +24 %)',
                   (0.0, 2.0), False,
                   'solver'),
-    'far_field_model': ('half_space', 'local mode: what moves the still particles next to the solved ones: '
-                                      'half_space (Boussinesq, far_field times it) | organ (the organ\'s own '
+    'far_field_model': ('auto', 'local mode: what moves the still particles next to the solved ones: '
+                                      'auto (organ for tlsph models of up to 5000 free particles, else '
+                                      'half_space) | half_space (Boussinesq, far_field times it) | organ (the organ\'s own '
                                       'linear response, factored at start: 3670 liver about 5 s and 0.8 GB at '
                                       'its peak, then about 45 ms per response solved; with far_field 1 and the '
                                       'backstop samples no wider area: local within 5 % of global at 12 of 12 '

@@ -144,4 +144,15 @@ def test_the_organ_far_field_needs_tlsph_and_is_built_only_for_local_mode():
         SolverConfig(scheme='paper', far_field_model='organ').validate()
     assert Solver(_block(5, 3), SOFT, SolverConfig(mode='global', far_field_model='organ')).organ is None
     assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field=0.0, far_field_model='organ')).organ is None
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='half_space')).organ is None
+
+
+def test_the_default_far_field_is_the_organs_for_tlsph_and_the_half_space_otherwise(monkeypatch):
+    assert SolverConfig().far_field_model == 'auto'
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local')).organ is not None
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', scheme='mass_spring')).organ is None
+    # beyond the size guard auto falls back to the half-space instead of refusing the model
+    monkeypatch.setattr(solver_module, 'ORGAN_MAX_FREE', 10)
     assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local')).organ is None
+    with pytest.raises(ConfigError, match='half_space'):
+        Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='organ'))

@@ -12,7 +12,7 @@ from sph_tissue_sim.core.integrate import frame_state_ok
 from sph_tissue_sim.core.liver import make_liver
 from sph_tissue_sim.core.material import liver_default
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core.solver import Solver, SolverConfig, StepInterrupted
+from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig, StepInterrupted
 
 LIMIT = 3.3
 
@@ -74,8 +74,9 @@ def test_frame_state_check_sees_non_finite_and_too_fast_states(bad):
 @pytest.mark.parametrize('mode', ['local', 'global'])
 def test_a_jump_that_tears_the_liver_apart_raises_sim_error_and_leaves_a_finite_state(liver, mode):
     # without a bound on the tool's travel the jump drives particles through their neighbours; the
-    # non-finite state must be seen (it went unnoticed inside the fast-math frame loop) and undone
-    solver = Solver(liver, liver_default(), SolverConfig(mode=mode, max_tool_speed=1e3))
+    # non-finite state must be seen (it went unnoticed inside the fast-math frame loop) and undone;
+    # the balls' contact tears (the samples behind them held the global liver together)
+    solver = Solver(liver, liver_default(), SolverConfig(mode=mode, max_tool_speed=1e3, **BALL_CONTACT))
     errors = 0
     for out in _jump_session(solver):
         if isinstance(out, SimError):

@@ -14,7 +14,7 @@ from sph_tissue_sim.core.kernel import kernel_dwdr
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig
 from sph_tissue_sim.core.tlsph import tlsph_pass
 
 
@@ -116,7 +116,8 @@ def test_second_order_sub_step_bounds_shrink_by_the_stiffness_gain():
     """CFL by sqrt(gain), viscous by gain; the contact bounds do not change."""
     model = make_block(5, 4, 3, spacing=0.005, fix='none')
     material = Material.from_shear(1800.0, 0.45, 3.0, 3.0, rho=1060.0)
-    one, two = _solver(model, 1, material), _solver(model, 2, material)
+    # explicit contact, whose bounds must stay
+    one, two = _solver(model, 1, material, **BALL_CONTACT), _solver(model, 2, material, **BALL_CONTACT)
     gain = two.scheme.stiffness_gain(two.body, two.area.global_sets(-1))
     assert two.dt_bounds['cfl'] == pytest.approx(one.dt_bounds['cfl'] / math.sqrt(gain), rel=1e-12)
     assert two.dt_bounds['viscous'] == pytest.approx(one.dt_bounds['viscous'] / gain, rel=1e-12)

@@ -9,19 +9,21 @@ from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.backward_euler import backward_euler_step
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig
 from sph_tissue_sim.validation.cases import press_and_hold
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 SPACING = 0.0075
+#: the samples as the surface, explicit unless a test says implicit
+SURFACE = {**BALL_CONTACT, 'contact_samples': 3, 'sample_mode': 'surface'}
 
 
 def _pressed(**config) -> Solver:
     """The 8 x 8 x 5 block (bottom fixed) pressed 3 mm with the samples and implicit contact, so
     that the last sub-step recorded its pushing samples."""
     model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
-    s = Solver(model, LIVER, SolverConfig(mode='global', contact_samples=3, contact_integration='implicit',
-                                          **config))
+    s = Solver(model, LIVER, SolverConfig(mode='global', **{**SURFACE, 'contact_integration': 'implicit',
+                                                             **config}))
     X = model.positions
     top = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean() + 5e-4, X[:, 2].max() + s.contact_reach])
     for k in range(60):
@@ -85,13 +87,13 @@ def test_a_ten_times_stiffer_contact_needs_no_contact_sub_steps_and_holds_the_sa
     """Samples at 3000 N/m each: explicit contact shrinks the sub-step about threefold, the
     implicit one keeps the material's bounds, stays stable, and holds the explicit force."""
     model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
-    base = dict(mode='global', contact_samples=3, contact_stiffness=3000.0, max_substeps=100000)
+    base = dict(SURFACE, mode='global', contact_stiffness=3000.0, max_substeps=100000)
     exp = Solver(model, LIVER, SolverConfig(**base))
-    imp = Solver(model, LIVER, SolverConfig(contact_integration='implicit', **base))
+    imp = Solver(model, LIVER, SolverConfig(**{**base, 'contact_integration': 'implicit'}))
     assert 'contact' not in imp.dt_bounds and 'contact_damping' not in imp.dt_bounds
     assert imp.dt_max > 3.0 * exp.dt_max
     f_exp = press_and_hold(model, LIVER, SolverConfig(**base), 0.003, ramp=100, hold=200)
-    f_imp = press_and_hold(model, LIVER, SolverConfig(contact_integration='implicit', **base), 0.003,
+    f_imp = press_and_hold(model, LIVER, SolverConfig(**{**base, 'contact_integration': 'implicit'}), 0.003,
                            ramp=100, hold=200)
     print(f'sub-steps per ms: explicit {1e-3 / exp.dt_max:.1f}, implicit {1e-3 / imp.dt_max:.1f}; '
           f'held force: explicit {f_exp[2]:.4f} N, implicit {f_imp[2]:.4f} N')
@@ -104,12 +106,12 @@ def test_with_implicit_dashpots_too_the_sub_step_follows_the_material_and_the_fo
     leave the CFL and hourglass-dashpot bounds alone; the held force is the explicit one."""
     model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
     thick = LIVER.with_viscosity_scale(10.0)
-    base = dict(mode='global', contact_samples=3, contact_stiffness=3000.0, max_substeps=100000)
+    base = dict(SURFACE, mode='global', contact_stiffness=3000.0, max_substeps=100000)
     both = dict(viscosity='implicit', contact_integration='implicit', viscous_tol=1e-6)
-    imp = Solver(model, thick, SolverConfig(**both, **base))
+    imp = Solver(model, thick, SolverConfig(**{**base, **both}))
     assert set(imp.dt_bounds) == {'cfl', 'hourglass_damping'}
     f_exp = press_and_hold(model, thick, SolverConfig(**base), 0.003, ramp=100, hold=200)
-    f_imp = press_and_hold(model, thick, SolverConfig(**both, **base), 0.003, ramp=100, hold=200)
+    f_imp = press_and_hold(model, thick, SolverConfig(**{**base, **both}), 0.003, ramp=100, hold=200)
     print(f'held force: explicit {f_exp[2]:.4f} N, implicit {f_imp[2]:.4f} N')
     assert f_exp[2] > 0.1
     assert f_imp[2] == pytest.approx(f_exp[2], rel=0.02)

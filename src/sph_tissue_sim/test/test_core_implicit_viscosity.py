@@ -8,7 +8,7 @@ from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.backward_euler import _apply, backward_euler_step
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig
 from sph_tissue_sim.validation.cases import press_and_hold
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
@@ -80,12 +80,13 @@ def test_ten_times_the_viscosity_needs_no_viscous_sub_steps_and_holds_the_same_f
     a hold (quasi-static: the dashpots carry nothing) press with the explicit scheme's force."""
     model = make_block(6, 6, 4, spacing=0.005, fix='bottom')
     thick = LIVER.with_viscosity_scale(10.0)
-    exp = Solver(model, thick, SolverConfig(mode='global'))
-    imp = Solver(model, thick, SolverConfig(mode='global', viscosity='implicit'))
+    # explicit contact: its bounds stay
+    exp = Solver(model, thick, SolverConfig(mode='global', **BALL_CONTACT))
+    imp = Solver(model, thick, SolverConfig(mode='global', viscosity='implicit', **BALL_CONTACT))
     assert 'viscous' not in imp.dt_bounds and 'viscous' in exp.dt_bounds
     assert set(imp.dt_bounds) == {'cfl', 'contact', 'contact_damping', 'hourglass_damping'}
     assert imp.dt_max > 3.0 * exp.dt_max
-    config = dict(mode='global', max_substeps=100000)
+    config = dict(BALL_CONTACT, mode='global', max_substeps=100000)
     f_exp = press_and_hold(model, thick, SolverConfig(**config), 0.003, ramp=100, hold=900)
     f_imp = press_and_hold(model, thick, SolverConfig(viscosity='implicit', **config), 0.003, ramp=100, hold=900)
     print(f'sub-steps per ms: explicit {1e-3 / exp.dt_max:.1f}, implicit {1e-3 / imp.dt_max:.1f}; '

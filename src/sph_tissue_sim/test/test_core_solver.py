@@ -8,7 +8,7 @@ from press import momentum_drift, press
 from sph_tissue_sim.core.errors import ConfigError, ModelError, SimError
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import TissueModel, make_block
-from sph_tissue_sim.core.solver import (MODES, SCHEMES, InvalidInput, Solver, SolverConfig, StepResult,
+from sph_tissue_sim.core.solver import (BALL_CONTACT, MODES, SCHEMES, InvalidInput, Solver, SolverConfig, StepResult,
                                         warmup)
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
@@ -149,8 +149,9 @@ def test_substeps_respect_the_cfl_bound():
 
 
 def test_substeps_without_a_tool_ignore_the_contact_bounds():
-    solver = Solver(_block(), LIVER, SolverConfig(contact_stiffness=1000.0))
-    assert solver.dt_max < 0.9 * solver.dt_max_free      # a contact bound is the smallest
+    # explicit contact, whose bound is the smallest
+    solver = Solver(_block(), LIVER, SolverConfig(contact_stiffness=1000.0, **BALL_CONTACT))
+    assert solver.dt_max < 0.9 * solver.dt_max_free
     frame = 0.95 * solver.dt_max_free
     free = solver.step(None, frame)
     touching = solver.step(solver.centre, frame)

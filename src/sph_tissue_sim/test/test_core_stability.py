@@ -8,7 +8,7 @@ from sph_tissue_sim.core.contact import contact_vector_py
 from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import Material, liver_default
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig
 from sph_tissue_sim.core.state import Motion
 from sph_tissue_sim.core.stability import DASHPOT_LIMIT
 from sph_tissue_sim.core.tlsph import tlsph_pass
@@ -84,7 +84,7 @@ def test_discs_pressed_37_mm_deep_with_a_shaft_do_not_ring():
     the step went unstable at 37.4 mm. Followed, the rate adds a sub-step and the press stays
     smooth (24 mN per frame at most past 30 mm, 0.40 N with the rate off, measured to 33 mm)."""
     model = make_model('liver')
-    config = dict(contact_disc=0.5, tool_shape='capsule', tool_length=0.06)
+    config = dict(BALL_CONTACT, contact_disc=0.5, tool_shape='capsule', tool_length=0.06)
     followed = press_curve(model, liver_default(), SolverConfig(**config), 0.037, xy=(-0.034, 0.0))
     bare = press_curve(model, liver_default(), SolverConfig(dashpot_rate_every=0, **config), 0.033,
                        xy=(-0.034, 0.0))

@@ -354,29 +354,22 @@ def test_local_area_force_on_the_liver_matches_global():
     """The 3671-particle liver pressed 2, 4 and 10 mm at four places, local against global.
 
     With the paper's still region (far_field 0) the area is stiffer than the whole organ, the more
-    so the smaller it is: k1_min 1 with two layers (the defaults before 2026-11-26) gives up to
-    +24 % (printed); k1_min = 3 with two layers (Dr >= 3h beyond the touched patch, 0.7-1.9 ms per
-    frame) keeps it within 10 % everywhere (measured: at most +8.6 %). The default (far_field 0.9:
-    the still neighbours follow 0.9 times the half-space response to the contact force, an organ
-    on a fixed base being stiffer than a half-space; k1_min 1.75, one layer) is within 5 % at
-    every depth (measured -3.9 ... +3.5 %, the worst at 4 mm on the thinnest lobe; with
-    far_field 1 -5.1 ... +1.7 %). Global runs use numba threads when there are two (bit-identical to serial,
-    only faster).
+    so the smaller it is: with the default contact and k1_min 3 with two layers up to +15 %
+    (the balls: at most +8.6 %; k1_min 1 with two layers, the defaults before 2026-11-26, +24 %).
+    The defaults (the organ's own far field, ``far_field`` 1, k1_min 1.75, one layer) are within
+    5 % at every depth (``validate.py``: -3.35 ... +3.21 % with the liver's material). Global runs
+    use numba threads when there are two (bit-identical to serial, only faster).
     """
     model = make_model('liver', n_particles=3670)
-    worst_k3, worst_ff = 0.0, 0.0
+    worst_still, worst_ff = 0.0, 0.0
     for xy, depth in _LIVER_PRESSES:
         f_global = _press_liver(model, 'global', depth, xy, parallel_min_particles=1)
-        err_k3 = _press_liver(model, 'local', depth, xy, k1_min=3.0, far_field=0.0, n_layers=2) / f_global - 1.0
+        err_still = _press_liver(model, 'local', depth, xy, k1_min=3.0, far_field=0.0, n_layers=2) / f_global - 1.0
         err_ff = _press_liver(model, 'local', depth, xy) / f_global - 1.0
-        msg = (f'liver at {xy} m, {depth * 1e3:.0f} mm: global {f_global:.4f} N, local k1_min 3 '
-               f'far_field 0 {err_k3:+.3f}, default {err_ff:+.3f}')
-        if xy == (0.0, 0.0):
-            old = _press_liver(model, 'local', depth, xy, k1_min=1.0, far_field=0.0, n_layers=2)
-            msg += f', k1_min 1 far_field 0 two layers {old / f_global - 1.0:+.3f}'
-        print(msg)
+        print(f'liver at {xy} m, {depth * 1e3:.0f} mm: global {f_global:.4f} N, local k1_min 3 '
+              f'far_field 0 {err_still:+.3f}, default {err_ff:+.3f}')
         assert f_global > 0.02
-        worst_k3 = max(worst_k3, abs(err_k3))
+        worst_still = max(worst_still, err_still)
         worst_ff = max(worst_ff, abs(err_ff))
-    assert worst_k3 < 0.10
-    assert worst_ff < 0.05
+    assert worst_still > 0.05          # the still region alone is too stiff ...
+    assert worst_ff < 0.05             # ... the far field brings the area to the organ

@@ -223,7 +223,7 @@ def test_solver_config_cross_checks():
 def test_threads_disc_contact_and_paper_momentum_parameters_reach_the_solver_config():
     cfg = build_config(defaults())
     assert (cfg.parallel_min_particles, cfg.contact_disc, cfg.paper_momentum) == (0, 0.0, 14)
-    cfg = build_config(defaults(parallel_min_particles=2000, contact_disc=0.5, paper_momentum=12))
+    cfg = build_config(defaults(parallel_min_particles=2000, contact_disc=0.5, contact_samples=0, paper_momentum=12))
     assert (cfg.parallel_min_particles, cfg.contact_disc, cfg.paper_momentum) == (2000, 0.5, 12)
     with pytest.raises(ConfigError, match='paper_momentum'):
         build_config(defaults(paper_momentum=13))

@@ -56,7 +56,7 @@ SAMPLE_MODES = ('surface', 'backstop')
 #: backstop samples that push the tool grow the local area's radius by this many h (with the
 #: half-space far field)
 SAMPLE_AREA_GROWTH = 1.5
-FAR_FIELD_MODELS = ('half_space', 'organ')
+FAR_FIELD_MODELS = ('auto', 'half_space', 'organ')
 #: the organ's far field lends a particle's response to the particles within this many spacings
 #: (a response costs a back-substitution, about 45 ms on the 3670 liver)
 ORGAN_SHARE = 1.01
@@ -64,6 +64,10 @@ ORGAN_SHARE = 1.01
 #: and its responses cost too much (the 12k liver, 11149 free: 66 s, 4.6 GB, 0.3 s per response)
 ORGAN_MAX_FREE = 5000
 INTEGRATORS = ('explicit', 'implicit')
+#: the contact of the defaults before 2026-11-27: the tool against the particles' balls alone,
+#: explicitly integrated, with the half-space far field (SolverConfig(**BALL_CONTACT))
+BALL_CONTACT = {'contact_samples': 0, 'contact_integration': 'explicit', 'far_field_model': 'half_space',
+                'far_field': 0.9}
 #: relative residual of the implicit contact's solve (cheap: it spans the particles under the tool)
 CONTACT_TOL = 1e-8
 
@@ -152,8 +156,8 @@ class SolverConfig:
             for a descheduled thread: local p99 went from 0.5 to 4.4 ms with one busy process
             and the median to 32 ms with two. Enable it only where the simulator has cores of its
             own.
-        contact_samples: 0 (default): the tool touches particles (balls of
-            ``contact_particle_radius``). 1..5: it touches ``contact_samples**2`` samples per surface
+        contact_samples: 0: the tool touches particles alone (balls of
+            ``contact_particle_radius``). 1..5 (3, the default): it touches ``contact_samples**2`` samples per surface
             particle on the material's surface, half a spacing outside the particle centres, which
             move with the particles around them and spread the force back to them by kernel
             weights (:mod:`.surface_contact`): the tool cannot slip between particles. On the
@@ -167,8 +171,8 @@ class SolverConfig:
             area: the explicit step needs about 4x the sub-steps (local step 2.8 ms instead of
             0.64 ms on this liver); with ``contact_integration`` implicit it keeps the material's
             (0.78 ms).
-        sample_mode: what the tool meets first with ``contact_samples`` > 0. ``surface`` (default):
-            the samples; the particles' own balls, of the tool's size, back them up. ``backstop``:
+        sample_mode: what the tool meets first with ``contact_samples`` > 0. ``surface``:
+            the samples; the particles' own balls, of the tool's size, back them up. ``backstop`` (default):
             the particles' balls of ``contact_particle_radius``, as without samples; the samples,
             on the material's surface below the balls' reach, only hold the tool out of the gaps
             between particles where the balls push the particles apart. Once a sample pushes the
@@ -177,13 +181,15 @@ class SolverConfig:
             tissue. Pressed straight into the 3671-particle liver, a shallow press is the balls'
             (Hertz block and the 743 liver's apex as balls), and the force rises to 3.3 N at
             32 mm instead of peaking at 0.39 N near 10 mm, with a dip of up to 0.28 N near 18 mm;
-            local mode is within 5 % of global at 12 of 12 presses; the step costs 1.3x the
-            balls' while no sample pushes and 2.3-2.6x once they carry the load.
+            local mode is within 5 % of global at 12 of 12 presses; with the half-space far
+            field the step costs 1.3x the balls' while no sample pushes and 2.3-2.6x once they
+            carry the load (with the organ's, the default on the liver, 1.3-1.4x).
         viscosity: ``explicit`` (default) or ``implicit``: the ``tlsph`` dashpots backward Euler
             (:mod:`.backward_euler`), no viscous sub-step bound; slower on the bundled models.
         viscous_tol: the implicit dashpots' solve stops at this residual relative to ``|v*|``.
-        contact_integration: ``explicit`` (default) or ``implicit``: the pushing contacts backward
-            along their normals (:mod:`.implicit_contact`), no contact sub-step bound.
+        contact_integration: ``implicit`` (default) or ``explicit``: the pushing contacts backward
+            along their normals (:mod:`.implicit_contact`), no contact sub-step bound; explicit,
+            the samples' stiffness bounds the sub-step (about 4x as many on the liver).
         gradient_order: ``tlsph``'s corrected gradients (:mod:`.gradients`): 1 (Bonet-Lok, exact
             for linear fields) or 2 (also exact for quadratic fields, which bending is: a
             cantilever 10 particles tall -1.6 % against Timoshenko instead of -5.1 %). But the fit
@@ -220,8 +226,10 @@ class SolverConfig:
             tool through the tissue in one frame and tear the particle lattice apart). A hand on a
             haptic stylus moves well below 1 m/s (the bundled sessions: up to 0.18 m/s).
         far_field: local mode: the still particles next to the solved ones move by this times the
-            elastic half-space (Boussinesq) response to the contact force instead of staying at
-            rest (0: the paper's still region). The default, 0.9, is below 1 because an organ
+            far field model's response to the contact force instead of staying at rest (0: the
+            paper's still region). The default, 1, is the organ's own response
+            (``far_field_model``). With the half-space (Boussinesq) response and the balls alone,
+            0.9 suited the liver better, because an organ
             bonded to a fixed base is stiffer than a half-space (the thin lobe: -5.1 % with 1,
             -3.9 % with 0.9; 0.85 ... 0.925 meet every local-global and drag target, 0.95
             misses the drag's by 0.04 %). Holding them still makes the area stiffer than the
@@ -238,7 +246,9 @@ class SolverConfig:
             pressed 11-16 mm with surface samples changed its force by up to 1 N from one frame to
             the next with 0, by 14 mN with 3 ms (global 3.6 mN).
         far_field_model: local mode: what moves the still particles next to the solved ones.
-            ``half_space`` (default): the Boussinesq response (``far_field``'s docs).
+            ``auto`` (default): ``organ`` for a ``tlsph`` model of at most ``ORGAN_MAX_FREE``
+            free particles (the bundled liver), else ``half_space``.
+            ``half_space``: the Boussinesq response (``far_field``'s docs).
             ``organ``: the organ's own linear response to the contact force, shared by the
             touched particles (:mod:`.compliance`: the material's stiffness at rest, factored
             once in single precision when the solver is made or its material changes; a
@@ -286,15 +296,15 @@ class SolverConfig:
     contact_disc: float = 0.0
     paper_momentum: int = 14
     parallel_min_particles: int = 0
-    far_field: float = 0.9
+    far_field: float = 1.0
     far_field_tau: float = 0.003
-    far_field_model: str = 'half_space'
+    far_field_model: str = 'auto'
     max_tool_speed: float = 1.0
-    contact_samples: int = 0
-    sample_mode: str = 'surface'
+    contact_samples: int = 3
+    sample_mode: str = 'backstop'
     viscosity: str = 'explicit'
     viscous_tol: float = 1e-3
-    contact_integration: str = 'explicit'
+    contact_integration: str = 'implicit'
     gradient_order: int = 1
     surface_extrapolation: bool = False
     integrator: str = 'explicit'
@@ -328,8 +338,6 @@ class SolverConfig:
             raise ConfigError(f'k1_min ({self.k1_min}) must be <= k1_max ({self.k1_max})')
         if self.contact_samples > 0 and self.contact_disc > 0.0:
             raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
-        if self.sample_mode != 'surface' and self.contact_samples == 0:
-            raise ConfigError(f'sample_mode {self.sample_mode!r} needs contact_samples > 0')
         if self.far_field_model == 'organ' and self.scheme != 'tlsph':
             raise ConfigError(f'far_field_model organ needs scheme tlsph, got {self.scheme!r}')
         if not isinstance(self.surface_extrapolation, (bool, np.bool_)):
@@ -542,8 +550,10 @@ class Solver:
         self.scheme.set_material(material, self.mass)
         #: the organ's compliance for local mode's far field (None: the half-space's)
         self.organ = None
-        if cfg.far_field_model == 'organ' and cfg.mode == 'local' and cfg.far_field > 0.0:
-            n_free = int(np.count_nonzero(~self.fixed))
+        n_free = int(np.count_nonzero(~self.fixed))
+        organ = cfg.far_field_model == 'organ' or (cfg.far_field_model == 'auto' and cfg.scheme == 'tlsph'
+                                                    and n_free <= ORGAN_MAX_FREE)
+        if organ and cfg.mode == 'local' and cfg.far_field > 0.0:
             if n_free > ORGAN_MAX_FREE:
                 raise ConfigError(
                     f'far_field_model organ factors the whole model\'s stiffness; {n_free} free particles '
