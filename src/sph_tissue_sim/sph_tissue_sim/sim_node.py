@@ -255,13 +255,27 @@ class SimNode(Node):
         return (f'model {self.model.name} ({s.n_particles} particles, {int(s.fixed.sum())} fixed, '
                 f'spacing {self.model.spacing * 1e3:.2f} mm, h {s.smoothing_length * 1e3:.2f} mm), '
                 f'tool {s.tool.name} (radius {s.tool.radius * 1e3:g} mm), '
-                f'scheme {c.scheme}{self._describe_gradients()}, mode {c.mode}, material {m.name} '
+                f'scheme {c.scheme}{self._describe_gradients()}, mode {c.mode}, {self._describe_contact()}, '
+                f'material {m.name} '
                 f'(E {m.E:.4g} Pa, nu {m.nu:g}, '
                 f'eta_shear {m.eta_shear:g} Pa s), timing {self.p["timing_mode"]}, pose QoS '
                 f'{"reliable" if self.io_qos.reliability == ReliabilityPolicy.RELIABLE else "best effort"}'
                 f' depth {self.io_qos.depth}, haptic {self._describe_haptic()}, force_limit '
                 f'{self.p["force_limit"]:g} N, device origin '
                 f'-> tissue ({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) m')
+
+    def _describe_contact(self) -> str:
+        s = self.solver
+        c = s.config
+        what = (f'contact {c.contact_samples}x{c.contact_samples} samples per surface particle '
+                f'({c.sample_mode}), {c.contact_integration}' if c.contact_samples else
+                f'contact particle balls, {c.contact_integration}')
+        ff = s.far_field_in_use
+        if ff == 'organ':
+            return f'{what}, far field organ x{c.far_field:g} (factored in {s.organ_factor_s:.1f} s)'
+        if ff == 'half_space':
+            return f'{what}, far field half_space x{c.far_field:g}'
+        return what
 
     def _describe_gradients(self) -> str:
         s = self.solver

@@ -149,10 +149,12 @@ def test_the_organ_far_field_needs_tlsph_and_is_built_only_for_local_mode():
 
 def test_the_default_far_field_is_the_organs_for_tlsph_and_the_half_space_otherwise(monkeypatch):
     assert SolverConfig().far_field_model == 'auto'
-    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local')).organ is not None
-    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', scheme='mass_spring')).organ is None
+    default = Solver(_block(5, 3), SOFT, SolverConfig(mode='local'))
+    assert default.organ is not None and default.far_field_in_use == 'organ' and default.organ_factor_s > 0.0
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', scheme='mass_spring')).far_field_in_use == 'half_space'
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='global')).far_field_in_use == 'none'
     # beyond the size guard auto falls back to the half-space instead of refusing the model
     monkeypatch.setattr(solver_module, 'ORGAN_MAX_FREE', 10)
-    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local')).organ is None
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local')).far_field_in_use == 'half_space'
     with pytest.raises(ConfigError, match='half_space'):
         Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='organ'))

@@ -550,6 +550,8 @@ class Solver:
         self.scheme.set_material(material, self.mass)
         #: the organ's compliance for local mode's far field (None: the half-space's)
         self.organ = None
+        #: how long its factorisation took [s]
+        self.organ_factor_s = 0.0
         n_free = int(np.count_nonzero(~self.fixed))
         organ = cfg.far_field_model == 'organ' or (cfg.far_field_model == 'auto' and cfg.scheme == 'tlsph'
                                                     and n_free <= ORGAN_MAX_FREE)
@@ -559,8 +561,10 @@ class Solver:
                     f'far_field_model organ factors the whole model\'s stiffness; {n_free} free particles '
                     f'are more than {ORGAN_MAX_FREE} (3276 free: 5 s, 0.8 GB, 45 ms per response; 11149: '
                     f'66 s, 4.6 GB, 0.3 s per response): use far_field_model half_space')
+            t0 = time.perf_counter()
             self.organ = OrganCompliance(self.X, self.fixed, self.scheme.state(None, None, 0),
                                          ORGAN_SHARE * self.model.spacing)
+            self.organ_factor_s = time.perf_counter() - t0
         if self.backward is not None:
             self.backward.set_material(material)
         c = self.scheme.wave_speed(material, self.mass)
@@ -656,6 +660,14 @@ class Solver:
     @property
     def n_particles(self) -> int:
         return self.n
+
+    @property
+    def far_field_in_use(self) -> str:
+        """Local mode's far field as built: ``organ``, ``half_space`` or ``none`` (global mode,
+        or ``far_field`` 0); ``far_field_model: auto`` resolves to one of the first two."""
+        if self.config.mode != 'local' or self.config.far_field <= 0.0:
+            return 'none'
+        return 'organ' if self.organ is not None else 'half_space'
 
     @property
     def smoothing_length(self) -> float:
