@@ -750,6 +750,7 @@ class SimNode(Node):
                 self.solver.set_material(material)
             self.solver.config.force_limit = float(new['force_limit'])
             self.solver.config.max_tool_speed = float(new['max_tool_speed'])
+            self.solver.config.friction = float(new['friction'])
             if mapping is not None:
                 self.mapping = mapping
             self.clock.nominal_dt = float(new['nominal_dt'])

@@ -125,7 +125,8 @@ def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
         react = np.zeros(3)
         body = Body(X, np.zeros(1, dtype=np.bool_), 1.0 / inv_mass, inv_mass)
         motion = Motion(X.copy(), np.zeros((1, 3)), np.zeros((1, 3)))
-        tool = ToolPath(seg, seg, True, reach, k, c, surf, no_samples(1), no_touches())
+        tool = ToolPath(seg, seg, True, reach, k, c, surf, no_samples(1), no_touches(), 0.0, np.zeros((1, 3)),
+                        np.zeros(1, dtype=np.bool_))
         overlap = contact_forces(body, motion, np.zeros(1, dtype=np.int32), 1, tool, seg, seg_vel,
                                  react)
         # normal n = (0, 0, -1) at t = 1: relative normal velocity -(0 - v_far) . ... = v_far

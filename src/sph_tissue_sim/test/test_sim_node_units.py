@@ -240,6 +240,9 @@ def test_the_viscosity_parameters_reach_the_solver_config_and_bad_ones_are_refus
     with pytest.raises(ConfigError, match='viscosity'):
         build_config(defaults(viscosity='implicit', scheme='paper'))
     assert build_config(defaults(contact_integration='implicit')).contact_integration == 'implicit'
+    assert (build_config(defaults()).friction, build_config(defaults(friction=0.3)).friction) == (0.0, 0.3)
+    with pytest.raises(ConfigError, match='friction'):
+        build_config(defaults(friction=-0.1))
     assert 'must be one of' in check_value('contact_integration', 'semi')
 
 

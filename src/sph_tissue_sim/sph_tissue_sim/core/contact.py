@@ -21,6 +21,16 @@ point (the ball model). The reaction of the tissue on the tool is ``-sum_i f_i``
 opposite, so the force rendered to the device is exactly what the tissue feels (not the paper's
 eq. 23, which adds a stress to a force). ``k_c`` is kept below the Omni's displayable stiffness
 (~1 N/mm) and the haptic loop sees the tissue in series with it.
+
+Friction (``friction`` = mu > 0, the balls only): stick-slip, as in discrete-element contact. A
+particle that starts to push keeps an anchor ``a_i``, where it sat relative to the tool's closest
+point ``c_i`` when it touched; while it pushes it feels the tangential spring
+
+    f_t = -k_c ((x_i - c_i) - a_i)_t,    |f_t| <= mu |f_n|,
+
+(``_t``: the part normal to ``n_i``); at the cap the anchor slides so that the spring holds exactly
+``mu |f_n|`` (sliding friction). The tool carries the tissue it presses instead of letting it slide
+round it; the spring stores what it takes and sliding only dissipates, so the coupling stays passive.
 """
 
 from __future__ import annotations
@@ -148,6 +158,27 @@ def record_touch(touches, kind, idx, n0, n1, n2):
         touches.count[0] = t + 1
 
 
+@njit(cache=True, fastmath=True, inline='always')
+def stick_slip(i, x, seg, n0, n1, n2, push, k, mu, anchor, stuck):
+    """The tangential friction force ``(f0, f1, f2)`` [N] on particle ``i``, pushed with ``push`` [N]
+    along ``n`` (see the module docstring); sets or slides its anchor."""
+    c0, c1, c2, t = closest_on_segment(x[i, 0], x[i, 1], x[i, 2], seg)
+    r0 = x[i, 0] - c0; r1 = x[i, 1] - c1; r2 = x[i, 2] - c2
+    if not stuck[i]:
+        anchor[i, 0] = r0; anchor[i, 1] = r1; anchor[i, 2] = r2
+        stuck[i] = True
+    d0 = r0 - anchor[i, 0]; d1 = r1 - anchor[i, 1]; d2 = r2 - anchor[i, 2]
+    dn = d0 * n0 + d1 * n1 + d2 * n2
+    f0 = -k * (d0 - dn * n0); f1 = -k * (d1 - dn * n1); f2 = -k * (d2 - dn * n2)
+    fmag = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+    cap = mu * push
+    if fmag > cap:
+        scale = cap / fmag
+        f0 *= scale; f1 *= scale; f2 *= scale
+        anchor[i, 0] = r0 + f0 / k; anchor[i, 1] = r1 + f1 / k; anchor[i, 2] = r2 + f2 / k
+    return f0, f1, f2
+
+
 @njit(cache=True, nogil=True)
 def contact_vector_py(i, x, seg, surf):
     """:func:`contact_vector` callable from Python (``(u0, u1, u2, s0, s1, s2, t)``)."""
@@ -161,18 +192,19 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
 
     ``seg`` (2, 3) is the tool's segment now and ``seg_vel`` (2, 3) the velocities of its ends [m/s];
     ``tool`` (:class:`~.state.ToolPath`) gives the contact law: ``reach``, ``stiffness`` ``k_c``,
-    ``damping`` ``c_c`` and ``surf = (X, offsets, indices, cw, Minv, N, disc)``: reference
+    ``damping`` ``c_c``, ``friction`` (with the anchors :func:`stick_slip` keeps) and ``surf = (X, offsets, indices, cw, Minv, N, disc)``: reference
     positions and neighbour CSR, pair weights ``V_j W(R0_ij)``, inverse second moments, reference outward normals and the
     surface-disc radius of each particle [m] (0 in the bulk), see :func:`surface_discs`.
     Returns the largest overlap [m] (0 without contact).
     """
     x, v, acc, fixed, inv_mass = motion.x, motion.v, motion.acc, body.fixed, body.inv_mass
-    reach, k_c, c_c, surf = tool.reach, tool.stiffness, tool.damping, tool.surf
+    reach, k_c, c_c, surf, mu = tool.reach, tool.stiffness, tool.damping, tool.surf, tool.friction
     best = 0.0
     for t in range(n_cand):
         i = cand[t]
         touching, overlap, n0, n1, n2, ts = touch_normal(i, x, seg, surf, reach)
         if not touching:
+            tool.stuck[i] = False
             continue
         if overlap > best:
             best = overlap
@@ -182,7 +214,13 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
         vn = (v[i, 0] - tv0) * n0 + (v[i, 1] - tv1) * n1 + (v[i, 2] - tv2) * n2
         fmag = k_c * overlap - c_c * vn
         if fmag <= 0.0:
+            tool.stuck[i] = False
             continue
+        if mu > 0.0:
+            f0, f1, f2 = stick_slip(i, x, seg, n0, n1, n2, fmag, k_c, mu, tool.anchor, tool.stuck)
+            react[0] -= f0; react[1] -= f1; react[2] -= f2
+            if not fixed[i]:
+                acc[i, 0] += f0 * inv_mass; acc[i, 1] += f1 * inv_mass; acc[i, 2] += f2 * inv_mass
         react[0] -= fmag * n0
         react[1] -= fmag * n1
         react[2] -= fmag * n2

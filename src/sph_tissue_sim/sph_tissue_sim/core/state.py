@@ -135,6 +135,9 @@ class ToolPath(NamedTuple):
     surf: tuple            # contact surface geometry (:func:`~.contact.surface_discs`)
     samples: Samples       # contact samples (none: the particles' ball model alone)
     touches: Touches       # where the pushing contacts are recorded (implicit contact)
+    friction: float        # Coulomb coefficient of the balls' stick-slip friction (0: frictionless)
+    anchor: np.ndarray     # (N, 3) [m] where a stuck particle sits relative to the tool's closest point
+    stuck: np.ndarray      # (N,) bool: particle i holds an anchor (it touched in the last sub-step)
 
 
 class Loads(NamedTuple):
