@@ -864,6 +864,7 @@ class Solver:
         if not ok:
             self.area.restore(self.x, self.v, sets)
             self.react[:] = 0.0
+            self.stuck[:] = False      # the anchors belong to the discarded frame
             if self.abort[0] != 0:
                 raise StepInterrupted(f'{self.config.scheme} {mode} step interrupted; state restored')
             raise SimError(f'{self.config.scheme} {mode} step went unstable (non-finite, torn apart or '
