@@ -321,9 +321,6 @@ class SimNode(Node):
     def shutdown(self) -> None:
         """Stop the stepping thread and log the totals."""
         self._stop.set()
-        # a long step (a deep press on a busy machine) stops at its next sub-step instead of
-        # outliving the join below and the interpreter
-        self.solver.interrupt()
         with self._cv:
             self._cv.notify_all()
         self._wake.set()
