@@ -85,6 +85,8 @@ LOCKSTEP_MIN_DEPTH = 1000
 MULTIRATE_MIN_DEPTH = 10  # [poses] 10 ms at 1 kHz: a stall of the executor thread, not a backlog
 STEP_TIME_HISTORY = 100_000
 SWITCH_INTERVAL = 2e-4  # [s]
+#: [s] how long the shutdown waits for a stepping thread to leave its interrupted step
+SHUTDOWN_JOIN = 5.0
 TOOL_LAG_LOG = 1e-3  # [m] a lag behind the device worth telling the operator about
 
 
@@ -319,26 +321,38 @@ class SimNode(Node):
         self.get_logger().info('ready: ' + self.describe())
 
     def shutdown(self) -> None:
-        """Stop the stepping thread and log the totals."""
+        """Stop the stepping threads and log the totals; False if one of them is still inside a
+        step after ``SHUTDOWN_JOIN`` seconds (the caller must then not let the interpreter
+        finalise under it)."""
         self._stop.set()
+        # a long step (a first deep touch solving the organ's responses on a busy machine) stops
+        # at its next sub-step or response solve instead of outliving the interpreter
+        self.solver.interrupt()
         with self._cv:
             self._cv.notify_all()
         self._wake.set()
+        stopped = True
         for thread in (self._worker, self._solver_thread):
             if thread is not None:
-                thread.join(2.0)
+                thread.join(SHUTDOWN_JOIN)
+                stopped = stopped and not thread.is_alive()
         c = self.counts
         # not the node logger: after Ctrl-C the context is shut down and rosout would fail
         rclpy.logging.get_logger(self.get_name() + '.shutdown').info(
             f'totals: {c["poses"]} poses, {c["steps"]} steps, {c["dropped"]} dropped (newer pose '
             f'arrived first), {c["rejected"]} rejected, {c["sim_errors"]} unstable steps, '
-            f'{c["overflow"]} lockstep overflows, {c["interrupted"]} steps interrupted by a reset or '
-            f'parameter change')
+            f'{c["overflow"]} lockstep overflows, {c["interrupted"]} steps interrupted (by a reset, a '
+            f'parameter change or the shutdown)')
         if c['steps']:
             w = self._wall[:min(c['steps'], STEP_TIME_HISTORY)] * 1e3
             rclpy.logging.get_logger(self.get_name() + '.shutdown').info(
                 f'step wall time median {np.median(w):.4f} ms, p99 {np.percentile(w, 99):.4f} ms '
                 f'(last {len(w)} steps)')
+        if not stopped:
+            rclpy.logging.get_logger(self.get_name() + '.shutdown').warning(
+                f'a stepping thread is still inside a step after {SHUTDOWN_JOIN:g} s: exiting '
+                f'without waiting for it')
+        return stopped
 
     # -- logging -----------------------------------------------------------------------------------
     def _throttled(self, kind: str, level: str, text: str) -> None:
@@ -555,7 +569,7 @@ class SimNode(Node):
             self._throttled('config', 'error', f'step impossible ({exc}): answered zero force')
             return None
         except StepInterrupted:
-            self.counts['interrupted'] += 1  # a reset or parameter change took the solver
+            self.counts['interrupted'] += 1  # a reset, parameter change or shutdown took the solver
             return None
         except SimError as exc:
             self.counts['sim_errors'] += 1
@@ -783,6 +797,7 @@ def main(args=None) -> int:
     node = None
     code = EXIT_OK
     reexec = False
+    stopped = True
     try:
         try:
             node, refused = build_node(SimNode, 'sim_node', {
@@ -809,11 +824,17 @@ def main(args=None) -> int:
     finally:
         try:
             if node is not None:
-                node.shutdown()
+                stopped = node.shutdown()
                 node.destroy_node()
             rclpy.try_shutdown()
         except KeyboardInterrupt:  # a second Ctrl-C while shutting down
             pass
+        if not stopped:
+            # the interpreter's finalisation under a thread still in native code (a sparse solve)
+            # failed to flush stdout and exited 120: leave without it, everything said and closed
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
         if reexec:
             sys.stdout.flush()
             sys.stderr.flush()

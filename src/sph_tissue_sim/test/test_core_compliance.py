@@ -89,6 +89,32 @@ def test_a_particles_column_is_the_organs_displacement_under_a_unit_force_on_it(
     assert np.array_equal(organ.column(beside), organ.column(c)) and organ.n_columns == 2
 
 
+def test_an_interrupt_stops_placing_between_two_response_solves_and_moves_nothing():
+    """A first touch solves a response per touched particle (tens of ms each on the liver); the
+    solver's interrupt (a shutdown, a reset) is seen between two of them, not after all."""
+    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
+    organ = solver.organ
+    X = solver.X
+    top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
+    at = top[[0, len(top) // 2, -1]].astype(np.int32)
+    idx = np.flatnonzero(~solver.fixed).astype(np.int32)
+    lu = organ.lu
+
+    class InterruptedDuringTheFirstSolve:
+        def solve(self, rhs):
+            solver.interrupt()
+            return lu.solve(rhs)
+
+    organ.lu = InterruptedDuringTheFirstSolve()
+    x = X.copy()
+    assert organ.place(x, X, idx, at, np.ones(3), np.array([0.0, 0.0, -0.3])) is False
+    assert organ.n_columns == 1 and np.array_equal(x, X)   # the solved response is kept
+    solver.clear_interrupt()
+    organ.lu = lu
+    assert organ.place(x, X, idx, at, np.ones(3), np.array([0.0, 0.0, -0.3])) is True
+    assert organ.n_columns == 3 and not np.array_equal(x, X)
+
+
 def test_the_far_field_moves_the_shell_and_the_shells_neighbours_and_nothing_solved():
     solver = Solver(_block(12, 5), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
     X = solver.X

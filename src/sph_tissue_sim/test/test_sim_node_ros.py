@@ -441,6 +441,8 @@ def test_multirate_live_answers_every_pose_while_the_solver_steps_slow_frames(rc
         last_ns = t0 + (n - 1) * period
         assert rclpy_node.spin_until(lambda: last_ns in probe.forces, 60.0), proc.output()
         replies = [ns for ns in probe.force_order if ns >= t0]
+        # a frame finished (the shutdown interrupts one in progress)
+        assert rclpy_node.spin_until(lambda: len(probe.metrics) > 0, 60.0), proc.output()
         assert proc.stop() == 0
         m = re.search(r'totals: (\d+) poses, (\d+) steps, (\d+) dropped .*?, (\d+) rejected',
                       proc.output())

@@ -90,14 +90,19 @@ class OrganCompliance:
         X: (N, 3) reference positions [m]; fixed: (N,) held particles.
         state: the :class:`~.tlsph.Tlsph` state of the model's material (its pairs, gradients,
             hourglass weights and moduli).
+        share: [m] a particle this near one whose response is solved uses that response.
+        abort: (1,) flag another thread sets to stop :meth:`place` between two responses (a
+            first touch solves a few, each tens of ms; the solver's interrupt flag).
     """
 
-    def __init__(self, X: np.ndarray, fixed: np.ndarray, state, share: float = 0.0) -> None:
+    def __init__(self, X: np.ndarray, fixed: np.ndarray, state, share: float = 0.0,
+                 abort: np.ndarray | None = None) -> None:
         import scipy.sparse.linalg as sla
         t0 = time.perf_counter()
         k = linear_stiffness(X, state.offsets, state.indices, state.g, state.gsum, state.w0, state.volume,
                              state.G, state.K, state.hg_k)
         self.X, self.n, self.share = X, len(X), share
+        self.abort = np.zeros(1, dtype=np.int8) if abort is None else abort
         self.free_dofs = np.flatnonzero(np.repeat(~np.asarray(fixed, dtype=bool), 3))
         # single precision: half the factor's memory and solve time, responses within 2e-6 of double's
         self.lu = sla.splu(k[self.free_dofs][:, self.free_dofs].astype(np.float32).tocsc(),
@@ -137,12 +142,17 @@ class OrganCompliance:
         return self.store[self.slot[c]]
 
     def place(self, x: np.ndarray, X: np.ndarray, idx: np.ndarray, at: np.ndarray, weights: np.ndarray,
-              load: np.ndarray) -> None:
+              load: np.ndarray) -> bool:
         """Put particles ``idx`` at ``X`` plus their displacement under ``load`` [N] shared by the
-        particles ``at`` in proportion to ``weights`` (solving the responses not solved yet)."""
+        particles ``at`` in proportion to ``weights`` (solving the responses not solved yet).
+        Returns False, with nothing moved, once ``abort`` is set (the responses solved so far
+        are kept)."""
         for c in at.tolist():
+            if self.abort[0] != 0:
+                return False
             self.column(c)
         organ_place(x, X, idx, at, weights / float(np.sum(weights)), self.slot, self.store, load)
+        return True
 
 
 @njit(cache=True, nogil=True)

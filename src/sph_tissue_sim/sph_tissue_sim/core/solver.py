@@ -517,9 +517,10 @@ class Solver:
                            gradient_order=cfg.gradient_order, extrapolate=cfg.surface_extrapolation)
 
     def interrupt(self) -> None:
-        """Make the step running in another thread stop before its next sub-step (it then raises
-        :class:`StepInterrupted` with the state restored), and every later step until
-        :meth:`clear_interrupt`. Safe to call from any thread: the frame loop runs without the GIL.
+        """Make the step running in another thread stop before its next sub-step or organ response
+        solve (it then raises :class:`StepInterrupted` with the state restored), and every later
+        step until :meth:`clear_interrupt`. Safe to call from any thread: the frame loop runs
+        without the GIL.
         """
         self.abort[0] = 1
 
@@ -578,7 +579,7 @@ class Solver:
                     f'66 s, 4.6 GB, 0.3 s per response): use far_field_model half_space')
             t0 = time.perf_counter()
             self.organ = OrganCompliance(self.X, self.fixed, self.scheme.state(None, None, 0),
-                                         ORGAN_SHARE * self.model.spacing)
+                                         ORGAN_SHARE * self.model.spacing, self.abort)
             self.organ_factor_s = time.perf_counter() - t0
         if self.backward is not None:
             self.backward.set_material(material)
