@@ -274,7 +274,9 @@ class SimNode(Node):
                 f'contact particle balls, {c.contact_integration}')
         ff = s.far_field_in_use
         if ff == 'organ':
-            return f'{what}, far field organ x{c.far_field:g} (factored in {s.organ_factor_s:.1f} s)'
+            how = ('the factor of the solver before' if s.organ.reused
+                   else f'factored in {s.organ_factor_s:.1f} s')
+            return f'{what}, far field organ x{c.far_field:g} ({how})'
         if ff == 'half_space':
             return f'{what}, far field half_space x{c.far_field:g}'
         return what

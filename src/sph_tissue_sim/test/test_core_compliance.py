@@ -115,6 +115,22 @@ def test_an_interrupt_stops_placing_between_two_response_solves_and_moves_nothin
     assert organ.n_columns == 3 and not np.array_equal(x, X)
 
 
+def test_a_solver_rebuilt_on_the_same_organ_reuses_its_factor_and_another_material_does_not():
+    """A rebuild (a parameter change in sim_node, each press of the validation) would pay the
+    factorisation again (5 s on the liver); the same stiffness reuses the last factor and solves
+    bit-identical responses."""
+    cfg = SolverConfig(mode='local', far_field_model='organ', far_field=1.0)
+    first = Solver(_block(), SOFT, cfg)
+    c = int(np.argmax(first.X[:, 2]))
+    again = Solver(_block(), SOFT, cfg)
+    assert again.organ.reused and again.organ.lu is first.organ.lu
+    assert np.array_equal(again.organ.column(c), first.organ.column(c))
+    stiffer = Solver(_block(), Material.from_shear(3600.0, 0.45, 3.0), cfg)
+    assert not stiffer.organ.reused
+    np.testing.assert_allclose(stiffer.organ.column(c), 0.5 * first.organ.column(c), rtol=1e-4,
+                               atol=1e-6 * np.abs(first.organ.column(c)).max())
+
+
 def test_the_far_field_moves_the_shell_and_the_shells_neighbours_and_nothing_solved():
     solver = Solver(_block(12, 5), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
     X = solver.X

@@ -19,6 +19,8 @@ carries the tool's load and kept.
 
 from __future__ import annotations
 
+import hashlib
+import threading
 import time
 
 import numpy as np
@@ -82,6 +84,25 @@ def linear_stiffness(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, g:
     return (k_el + k_hg).tocsr()
 
 
+#: the last factorisation, ``(key, SuperLU, nnz)``: a solver rebuilt on the same organ and material
+#: (a parameter change in sim_node, every press of the validation) reuses it instead of paying the
+#: seconds again; one kept, so a process holds at most one factor no solver uses
+_last_factor: tuple | None = None
+#: SuperLU's solve is not documented thread-safe, and a kept factor may serve two solvers
+_solve_lock = threading.Lock()
+
+
+def stiffness_key(X: np.ndarray, fixed: np.ndarray, state) -> bytes:
+    """A digest of everything :func:`linear_stiffness` and the held particles depend on."""
+    h = hashlib.blake2b(digest_size=20)
+    for a in (X, np.asarray(fixed, dtype=bool), state.offsets, state.indices, state.g, state.gsum, state.w0):
+        a = np.ascontiguousarray(a)
+        h.update(f'{a.dtype.str}{a.shape}'.encode())
+        h.update(a.tobytes())
+    h.update(np.array([state.volume, state.G, state.K, state.hg_k], dtype=np.float64).tobytes())
+    return h.digest()
+
+
 class OrganCompliance:
     """The still organ's displacement under a load at one of its particles (:func:`linear_stiffness`
     factored on the free particles).
@@ -97,18 +118,27 @@ class OrganCompliance:
 
     def __init__(self, X: np.ndarray, fixed: np.ndarray, state, share: float = 0.0,
                  abort: np.ndarray | None = None) -> None:
-        import scipy.sparse.linalg as sla
+        global _last_factor
         t0 = time.perf_counter()
-        k = linear_stiffness(X, state.offsets, state.indices, state.g, state.gsum, state.w0, state.volume,
-                             state.G, state.K, state.hg_k)
         self.X, self.n, self.share = X, len(X), share
         self.abort = np.zeros(1, dtype=np.int8) if abort is None else abort
         self.free_dofs = np.flatnonzero(np.repeat(~np.asarray(fixed, dtype=bool), 3))
-        # single precision: half the factor's memory and solve time, responses within 2e-6 of double's
-        self.lu = sla.splu(k[self.free_dofs][:, self.free_dofs].astype(np.float32).tocsc(),
-                           permc_spec='MMD_AT_PLUS_A')
+        key = stiffness_key(X, fixed, state)
+        #: the factorisation was the previous organ's (same stiffness), not computed here
+        self.reused = _last_factor is not None and _last_factor[0] == key
+        if self.reused:
+            self.lu, self.factor_nnz = _last_factor[1:]
+        else:
+            _last_factor = None   # its memory back before the new factor's peak
+            import scipy.sparse.linalg as sla
+            k = linear_stiffness(X, state.offsets, state.indices, state.g, state.gsum, state.w0, state.volume,
+                                 state.G, state.K, state.hg_k)
+            # single precision: half the factor's memory and solve time, responses within 2e-6 of double's
+            self.lu = sla.splu(k[self.free_dofs][:, self.free_dofs].astype(np.float32).tocsc(),
+                               permc_spec='MMD_AT_PLUS_A')
+            self.factor_nnz = int(self.lu.L.nnz + self.lu.U.nnz)
+            _last_factor = (key, self.lu, self.factor_nnz)
         self.factor_seconds = time.perf_counter() - t0
-        self.factor_nnz = int(self.lu.L.nnz + self.lu.U.nnz)
         #: row of ``store`` holding particle i's response (-1: none yet); a particle within
         #: ``share`` of a solved one points at that one's row
         self.slot = np.full(self.n, -1, dtype=np.int32)
@@ -134,7 +164,8 @@ class OrganCompliance:
             rhs = np.zeros((3 * self.n, 3), dtype=np.float32)
             rhs[3 * c:3 * c + 3] = np.eye(3)
             u = np.zeros((3 * self.n, 3), dtype=np.float32)
-            u[self.free_dofs] = self.lu.solve(rhs[self.free_dofs])
+            with _solve_lock:
+                u[self.free_dofs] = self.lu.solve(rhs[self.free_dofs])
             self.store[self.n_columns] = u.reshape(self.n, 3, 3)
             self.slot[c] = self.n_columns
             self.solved = np.append(self.solved, c)
