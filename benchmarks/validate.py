@@ -56,6 +56,7 @@ from sph_tissue_sim.core.solver import SolverConfig
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
 from sph_tissue_sim.validation import cases
 from sph_tissue_sim.validation.analytic import hertz_force
+from tissue_common.force import HARD_FORCE_LIMIT
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKS = ('creep', 'uniaxial', 'cantilever', 'hertz', 'local_global', 'drag', 'press')
@@ -295,6 +296,14 @@ def check_press(quick: bool, out: Path) -> list[dict]:
         drop = float(np.max(np.maximum.accumulate(fz) - fz))
         rows.append(row('press', f'{mode}: largest fall of Fz below its running maximum', drop, None, 'N',
                         '<= 2 % of the peak', math.isinf(cases.gives_way(d, fz))))
+        # the issue's criterion: monotonic to 40 mm or to the force the device is sent at most
+        reach = np.flatnonzero(fz >= HARD_FORCE_LIMIT)
+        upto = int(reach[0]) + 1 if len(reach) else len(fz)
+        fall = float(np.max(np.maximum.accumulate(fz[:upto]) - fz[:upto]))
+        rows.append(row('press', f'{mode}: largest fall of Fz before it reaches the {HARD_FORCE_LIMIT} N '
+                        f'force limit' + ('' if len(reach) else ' (it never does)'), fall, None, 'N',
+                        '<= 2 % of the limit, the limit reached', bool(len(reach))
+                        and fall <= 0.02 * HARD_FORCE_LIMIT))
         rows.append(row('press', f'{mode}: largest Fz', float(fz[peak]), None, 'N', 'reported', None))
         rows.append(row('press', f'{mode}: depth of the largest Fz', d[peak] * 1e3, None, 'mm',
                         f'the deepest ({depth * 1e3:.0f} mm)', d[peak] >= depth - 1e-9))
