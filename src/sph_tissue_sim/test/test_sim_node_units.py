@@ -365,3 +365,29 @@ def test_the_ready_line_reports_what_second_order_or_extrapolated_gradients_cost
     text = SimNode._describe_gradients(SimpleNamespace(solver=s))
     assert f'surface extrapolation at {len(s.scheme.ext)} particles' in text and len(s.scheme.ext) > 0
     assert f'{s.stiffness_gain:.2f}x stiffer' in text and s.stiffness_gain > 1.0
+
+
+def test_shutdown_interrupts_the_step_and_reports_a_thread_that_outlives_its_wait(monkeypatch):
+    """Ctrl-C interrupts the solver's step; a stepping thread still busy after ``SHUTDOWN_JOIN``
+    (a native solve that never looks at the interrupt) makes ``shutdown`` return False, so that
+    ``main`` leaves without finalising the interpreter under it (that exited 120)."""
+    import threading
+    from types import SimpleNamespace
+
+    from sph_tissue_sim import sim_node
+    monkeypatch.setattr(sim_node, 'SHUTDOWN_JOIN', 0.05)
+    release = threading.Event()
+    busy = threading.Thread(target=lambda: release.wait(30.0), daemon=True)
+    busy.start()
+    interrupts = []
+    node = SimpleNamespace(
+        _stop=threading.Event(), _cv=threading.Condition(), _wake=threading.Event(), _worker=None,
+        _solver_thread=busy, solver=SimpleNamespace(interrupt=lambda: interrupts.append(1)),
+        counts=dict.fromkeys(('poses', 'steps', 'dropped', 'rejected', 'sim_errors', 'overflow',
+                              'interrupted'), 0),
+        _wall=np.zeros(1), get_name=lambda: 'sim_node')
+    assert sim_node.SimNode.shutdown(node) is False
+    assert interrupts and node._stop.is_set() and node._wake.is_set()
+    release.set()
+    busy.join(5.0)
+    assert sim_node.SimNode.shutdown(node) is True
