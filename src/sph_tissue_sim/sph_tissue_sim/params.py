@@ -315,6 +315,7 @@ def build_config(p: dict) -> SolverConfig:
                        sample_mode=p['sample_mode'],
                        paper_momentum=int(p['paper_momentum']),
                        far_field=float(p['far_field']), far_field_model=p['far_field_model'],
+                       far_field_background=p['timing_mode'] != 'lockstep',
                        max_tool_speed=float(p['max_tool_speed']), friction=float(p['friction']),
                        viscosity=p['viscosity'], viscous_tol=float(p['viscous_tol']),
                        contact_integration=p['contact_integration'],

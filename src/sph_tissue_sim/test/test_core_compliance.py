@@ -1,8 +1,12 @@
 """The organ's linear compliance as local mode's far field (``far_field_model: organ``, :mod:`.core.compliance`)."""
 
+import dataclasses
+import threading
+
 import numpy as np
 import pytest
 
+from sph_tissue_sim.core import compliance
 from sph_tissue_sim.core.compliance import linear_stiffness, shell_and_ring
 from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.material import Material
@@ -113,6 +117,60 @@ def test_an_interrupt_stops_placing_between_two_response_solves_and_moves_nothin
     organ.lu = lu
     assert organ.place(x, X, idx, at, np.ones(3), np.array([0.0, 0.0, -0.3])) is True
     assert organ.n_columns == 3 and not np.array_equal(x, X)
+
+
+def _place_without_waiting(organ, x, X, idx, at, weights, load) -> None:
+    """``organ.place`` with every sparse solve held up: it must return anyway."""
+    done = threading.Event()
+
+    def run():
+        organ.place(x, X, idx, at, weights, load)
+        done.set()
+
+    with compliance._solve_lock:   # the worker cannot solve while the test holds this
+        threading.Thread(target=run, daemon=True).start()
+        assert done.wait(60.0), 'place() waited for a response'
+
+
+def test_in_the_background_a_touch_never_waits_for_a_response_and_shares_the_load_among_the_ready_ones():
+    """A first touch on the liver asks for a few responses of about 45 ms each; with
+    ``far_field_background`` the frame goes on without them: the load is shared by the touched
+    particles whose responses are ready (none: the shell stays at rest), and once the worker has
+    solved them the placement is the waiting one's."""
+    cfg = SolverConfig(mode='local', far_field_model='organ', far_field=1.0)
+    waiting = Solver(_block(), SOFT, cfg).organ
+    organ = Solver(_block(), SOFT, dataclasses.replace(cfg, far_field_background=True)).organ
+    assert organ.background and not waiting.background
+    X = organ.X
+    top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
+    c, other, third = (int(top[k]) for k in (0, len(top) // 2, -1))
+    idx = np.flatnonzero(~_block().fixed).astype(np.int32)
+    load = np.array([0.01, -0.02, -0.3])
+    x = X + 1e-3
+    _place_without_waiting(organ, x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
+    np.testing.assert_array_equal(x[idx], X[idx])   # nothing ready: at rest
+    assert organ.wait(60.0) and organ.n_columns == 2 and organ.pending == 0
+    organ.place(x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
+    expected = X.copy()
+    waiting.place(expected, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
+    np.testing.assert_array_equal(x[idx], expected[idx])
+    # a third touched particle, not solved yet: the ready one carries the whole load meanwhile
+    _place_without_waiting(organ, x, X, idx, np.array([c, third], dtype=np.int32), np.array([1.0, 1.0]), load)
+    waiting.place(expected, X, idx, np.array([c], dtype=np.int32), np.array([1.0]), load)
+    np.testing.assert_array_equal(x[idx], expected[idx])
+    assert organ.pending == 1 and organ.wait(60.0) and organ.n_columns == 3
+
+
+def test_closing_a_solver_stops_its_far_fields_worker():
+    """sim_node replaces its solver on a parameter change: the old worker must not stay behind
+    holding the old factor."""
+    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0,
+                                                 far_field_background=True))
+    worker = solver.organ._worker
+    assert worker.is_alive()
+    solver.close()
+    worker.join(30.0)
+    assert not worker.is_alive()
 
 
 def test_a_solver_rebuilt_on_the_same_organ_reuses_its_factor_and_another_material_does_not():

@@ -220,6 +220,23 @@ def test_solver_config_cross_checks():
         build_config(defaults(nominal_dt=0.05, max_dt=0.01))
 
 
+def test_the_far_field_solves_in_the_background_unless_the_timing_is_lockstep():
+    """Live, a touch on new ground must not stall its frame for the organ's responses; lockstep
+    replays must repeat bit for bit, which a worker thread's timing would not let them."""
+    assert build_config(defaults(timing_mode='live')).far_field_background is True
+    assert build_config(defaults(timing_mode='lockstep')).far_field_background is False
+
+
+def test_one_blas_thread_leaves_every_blas_library_with_one_thread():
+    from threadpoolctl import threadpool_info, threadpool_limits
+    from sph_tissue_sim.sim_node import one_blas_thread
+
+    with threadpool_limits(limits=None):   # put back what the process had after the test
+        one_blas_thread()
+        blas = [i for i in threadpool_info() if i['user_api'] == 'blas']
+        assert blas and all(i['num_threads'] == 1 for i in blas)
+
+
 def test_threads_disc_contact_and_paper_momentum_parameters_reach_the_solver_config():
     cfg = build_config(defaults())
     assert (cfg.parallel_min_particles, cfg.contact_disc, cfg.paper_momentum) == (0, 0.0, 14)

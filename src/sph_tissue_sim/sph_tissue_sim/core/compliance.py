@@ -15,11 +15,20 @@ and ``K_hg`` the hourglass bonds' (bond error ``(H_i + H_j)/2 X' - u'`` projecte
 weighted ``w0 hg_k``), the fixed particles held. ``K`` is factored once (SuperLU, scipy's); the
 response to a unit force at particle ``c`` (three right-hand sides) is solved the first time ``c``
 carries the tool's load and kept.
+
+A response takes tens of milliseconds to solve (3670 liver: about 45 ms idle), and a first touch
+needs a few. Solved where they are asked for, they stall the frame that touches new ground, so the
+force starts that much later. With ``background`` they are solved by a worker thread instead, and
+until a particle's response is ready the load is shared by the touched particles whose responses
+are (none ready: the shell stays at rest, the paper's still region). A touch starts with a small
+load on a particle just reached, so what that costs is small; but the result then depends on the
+thread's timing, so stepping that must repeat bit for bit (lockstep goldens, validation) waits.
 """
 
 from __future__ import annotations
 
 import hashlib
+import queue
 import threading
 import time
 
@@ -114,14 +123,16 @@ class OrganCompliance:
         share: [m] a particle this near one whose response is solved uses that response.
         abort: (1,) flag another thread sets to stop :meth:`place` between two responses (a
             first touch solves a few, each tens of ms; the solver's interrupt flag).
+        background: solve the responses on a worker thread; :meth:`place` never waits for one.
     """
 
     def __init__(self, X: np.ndarray, fixed: np.ndarray, state, share: float = 0.0,
-                 abort: np.ndarray | None = None) -> None:
+                 abort: np.ndarray | None = None, background: bool = False) -> None:
         global _last_factor
         t0 = time.perf_counter()
         self.X, self.n, self.share = X, len(X), share
         self.abort = np.zeros(1, dtype=np.int8) if abort is None else abort
+        self.background = background
         self.free_dofs = np.flatnonzero(np.repeat(~np.asarray(fixed, dtype=bool), 3))
         key = stiffness_key(X, fixed, state)
         #: the factorisation was the previous organ's (same stiffness), not computed here
@@ -145,44 +156,122 @@ class OrganCompliance:
         self.store = np.zeros((0, self.n, 3, 3), dtype=np.float32)
         self.solved = np.zeros(0, dtype=np.int64)
         self.n_columns = 0
+        # the worker publishes a response under this lock, and place() reads them under it
+        self._publish = threading.Lock()
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._pending: set[int] = set()
+        self._worker: threading.Thread | None = None
+        if background:   # started now: a thread's start waits for it, not what a first touch should
+            self._worker = threading.Thread(target=self._work, name='organ-responses', daemon=True)
+            self._worker.start()
+
+    def _solve(self, c: int) -> np.ndarray:
+        rhs = np.zeros((3 * self.n, 3), dtype=np.float32)
+        rhs[3 * c:3 * c + 3] = np.eye(3)
+        u = np.zeros((3 * self.n, 3), dtype=np.float32)
+        with _solve_lock:
+            u[self.free_dofs] = self.lu.solve(rhs[self.free_dofs])
+        return u.reshape(self.n, 3, 3)
+
+    def _share(self, c: int) -> bool:
+        """Point ``c`` at a solved response within ``share`` of it, if there is one."""
+        if len(self.solved):
+            d = np.linalg.norm(self.X[self.solved] - self.X[c], axis=1)
+            k = int(np.argmin(d))
+            if d[k] <= self.share:
+                self.slot[c] = self.slot[self.solved[k]]
+                return True
+        return False
+
+    def _keep(self, c: int, u: np.ndarray) -> None:
+        if self.n_columns == len(self.store):
+            grown = np.zeros((max(8, 2 * len(self.store)), self.n, 3, 3), dtype=np.float32)
+            grown[:self.n_columns] = self.store[:self.n_columns]
+            self.store = grown
+        self.store[self.n_columns] = u
+        self.slot[c] = self.n_columns
+        self.solved = np.append(self.solved, c)
+        self.n_columns += 1
 
     def column(self, c: int) -> np.ndarray:
         """(N, 3, 3) displacement [m/N] of every particle (axis 1) under a unit force along each
         axis (axis 2) on particle ``c`` (or on a particle within ``share`` of it whose response
-        was solved before); zero if ``c`` is held."""
-        if self.slot[c] < 0:
-            if len(self.solved):
-                d = np.linalg.norm(self.X[self.solved] - self.X[c], axis=1)
-                k = int(np.argmin(d))
-                if d[k] <= self.share:
-                    self.slot[c] = self.slot[self.solved[k]]
-                    return self.store[self.slot[c]]
-            if self.n_columns == len(self.store):
-                grown = np.zeros((max(8, 2 * len(self.store)), self.n, 3, 3), dtype=np.float32)
-                grown[:self.n_columns] = self.store[:self.n_columns]
-                self.store = grown
-            rhs = np.zeros((3 * self.n, 3), dtype=np.float32)
-            rhs[3 * c:3 * c + 3] = np.eye(3)
-            u = np.zeros((3 * self.n, 3), dtype=np.float32)
-            with _solve_lock:
-                u[self.free_dofs] = self.lu.solve(rhs[self.free_dofs])
-            self.store[self.n_columns] = u.reshape(self.n, 3, 3)
-            self.slot[c] = self.n_columns
-            self.solved = np.append(self.solved, c)
-            self.n_columns += 1
-        return self.store[self.slot[c]]
+        was solved before); zero if ``c`` is held. Solves it here if need be, in either mode."""
+        with self._publish:
+            if self.slot[c] >= 0 or self._share(c):
+                return self.store[self.slot[c]]
+        u = self._solve(c)
+        with self._publish:
+            if self.slot[c] < 0:   # the worker may have solved it meanwhile
+                self._keep(c, u)
+            return self.store[self.slot[c]]
+
+    def _request(self, c: int) -> None:
+        """Queue ``c``'s response for the worker."""
+        if c not in self._pending:
+            self._pending.add(c)
+            self._queue.put(c)
+
+    def _work(self) -> None:
+        while True:
+            c = self._queue.get()
+            if c < 0:
+                return
+            with self._publish:
+                done = self.slot[c] >= 0 or self._share(c)
+            if not done:
+                u = self._solve(c)
+                with self._publish:
+                    if self.slot[c] < 0 and not self._share(c):
+                        self._keep(c, u)
+            with self._publish:
+                self._pending.discard(c)
+
+    @property
+    def pending(self) -> int:
+        """How many responses the worker has still to solve."""
+        with self._publish:
+            return len(self._pending)
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait until the worker has solved every response asked for; False on ``timeout`` [s]."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.pending:
+            if deadline is not None and time.monotonic() > deadline:
+                return False
+            time.sleep(0.002)
+        return True
+
+    def close(self) -> None:
+        """Stop the worker after the response it is solving (it is a daemon: a process may also
+        just leave)."""
+        if self._worker is not None:
+            self._queue.put(-1)
+            self._worker = None
 
     def place(self, x: np.ndarray, X: np.ndarray, idx: np.ndarray, at: np.ndarray, weights: np.ndarray,
               load: np.ndarray) -> bool:
         """Put particles ``idx`` at ``X`` plus their displacement under ``load`` [N] shared by the
-        particles ``at`` in proportion to ``weights`` (solving the responses not solved yet).
-        Returns False, with nothing moved, once ``abort`` is set (the responses solved so far
-        are kept)."""
-        for c in at.tolist():
-            if self.abort[0] != 0:
-                return False
-            self.column(c)
-        organ_place(x, X, idx, at, weights / float(np.sum(weights)), self.slot, self.store, load)
+        particles ``at`` in proportion to ``weights``. Waiting, the responses not solved yet are
+        solved here, and the call returns False, with nothing moved, once ``abort`` is set (the
+        responses solved so far are kept). In the background they are queued, and the load is
+        shared by the particles whose responses are ready (none: ``idx`` at rest)."""
+        if not self.background:
+            for c in at.tolist():
+                if self.abort[0] != 0:
+                    return False
+                self.column(c)
+            organ_place(x, X, idx, at, weights / float(np.sum(weights)), self.slot, self.store, load)
+            return True
+        with self._publish:
+            ready = np.array([self.slot[c] >= 0 or self._share(c) for c in at.tolist()], dtype=bool)
+            for c in at[~ready].tolist():
+                self._request(c)
+            total = float(np.sum(weights[ready]))
+            if total > 0.0:
+                organ_place(x, X, idx, at[ready], weights[ready] / total, self.slot, self.store, load)
+            else:
+                x[idx] = X[idx]
         return True
 
 

@@ -264,6 +264,12 @@ class SolverConfig:
             faster than the particle count: the 12k liver 66 s, 4.6 GB and 0.3 s per response,
             so models with more than ``ORGAN_MAX_FREE`` free particles are refused) and about
             45 ms for each response solved.
+        far_field_background: solve the organ's responses on a worker thread (:mod:`.compliance`)
+            instead of in the frame that first needs them: a touch on new ground then never
+            stalls its frame (3670 liver: 45 ms idle per response, a few per touch); until a
+            response is ready the load is shared by the touched particles whose responses are.
+            Not repeatable bit for bit (it depends on the thread's timing), so False by default;
+            sim_node turns it on unless its timing is lockstep.
         friction: Coulomb coefficient of stick-slip friction between the tool and the particles'
             balls (0, the default: frictionless; the samples stay frictionless), see
             :mod:`.contact`: a touched particle is carried with the tool until the tangential
@@ -310,6 +316,7 @@ class SolverConfig:
     far_field: float = 1.0
     far_field_tau: float = 0.003
     far_field_model: str = 'auto'
+    far_field_background: bool = False
     max_tool_speed: float = 1.0
     contact_samples: int = 3
     sample_mode: str = 'backstop'
@@ -352,8 +359,9 @@ class SolverConfig:
             raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
         if self.far_field_model == 'organ' and self.scheme != 'tlsph':
             raise ConfigError(f'far_field_model organ needs scheme tlsph, got {self.scheme!r}')
-        if not isinstance(self.surface_extrapolation, (bool, np.bool_)):
-            raise ConfigError(f'surface_extrapolation must be true or false, got {self.surface_extrapolation!r}')
+        for name in ('surface_extrapolation', 'far_field_background'):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ConfigError(f'{name} must be true or false, got {getattr(self, name)!r}')
         if self.surface_extrapolation and (self.scheme != 'tlsph' or self.gradient_order != 1):
             raise ConfigError(f'surface_extrapolation needs scheme tlsph with gradient_order 1, got '
                               f'{self.scheme!r} with {self.gradient_order}')
@@ -546,6 +554,11 @@ class Solver:
             raise ConfigError('external forces must be finite')
         self.loads = Loads(idx, f, len(idx))
 
+    def close(self) -> None:
+        """Stop the far field's worker thread, if any (a solver being replaced)."""
+        if getattr(self, 'organ', None) is not None:
+            self.organ.close()
+
     def set_material(self, material: Material) -> None:
         """Change the material (takes effect at the next step; sub-step bounds are recomputed)."""
         if not isinstance(material, Material):
@@ -565,6 +578,7 @@ class Solver:
             self.samples = no_samples(self.n)
         self.scheme.set_material(material, self.mass)
         #: the organ's compliance for local mode's far field (None: the half-space's)
+        self.close()
         self.organ = None
         #: how long its factorisation took [s]
         self.organ_factor_s = 0.0
@@ -579,7 +593,8 @@ class Solver:
                     f'66 s, 4.6 GB, 0.3 s per response): use far_field_model half_space')
             t0 = time.perf_counter()
             self.organ = OrganCompliance(self.X, self.fixed, self.scheme.state(None, None, 0),
-                                         ORGAN_SHARE * self.model.spacing, self.abort)
+                                         ORGAN_SHARE * self.model.spacing, self.abort,
+                                         background=cfg.far_field_background)
             self.organ_factor_s = time.perf_counter() - t0
         if self.backward is not None:
             self.backward.set_material(material)
