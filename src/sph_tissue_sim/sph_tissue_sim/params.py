@@ -138,6 +138,11 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                       'its peak, then about 45 ms per response solved; with far_field 1 and the '
                                       'backstop samples no wider area: local within 5 % of global at 12 of 12 '
                                       'presses)', FAR_FIELD_MODELS, False, 'solver'),
+    'far_field_background': (True, 'far_field_model organ: solve a touched particle\'s response on a worker '
+                                   'thread instead of in the frame that first needs it (about 45 ms each on '
+                                   'the 3670 liver, a few per touch on new ground); meanwhile the load is '
+                                   'shared by the touched particles whose responses are ready. Not repeatable '
+                                   'bit for bit, so timing_mode lockstep always waits', None, False, 'solver'),
     'parallel_min_particles': (0, 'tlsph: use numba threads (NUMBA_NUM_THREADS) when at least this '
                                   'many particles are stressed; 0 = never. Only on cores the sim '
                                   'has to itself: a busy core stalls every parallel sub-step',
@@ -315,7 +320,7 @@ def build_config(p: dict) -> SolverConfig:
                        sample_mode=p['sample_mode'],
                        paper_momentum=int(p['paper_momentum']),
                        far_field=float(p['far_field']), far_field_model=p['far_field_model'],
-                       far_field_background=p['timing_mode'] != 'lockstep',
+                       far_field_background=bool(p['far_field_background']) and p['timing_mode'] != 'lockstep',
                        max_tool_speed=float(p['max_tool_speed']), friction=float(p['friction']),
                        viscosity=p['viscosity'], viscous_tol=float(p['viscous_tol']),
                        contact_integration=p['contact_integration'],

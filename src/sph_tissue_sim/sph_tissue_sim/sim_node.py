@@ -181,6 +181,7 @@ class SimNode(Node):
         self._wake = threading.Event()           # a pose came: the live solver thread has a job
 
         self._lock = threading.Lock()            # the solver and its state
+        self._retired: list[Solver] = []         # replaced solvers whose far field is still solving
         self._cv = threading.Condition()         # the pose inbox
         self._inbox: collections.deque = collections.deque()
         self._stop = threading.Event()
@@ -343,7 +344,6 @@ class SimNode(Node):
         # a long step (a first deep touch solving the organ's responses on a busy machine) stops
         # at its next sub-step or response solve instead of outliving the interpreter
         self.solver.interrupt()
-        self.solver.close()
         with self._cv:
             self._cv.notify_all()
         self._wake.set()
@@ -352,6 +352,9 @@ class SimNode(Node):
             if thread is not None:
                 thread.join(SHUTDOWN_JOIN)
                 stopped = stopped and not thread.is_alive()
+        # the far field's worker, after the stepping threads (they may still ask it for a response)
+        for solver in (*self._retired, self.solver):
+            stopped = solver.close(SHUTDOWN_JOIN) and stopped
         c = self.counts
         # not the node logger: after Ctrl-C the context is shut down and rosout would fail
         rclpy.logging.get_logger(self.get_name() + '.shutdown').info(
@@ -366,8 +369,8 @@ class SimNode(Node):
                 f'(last {len(w)} steps)')
         if not stopped:
             rclpy.logging.get_logger(self.get_name() + '.shutdown').warning(
-                f'a stepping thread is still inside a step after {SHUTDOWN_JOIN:g} s: exiting '
-                f'without waiting for it')
+                f'a stepping thread, or the far field\'s worker, is still inside a step or a '
+                f'solve after {SHUTDOWN_JOIN:g} s: exiting without waiting for it')
         return stopped
 
     # -- logging -----------------------------------------------------------------------------------
@@ -774,7 +777,7 @@ class SimNode(Node):
             return SetParametersResult(successful=False, reason=reason)
         with self._solver_now():
             if solver is not None:
-                self.solver.close()
+                self._retired = [s for s in (*self._retired, self.solver) if not s.close()]
                 self.solver = solver
                 self._rest()
             elif material is not None:

@@ -166,6 +166,9 @@ def test_closing_a_solver_stops_its_far_fields_worker():
     holding the old factor."""
     solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0,
                                                  far_field_background=True))
+    X = solver.X
+    top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
+    solver.organ.place(X.copy(), X, top.astype(np.int32), top[:1].astype(np.int32), np.ones(1), np.zeros(3))
     worker = solver.organ._worker
     assert worker.is_alive()
     solver.close()

@@ -161,9 +161,7 @@ class OrganCompliance:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._pending: set[int] = set()
         self._worker: threading.Thread | None = None
-        if background:   # started now: a thread's start waits for it, not what a first touch should
-            self._worker = threading.Thread(target=self._work, name='organ-responses', daemon=True)
-            self._worker.start()
+        self._closed = False
 
     def _solve(self, c: int) -> np.ndarray:
         rhs = np.zeros((3 * self.n, 3), dtype=np.float32)
@@ -207,10 +205,14 @@ class OrganCompliance:
             return self.store[self.slot[c]]
 
     def _request(self, c: int) -> None:
-        """Queue ``c``'s response for the worker."""
+        """Queue ``c``'s response for the worker, started by the first request: from the stepping
+        thread, whose priority it inherits (sim_node's runs nicer than the one answering poses)."""
         if c not in self._pending:
             self._pending.add(c)
             self._queue.put(c)
+            if self._worker is None and not self._closed:
+                self._worker = threading.Thread(target=self._work, name='organ-responses', daemon=True)
+                self._worker.start()
 
     def _work(self) -> None:
         while True:
@@ -242,12 +244,18 @@ class OrganCompliance:
             time.sleep(0.002)
         return True
 
-    def close(self) -> None:
-        """Stop the worker after the response it is solving (it is a daemon: a process may also
-        just leave)."""
-        if self._worker is not None:
-            self._queue.put(-1)
-            self._worker = None
+    def close(self, timeout: float = 0.0) -> bool:
+        """Stop the worker after the response it is solving, waiting up to ``timeout`` [s] for it;
+        no worker starts after this. False if it is still solving: a process must not finalise
+        its interpreter under a thread in a native solve (stdout's flush then failed, exit 120)."""
+        with self._publish:
+            self._closed = True
+            worker = self._worker
+        if worker is None:
+            return True
+        self._queue.put(-1)
+        worker.join(timeout)
+        return not worker.is_alive()
 
     def place(self, x: np.ndarray, X: np.ndarray, idx: np.ndarray, at: np.ndarray, weights: np.ndarray,
               load: np.ndarray) -> bool:

@@ -554,10 +554,13 @@ class Solver:
             raise ConfigError('external forces must be finite')
         self.loads = Loads(idx, f, len(idx))
 
-    def close(self) -> None:
-        """Stop the far field's worker thread, if any (a solver being replaced)."""
-        if getattr(self, 'organ', None) is not None:
-            self.organ.close()
+    def close(self, timeout: float = 0.0) -> bool:
+        """Stop the far field's worker thread, if any, waiting up to ``timeout`` [s] for it to
+        finish the response it is solving; False if it has not (see
+        :meth:`~.compliance.OrganCompliance.close`)."""
+        if getattr(self, 'organ', None) is None:
+            return True
+        return self.organ.close(timeout)
 
     def set_material(self, material: Material) -> None:
         """Change the material (takes effect at the next step; sub-step bounds are recomputed)."""
