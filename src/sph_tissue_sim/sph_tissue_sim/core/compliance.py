@@ -27,10 +27,13 @@ thread's timing, so stepping that must repeat bit for bit (lockstep goldens, val
 
 from __future__ import annotations
 
+import atexit
 import hashlib
+import os
 import queue
 import threading
 import time
+import weakref
 
 import numpy as np
 from numba import njit
@@ -92,6 +95,22 @@ def linear_stiffness(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, g:
     k_hg = (load @ pick) @ B - load @ bond
     return (k_el + k_hg).tocsr()
 
+
+#: compliances whose worker was started: closed at exit, for the reason in OrganCompliance.close
+_working: 'weakref.WeakSet[OrganCompliance]' = weakref.WeakSet()
+
+
+@atexit.register
+def _close_workers() -> None:
+    for organ in list(_working):
+        organ.close(EXIT_JOIN)
+
+
+#: [s] how long the process's exit waits for a worker to finish its solve
+EXIT_JOIN = 10.0
+
+#: the worker's Linux nice value (19, the lowest priority)
+WORKER_NICE = 19
 
 #: the last factorisation, ``(key, SuperLU, nnz)``: a solver rebuilt on the same organ and material
 #: (a parameter change in sim_node, every press of the validation) reuses it instead of paying the
@@ -213,8 +232,13 @@ class OrganCompliance:
             if self._worker is None and not self._closed:
                 self._worker = threading.Thread(target=self._work, name='organ-responses', daemon=True)
                 self._worker.start()
+                _working.add(self)
 
     def _work(self) -> None:
+        try:   # below the stepping thread: it may hold the interpreter while this one solves
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WORKER_NICE)
+        except (AttributeError, OSError):
+            pass
         while True:
             c = self._queue.get()
             if c < 0:
