@@ -2,6 +2,7 @@
 
 import dataclasses
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -136,7 +137,7 @@ def test_in_the_background_a_touch_never_waits_for_a_response_and_shares_the_loa
     """A first touch on the liver asks for a few responses of about 45 ms each; with
     ``far_field_background`` the frame goes on without them: the load is shared by the touched
     particles whose responses are ready (none: the shell stays at rest), and once the worker has
-    solved them the placement is the waiting one's."""
+    solved them (and the shell has come in from rest) the placement is the waiting one's."""
     cfg = SolverConfig(mode='local', far_field_model='organ', far_field=1.0)
     waiting = Solver(_block(), SOFT, cfg).organ
     organ = Solver(_block(), SOFT, dataclasses.replace(cfg, far_field_background=True)).organ
@@ -150,14 +151,19 @@ def test_in_the_background_a_touch_never_waits_for_a_response_and_shares_the_loa
     _place_without_waiting(organ, x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
     np.testing.assert_array_equal(x[idx], X[idx])   # nothing ready: at rest
     assert organ.wait(60.0) and organ.n_columns == 2 and organ.pending == 0
+    # ready, the shell comes in from rest over READY_RAMP (a late response must not step the force)
+    organ.place(x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
+    np.testing.assert_array_equal(x[idx], X[idx])
+    time.sleep(compliance.READY_RAMP)
     organ.place(x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
     expected = X.copy()
     waiting.place(expected, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
-    np.testing.assert_array_equal(x[idx], expected[idx])
+    np.testing.assert_allclose(x[idx], expected[idx], rtol=1e-12, atol=1e-15)
+    assert np.abs(x[idx] - X[idx]).max() > 1e-6
     # a third touched particle, not solved yet: the ready one carries the whole load meanwhile
     _place_without_waiting(organ, x, X, idx, np.array([c, third], dtype=np.int32), np.array([1.0, 1.0]), load)
     waiting.place(expected, X, idx, np.array([c], dtype=np.int32), np.array([1.0]), load)
-    np.testing.assert_array_equal(x[idx], expected[idx])
+    np.testing.assert_allclose(x[idx], expected[idx], rtol=1e-12, atol=1e-15)
     assert organ.pending == 1 and organ.wait(60.0) and organ.n_columns == 3
 
 
