@@ -13,7 +13,7 @@ responses that are ready).
 
 Writes ``first_touch.csv`` and ``first_touch.png`` (frame time and Fz against depth) to ``--out``.
 
-Usage: ``python benchmarks/first_touch.py [--speed M_PER_S] [--depth M] [--out DIR]``
+Usage: ``python benchmarks/first_touch.py [--speed M_PER_S] [--depth M] [--particles N] [--out DIR]``
 """
 
 from __future__ import annotations
@@ -63,13 +63,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--speed', type=float, default=0.02, help='pressing speed [m/s]')
     ap.add_argument('--depth', type=float, default=0.010, help='deepest press [m]')
+    ap.add_argument('--particles', type=int, default=3670, help='liver size')
     ap.add_argument('--out', type=Path, default=ROOT / 'benchmarks' / 'results' / 'first_touch')
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     # as sim_node (which also keeps BLAS to one thread): a thread that wants the interpreter gets it within 0.2 ms, not Python's 5 ms
     sys.setswitchinterval(SWITCH_INTERVAL)
     one_blas_thread()
-    model = make_model('liver', n_particles=3670)
+    model = make_model('liver', n_particles=args.particles)
     for way in (False, True):   # compile the kernels and factor the organ outside the timing
         press(model, way, PLACES[0], 0.002, args.speed)
     rows, curves = [], {}
@@ -83,8 +84,9 @@ def main(argv=None) -> int:
                    'longest_frame_ms': r['wall'].max() * 1e3, 'frames_over_2ms': int(slow.sum()),
                    'time_over_2ms_ms': r['wall'][slow].sum() * 1e3,
                    'median_frame_ms': float(np.median(r['wall'])) * 1e3, 'largest_fz_difference_N': diff}
-            for dd in REPORT_DEPTHS:
-                row[f'fz_{dd * 1e3:.0f}mm_N'] = float(r['fz'][int(np.argmin(np.abs(r['depth'] - dd)))])
+            for dd in REPORT_DEPTHS:   # nan below the deepest press
+                row[f'fz_{dd * 1e3:.0f}mm_N'] = (float(r['fz'][int(np.argmin(np.abs(r['depth'] - dd)))])
+                                                 if dd <= args.depth + 1e-12 else float('nan'))
             rows.append(row)
             print(' | '.join(f'{k}={v:.4g}' if isinstance(v, float) else f'{k}={v}' for k, v in row.items()),
                   flush=True)
@@ -111,7 +113,7 @@ def main(argv=None) -> int:
     a0.set_ylabel('frame wall time [ms]')
     a1.set_ylabel('Fz [N]')
     a1.set_xlabel('tool depth below first touch [mm]')
-    a0.set_title(f'pressing the 3670 liver at {args.speed * 1e3:.0f} mm/s: waiting for the far field\'s '
+    a0.set_title(f'pressing the {len(model.positions)}-particle liver at {args.speed * 1e3:.0f} mm/s: waiting for the far field\'s '
                  'responses or not', fontsize=9)
     a1.legend(fontsize=7, ncol=2)
     for a in (a0, a1):
