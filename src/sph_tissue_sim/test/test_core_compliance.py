@@ -120,8 +120,9 @@ def test_an_interrupt_stops_placing_between_two_response_solves_and_moves_nothin
     assert organ.n_columns == 3 and not np.array_equal(x, X)
 
 
-def _place_without_waiting(organ, x, X, idx, at, weights, load) -> None:
-    """``organ.place`` with every sparse solve held up: it must return anyway."""
+def _place_without_waiting(organ, x, X, idx, at, weights, load) -> int:
+    """``organ.place`` with every sparse solve held up: it must return anyway. Returns how many
+    responses were pending then."""
     done = threading.Event()
 
     def run():
@@ -131,6 +132,7 @@ def _place_without_waiting(organ, x, X, idx, at, weights, load) -> None:
     with compliance._solve_lock:   # the worker cannot solve while the test holds this
         threading.Thread(target=run, daemon=True).start()
         assert done.wait(60.0), 'place() waited for a response'
+        return organ.pending
 
 
 def test_in_the_background_a_touch_never_waits_for_a_response_and_shares_the_load_among_the_ready_ones():
@@ -148,23 +150,46 @@ def test_in_the_background_a_touch_never_waits_for_a_response_and_shares_the_loa
     idx = np.flatnonzero(~_block().fixed).astype(np.int32)
     load = np.array([0.01, -0.02, -0.3])
     x = X + 1e-3
-    _place_without_waiting(organ, x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
+    assert _place_without_waiting(organ, x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]),
+                                  load) == 2
     np.testing.assert_array_equal(x[idx], X[idx])   # nothing ready: at rest
     assert organ.wait(60.0) and organ.n_columns == 2 and organ.pending == 0
     # ready, the shell comes in from rest over READY_RAMP (a late response must not step the force)
     organ.place(x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
     np.testing.assert_array_equal(x[idx], X[idx])
-    time.sleep(compliance.READY_RAMP)
+    time.sleep(2.0 * compliance.READY_RAMP)   # (a sleep may end a hair early on the monotonic clock)
     organ.place(x, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
     expected = X.copy()
     waiting.place(expected, X, idx, np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load)
     np.testing.assert_allclose(x[idx], expected[idx], rtol=1e-12, atol=1e-15)
     assert np.abs(x[idx] - X[idx]).max() > 1e-6
     # a third touched particle, not solved yet: the ready one carries the whole load meanwhile
-    _place_without_waiting(organ, x, X, idx, np.array([c, third], dtype=np.int32), np.array([1.0, 1.0]), load)
+    assert _place_without_waiting(organ, x, X, idx, np.array([c, third], dtype=np.int32), np.array([1.0, 1.0]),
+                                  load) == 1
     waiting.place(expected, X, idx, np.array([c], dtype=np.int32), np.array([1.0]), load)
     np.testing.assert_allclose(x[idx], expected[idx], rtol=1e-12, atol=1e-15)
-    assert organ.pending == 1 and organ.wait(60.0) and organ.n_columns == 3
+    assert organ.wait(60.0) and organ.n_columns == 3
+
+
+def test_a_failed_background_solve_is_kept_and_the_worker_goes_on():
+    organ = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0,
+                                                far_field_background=True)).organ
+    X = organ.X
+    top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
+    idx, at = top.astype(np.int32), top[:1].astype(np.int32)
+    lu = organ.lu
+
+    class FailsOnce:
+        def solve(self, rhs):
+            organ.lu = lu
+            raise MemoryError('no room for the right-hand sides')
+
+    organ.lu = FailsOnce()
+    organ.place(X.copy(), X, idx, at, np.ones(1), np.zeros(3))
+    assert organ.wait(60.0) and isinstance(organ.failure, MemoryError) and organ.n_columns == 0
+    organ.place(X.copy(), X, idx, at, np.ones(1), np.zeros(3))   # asked again at the next touch
+    assert organ.wait(60.0) and organ.n_columns == 1 and organ._worker.is_alive()
+    assert organ.close(30.0)
 
 
 def test_closing_a_solver_stops_its_far_fields_worker():

@@ -189,6 +189,8 @@ class OrganCompliance:
         self._worker: threading.Thread | None = None
         self._closed = False
         self._ready_since: float | None = None   # when a touch's first response was ready (monotonic s)
+        #: the last exception a background solve raised (None: none did)
+        self.failure: Exception | None = None
 
     def _solve(self, c: int) -> np.ndarray:
         rhs = np.zeros((3 * self.n, 3), dtype=np.float32)
@@ -253,11 +255,14 @@ class OrganCompliance:
                 return
             with self._publish:
                 done = self.slot[c] >= 0 or self._share(c)
-            if not done:
-                u = self._solve(c)
-                with self._publish:
-                    if self.slot[c] < 0 and not self._share(c):
-                        self._keep(c, u)
+            try:
+                if not done:
+                    u = self._solve(c)
+                    with self._publish:
+                        if self.slot[c] < 0 and not self._share(c):
+                            self._keep(c, u)
+            except Exception as exc:   # noqa: BLE001  (the worker must outlive one failed solve)
+                self.failure = exc     # the particle is asked for again at its next touch
             with self._publish:
                 self._pending.discard(c)
 
