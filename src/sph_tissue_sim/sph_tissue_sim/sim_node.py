@@ -106,9 +106,9 @@ def one_blas_thread() -> None:
     """Let the BLAS libraries (numpy's and scipy's OpenBLAS) use one thread each.
 
     Their extra threads spin while they wait for work: beside the organ's sparse solves (a
-    response per touched particle) they took the core the stepping and executor threads need, and
-    a frame next to a solve took 4 ms instead of 0.3; the solves themselves gain nothing from them
-    (49 ms either way on the 3670 liver).
+    response per touched particle) they took the core the other threads need (a 0.24 ms numba loop
+    beside repeated solves: p99 4.3 ms, with one BLAS thread 0.29 ms), and the solves gain
+    nothing from them (49 ms either way on the 3670 liver).
     """
     import scipy.sparse.linalg  # noqa: F401  (loads scipy's own OpenBLAS, so the limit reaches it)
     from threadpoolctl import threadpool_limits
