@@ -72,6 +72,7 @@ def golden_params() -> dict:
     p = {name: spec[0] for name, spec in sim_params.SIM_PARAMS.items()}
     text = (ROOT / 'bags' / 'golden_sim_params.yaml').read_text()
     p.update(yaml.safe_load(text)['/**']['ros__parameters'])
+    p['timing_mode'] = 'lockstep'   # as make_bags records them: repeatable bit for bit
     return p
 
 
