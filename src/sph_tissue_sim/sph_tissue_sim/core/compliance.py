@@ -23,8 +23,8 @@ until a particle's response is ready the load is shared by the touched particles
 are (none ready: the shell stays at rest, the paper's still region, whose force is up to about
 +50 % on the liver; the first response ready then comes in over ``READY_RAMP``). A touch starts with
 a small load on a particle just reached, so on an idle machine that costs little (3670 liver
-pressed at 20 mm/s: responses ready within about 50 ms, Fz within 13 mN of waiting); beside a
-busy process the worker, the lowest priority, took up to a second. The result depends on the
+pressed at 20 mm/s: Fz within 13 mN of waiting); beside a busy process the worker, the lowest
+priority, had not finished within a 0.5 s press. The result depends on the
 thread's timing, so stepping that must repeat bit for bit (lockstep goldens, validation) waits.
 """
 
@@ -253,14 +253,8 @@ class OrganCompliance:
             c = self._queue.get()
             if c < 0:
                 return
-            with self._publish:
-                done = self.slot[c] >= 0 or self._share(c)
             try:
-                if not done:
-                    u = self._solve(c)
-                    with self._publish:
-                        if self.slot[c] < 0 and not self._share(c):
-                            self._keep(c, u)
+                self.column(c)
             except Exception as exc:   # noqa: BLE001  (the worker must outlive one failed solve)
                 self.failure = exc     # the particle is asked for again at its next touch
             with self._publish:
