@@ -81,6 +81,7 @@ def record(name: str, input_bag: Path, raw_out: Path, timeout: float) -> None:
         sim.wait_for_output(graph.SIM_READY, timeout=180)
         rec.start()
         rec.wait_for_output(graph.RECORD_READY, timeout=60)
+        rec.wait_for_output(graph.record_matched(FORCE), timeout=60)
         t0 = time.monotonic()
         drv.start()
         code = drv.wait(timeout)
@@ -193,7 +194,7 @@ def make(name: str, out_dir: Path, geometry: Geometry) -> dict:
                 counts = finalise(raw, out, n)
                 break
             except IncompleteRecording as exc:
-                # e.g. the recorder's reader matched the sim's force writer after the first reply
+                # e.g. a lockstep reply that never came on a loaded machine
                 log(f'{name}: attempt {attempt}: {exc}')
         else:
             raise SystemExit(f'make_bags: {name}: no complete recording in 3 attempts')

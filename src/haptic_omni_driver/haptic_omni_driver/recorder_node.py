@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import rclpy
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -81,9 +82,9 @@ class OmniRecorder(Node):
             qos = QoSProfile(depth=p['qos_depth'], history=HistoryPolicy.KEEP_LAST,
                              reliability=reliability, durability=DurabilityPolicy.VOLATILE)
             try:
-                sub = self.create_subscription(msg_cls, topic,
-                                               self._callback(len(self._subs), msgtype), qos,
-                                               raw=True)
+                sub = self.create_subscription(
+                    msg_cls, topic, self._callback(len(self._subs), msgtype), qos, raw=True,
+                    event_callbacks=SubscriptionEventCallbacks(matched=self._matched(len(self._subs))))
             except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad names
                 raise ConfigError(f'cannot record {topic!r}: {exc}') from exc
             self._subs.append(sub)
@@ -118,6 +119,18 @@ class OmniRecorder(Node):
                 if 0 < self.p['max_messages'] <= self.writer.count:
                     self.finished.set()
         return record
+
+    def _matched(self, index: int):
+        # a caller that needs every reply (a lockstep recording) waits for this line, not for
+        # 'recording': the subscription exists before DDS has matched it to the publisher
+        def matched(info) -> None:
+            topic = self._subs[index].topic_name
+            n = info.current_count
+            if info.current_count_change > 0:
+                self.get_logger().info(f'{topic}: matched a publisher ({n} now)')
+            elif info.current_count_change < 0:
+                self.get_logger().info(f'{topic}: a publisher left ({n} now)')
+        return matched
 
     def _offered_qos(self, topic: str) -> list:
         """The publishers' offered QoS profiles, as rosbag2 stores them."""

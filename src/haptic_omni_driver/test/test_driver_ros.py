@@ -337,6 +337,25 @@ def test_recorder_replay_round_trip_is_byte_identical(rclpy_node, tmp_path):
     assert got == a_raw
 
 
+def test_recorder_says_when_each_publisher_is_matched_and_when_it_leaves(ros_domain, tmp_path):
+    from tissue_testing.system_graph import record_matched
+
+    make_pose_bag(tmp_path / 'a', n=50, period_ns=1_000_000)
+    rec = harness.NodeProcess(PKG, 'omni_record', params={'output': str(tmp_path / 'b'),
+                                                          'reliable': True})
+    with rec:
+        rec.wait_for_output(r'recording', 30)
+        assert 'matched a publisher' not in rec.output()  # nothing publishes yet
+        with driver({'backend': 'replay', 'bag': str(tmp_path / 'a'), 'reliable': True,
+                     'qos_depth': 1000, 'wait_for_subscribers': 1, 'exit_on_end': True}) as proc:
+            rec.wait_for_output(record_matched('/omni/pose'), 30)
+            rec.wait_for_output(record_matched('/omni/state'), 30)
+            assert proc.wait(30) == 0
+        rec.wait_for_output(r'/omni/pose: a publisher left \(0 now\)', 30)
+        assert rec.stop() == 0
+    assert bagio.bag_topics(tmp_path / 'b')['/omni/pose'].count == 50
+
+
 # -- scripted and parameters ----------------------------------------------------------------------
 def test_scripted_publishes_the_script_at_rate_then_exits(rclpy_node):
     from geometry_msgs.msg import PoseStamped

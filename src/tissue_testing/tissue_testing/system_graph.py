@@ -8,6 +8,7 @@ Every node is started from its installed executable (what ``ros2 run`` starts) w
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 from pathlib import Path
@@ -33,6 +34,12 @@ PROBE_FRAME = 'system_monitor_probe'
 DRIVER_READY = r'ready: backend'
 VIZ_READY = r'ready: window'
 RECORD_READY = r'recording '
+
+
+def record_matched(topic: str) -> str:
+    """omni_record's line once its subscription to ``topic`` (resolved, e.g. ``/omni/pose``) has
+    matched a publisher: from then on nothing that publisher sends is missed."""
+    return re.escape(topic) + r': matched a publisher'
 
 
 def sim(mode: str = 'lockstep', env: Mapping[str, str] | None = None, golden: bool = True,
