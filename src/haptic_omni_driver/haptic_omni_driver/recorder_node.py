@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 
 import rclpy
-from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -33,6 +32,8 @@ from .errors import ConfigError, DriverError
 from .params import RECORDER_PARAMS
 
 EXIT_OK, EXIT_OUTPUT = 0, 1
+#: [s] how often the publishers matched to each subscription are counted (for the log)
+MATCH_POLL = 0.05
 
 #: message types of the topics this recorder knows (by last name component)
 KNOWN_TYPES = {
@@ -82,9 +83,9 @@ class OmniRecorder(Node):
             qos = QoSProfile(depth=p['qos_depth'], history=HistoryPolicy.KEEP_LAST,
                              reliability=reliability, durability=DurabilityPolicy.VOLATILE)
             try:
-                sub = self.create_subscription(
-                    msg_cls, topic, self._callback(len(self._subs), msgtype), qos, raw=True,
-                    event_callbacks=SubscriptionEventCallbacks(matched=self._matched(len(self._subs))))
+                sub = self.create_subscription(msg_cls, topic,
+                                               self._callback(len(self._subs), msgtype), qos,
+                                               raw=True)
             except Exception as exc:  # noqa: BLE001 - rclpy raises several types for bad names
                 raise ConfigError(f'cannot record {topic!r}: {exc}') from exc
             self._subs.append(sub)
@@ -93,6 +94,8 @@ class OmniRecorder(Node):
                                       flush_period=p['flush_period'])
         self.get_logger().info(f'recording {", ".join(s.topic_name for s in self._subs)} to '
                                f'{self.path}')
+        self._matched = [0] * len(self._subs)
+        self.create_timer(MATCH_POLL, self._check_matches)
         if p['duration'] > 0:
             self.create_timer(0.05, self._check_duration)
         self._logged_count = 0
@@ -120,17 +123,16 @@ class OmniRecorder(Node):
                     self.finished.set()
         return record
 
-    def _matched(self, index: int):
-        # a caller that needs every reply (a lockstep recording) waits for this line, not for
-        # 'recording': the subscription exists before DDS has matched it to the publisher
-        def matched(info) -> None:
-            topic = self._subs[index].topic_name
-            n = info.current_count
-            if info.current_count_change > 0:
-                self.get_logger().info(f'{topic}: matched a publisher ({n} now)')
-            elif info.current_count_change < 0:
-                self.get_logger().info(f'{topic}: a publisher left ({n} now)')
-        return matched
+    def _check_matches(self) -> None:
+        # A caller that needs every message (a lockstep recording) waits for the matched line, not
+        # for 'recording': a subscription exists before DDS matches it to a publisher. Polled, since
+        # a match event that comes before the executor takes the node is lost.
+        for i, sub in enumerate(self._subs):
+            n = sub.get_publisher_count()
+            if n != self._matched[i]:
+                what = 'matched a publisher' if n > self._matched[i] else 'a publisher left'
+                self.get_logger().info(f'{sub.topic_name}: {what} ({n} now)')
+                self._matched[i] = n
 
     def _offered_qos(self, topic: str) -> list:
         """The publishers' offered QoS profiles, as rosbag2 stores them."""

@@ -69,6 +69,7 @@ from tissue_common.throttle import EventThrottle
 from tissue_msgs.msg import SimMetrics
 from tissue_msgs.srv import ResetTissue
 
+from . import blas_kernels
 from .cloud import CloudBuffer
 from .core.errors import ConfigError, ModelError, SimError
 from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, StepResult, warmup
@@ -334,6 +335,13 @@ class SimNode(Node):
             self.get_logger().warning('kernels compiled in this process (numba cache not writable?): '
                                       'forces may differ in the last bits from a run on cached '
                                       'kernels')
+        kernels = sorted({arch for _, arch in blas_kernels.loaded()})
+        self.get_logger().info(f'OpenBLAS kernels: {", ".join(kernels)}')
+        if self.lockstep and kernels != [blas_kernels.CORETYPE]:
+            self.get_logger().warning(
+                f'OpenBLAS kernels {", ".join(kernels)}, not {blas_kernels.CORETYPE} (OPENBLAS_CORETYPE '
+                f'set, numpy loaded before sph_tissue_sim, or a host without AVX2/FMA): forces may '
+                f'differ in the last bits from the goldens')
         self.get_logger().info('ready: ' + self.describe())
 
     def shutdown(self) -> None:
@@ -818,6 +826,8 @@ def main(args=None) -> int:
     code = EXIT_OK
     reexec = False
     stopped = True
+    # before the organ's factorisation too: its bits must not depend on the host's core count
+    one_blas_thread()
     try:
         try:
             node, refused = build_node(SimNode, 'sim_node', {
@@ -838,7 +848,6 @@ def main(args=None) -> int:
         # the stepping thread's Python work between kernels holds the GIL; hand it to the executor
         # (poses, services) within a fraction of a 1 kHz frame instead of CPython's 5 ms
         sys.setswitchinterval(SWITCH_INTERVAL)
-        one_blas_thread()
         spin_until_stopped(node, stop, on_spinning=node.start)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
