@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import shutil
 import sys
 import tempfile
@@ -219,6 +220,9 @@ def main(argv=None) -> int:
     if not args.check:
         for name in args.names:
             make(name, args.out, geometry)
+        if args.out.resolve() == HERE.resolve():
+            # the system tests hold the goldens bit for bit on this kind of CPU, to 1e-9 N elsewhere
+            graph.GOLDEN_HOST.write_text(json.dumps(graph.host_kind(), indent=1) + '\n')
         return 0
     bad = 0
     with tempfile.TemporaryDirectory(prefix='make_bags_check_') as tmp:

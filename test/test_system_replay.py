@@ -3,8 +3,9 @@
 Each short bag in bags/ carries the force the simulation returned when it was recorded (see
 bags/README.md). Replaying its poses in lockstep through a freshly started sim_node with the same
 parameters (bags/golden_sim_params.yaml) must return the same forces: the loop is deterministic
-(lockstep, stamps from the bag, fixed parameters), so we require bit-identical wrenches, and report
-the largest difference against the stated tolerance of 1e-9 N when they are not.
+(lockstep, stamps from the bag, fixed parameters), so we require bit-identical wrenches on the kind
+of CPU that made them (bags/golden_host.json), and everywhere the stated tolerance of 1e-9 N, with
+the largest difference reported when they are not bit-identical.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import json
 import math
 import struct
 import time
+import warnings
 
 import pytest
 
@@ -91,7 +93,13 @@ def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clea
         f'{FORCE_TOLERANCE} N): an intended physics change needs regenerated goldens, see '
         f'bags/README.md')
     differing = [s for s in pose_stamps if _bits(got[s]) != _bits(gold[s])]
-    assert not differing, f'{len(differing)} forces not bit-identical (max diff {worst:.3e} N)'
+    made_on = json.loads(graph.GOLDEN_HOST.read_text())
+    if graph.host_kind() == made_on:
+        assert not differing, f'{len(differing)} forces not bit-identical (max diff {worst:.3e} N)'
+    elif differing:
+        warnings.warn(f'{name}: {len(differing)} forces differ in their last bits (up to {worst:.3e} N) '
+                      f'on this CPU ({graph.host_kind()}), within the tolerance; the goldens were made '
+                      f'on {made_on}')
     peak = max(math.sqrt(sum(v * v for v in gold[s][:3])) for s in pose_stamps)
     assert peak > 0.05, f'{name}: the session never pressed the tissue (peak {peak:.3f} N)'
 

@@ -27,6 +27,28 @@ BAGS = REPO_ROOT / 'bags'
 #: sim_node parameters the goldens in bags/ were recorded with (a ROS 2 params file)
 GOLDEN_SIM_PARAMS = BAGS / 'golden_sim_params.yaml'
 SHORT_BAGS = ('press', 'pull', 'sweep', 'poke')
+#: the kind of CPU the goldens were made on (:func:`host_kind`), written by bags/make_bags.py
+GOLDEN_HOST = BAGS / 'golden_host.json'
+
+
+def host_kind() -> dict[str, str]:
+    """What a lockstep force's last bits depend on besides the code and the parameters: the CPU
+    (numba's code is compiled for one level everywhere, but OpenBLAS and the C libraries it calls
+    pick their code for the CPU; see bags/README.md)."""
+    kind = {'machine': os.uname().machine}
+    wanted = {'vendor_id': 'vendor', 'cpu family': 'family', 'model': 'model', 'model name': 'name'}
+    try:
+        with open('/proc/cpuinfo', encoding='ascii', errors='replace') as f:
+            for line in f:
+                key, _, value = line.partition(':')
+                key = key.strip()
+                if key in wanted and wanted[key] not in kind:
+                    kind[wanted[key]] = value.strip()
+                if not line.strip():   # the first processor's block is enough
+                    break
+    except OSError:
+        pass
+    return kind
 
 SIM_READY = r'ready: '
 #: frame of the monitor's probe poses (rejected by the sim: see :meth:`Monitor.probe_sim`)
