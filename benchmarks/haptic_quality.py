@@ -9,10 +9,14 @@ ROS), two ways:
   reaction (what ``sim_node`` sends today);
 * ``renderer``: :class:`sph_tissue_sim.haptics.renderer.HapticRenderer` answers each pose (velocity
   estimator, virtual coupling, passivity controller) and the solver steps at the proxy every
-  ``--every`` poses, refreshing the contact model (every pose by default: the lockstep schedule).
+  ``--every`` poses, refreshing the contact model (every pose by default: the lockstep schedule);
+* ``live D`` (``--delays``): the renderer on the live schedule made repeatable: the solver takes
+  the newest proxy whenever it is free and its reaction arrives D poses later, as from a solver
+  thread whose steps take D ms (what the live graph does, without its timing noise).
 
-Per bag and way, in steady contact (more than 20 frames after contact onset): per-frame |dF| p99 and
-max, the median force change on frames where the device moved by exactly one encoder tick as a share
+Per bag and way (measures defined once in :mod:`tissue_common.feel`), in steady contact (more than
+20 frames after contact onset): per-frame |dF| p99 and max, the one-frame reversals above 10 mN
+(anywhere), the median force change on frames where the device moved by exactly one encoder tick as a share
 of the force (``tick %``; ``still``: only the ticks that follow a frame without motion, the
 quantisation alone, where inside a motion the change is also the stiffness times the speed;
 ``smooth``: the tick share of the force's centred 11-frame mean, what a force without any
@@ -54,16 +58,13 @@ from sph_tissue_sim import params as sim_params
 from sph_tissue_sim.haptics.multirate import MultiRate
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
 from sph_tissue_sim.sim_node import SimNode, make_solver
+from tissue_common.feel import TICK, feel
 from tissue_common.force import clamp_norm
 from tissue_common.stamps import stamp_to_ns
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ('press', 'pull', 'sweep', 'poke', 'long')
-TICK = 5.5e-5           # [m] the Omni's encoder resolution (the bags reproduce it)
-STEADY_AFTER = 20       # frames after contact onset before contact counts as steady
-RIPPLE_WINDOW = 21      # frames of the centred mean the ripple is measured against
-SMOOTH_WINDOW = 11      # frames of the centred mean whose tick share is the floor of ``tick %``
-COLUMNS = ('bag', 'way', 'frames', 'steady_frames', 'dF_p99_mN', 'dF_max_mN', 'tick_change_pct',
+COLUMNS = ('bag', 'way', 'frames', 'steady_frames', 'dF_p99_mN', 'dF_max_mN', 'reversals', 'tick_change_pct',
            'still_tick_change_pct', 'smooth_tick_change_pct', 'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
 
 
@@ -87,64 +88,46 @@ def bag_poses(name: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int = 1,
-           config: RendererConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Tissue-frame (positions, forces) per pose, ``way`` 'direct' or 'renderer' (the lockstep
-    schedule of ``sim_node``: the solver steps at the proxy after every ``every``-th pose)."""
+           config: RendererConfig | None = None, delay: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Tissue-frame (positions, forces) per pose, ``way`` 'direct' or 'renderer'.
+
+    The renderer's schedule: with ``delay`` 0 the lockstep one of ``sim_node`` (the solver steps at
+    the proxy after every ``every``-th pose and its reaction serves the next pose); with ``delay``
+    D > 0 the live one, made repeatable: the solver takes a job (the newest proxy and all the pose
+    time since its last job) whenever it is free, and its reaction reaches the renderer D poses
+    later, as from a solver thread whose steps take D pose periods."""
     solver = make_solver(sim_params.build_model(p), sim_params.build_material(p),
                          sim_params.build_config(p), p['nominal_dt'])
     mapping = SimNode._make_mapping(p, solver)
-    handoff = MultiRate(HapticRenderer(config or RendererConfig(force_limit=p['force_limit'])), every,
-                        p['max_dt'])
+    handoff = MultiRate(HapticRenderer(config or RendererConfig(force_limit=p['force_limit'])),
+                        0 if delay else every, p['max_dt'])
     xs = np.array([mapping.to_tissue(d) for d in device])
     dts = np.r_[p['nominal_dt'], np.diff(stamps) * 1e-9]
     forces = np.empty_like(xs)
+    pending, due = None, 0
     for k, (x, dt) in enumerate(zip(xs, dts)):
         if way == 'direct':
             forces[k] = clamp_norm(solver.step(x, dt).force_raw, p['force_limit'])[0]
             continue
         forces[k] = handoff.answer(x, dt).force
-        if handoff.due():
+        if not delay:
+            if handoff.due():
+                job = handoff.take()
+                handoff.refresh(job, solver.step(job.point, job.dt))
+            continue
+        if pending is not None and k >= due:
+            handoff.refresh(*pending)
+            pending = None
+        if pending is None:
             job = handoff.take()
-            handoff.refresh(job, solver.step(job.point, job.dt))
+            if job is not None:
+                pending, due = (job, solver.step(job.point, job.dt)), k + delay
     return xs, forces
 
 
 def quality(xs: np.ndarray, forces: np.ndarray) -> dict:
-    """The smoothness and passivity measures of one replay."""
-    mag = np.linalg.norm(forces, axis=1)
-    run = np.zeros(mag.size, int)
-    for k in range(mag.size):
-        run[k] = run[k - 1] + 1 if mag[k] > 0.0 and k else int(mag[k] > 0.0)
-    steady = (run > STEADY_AFTER)
-    steady[1:] &= steady[:-1]
-    steady[0] = False
-    dF = np.r_[0.0, np.linalg.norm(np.diff(forces, axis=0), axis=1)]
-    moved = np.r_[0.0, np.linalg.norm(np.diff(xs, axis=0), axis=1)]
-    tick = steady & (np.abs(moved - TICK) < 1e-3 * TICK)
-    # a tick after a still frame is the quantisation alone; inside a motion the change is also the
-    # rendered stiffness times the speed
-    still_tick = tick & np.r_[False, moved[:-1] == 0.0]
-    e_in = -np.cumsum(np.r_[0.0, np.einsum('ij,ij->i', forces[:-1], np.diff(xs, axis=0))])
-    mean = np.convolve(mag, np.ones(RIPPLE_WINDOW) / RIPPLE_WINDOW, 'same')
-    smooth = np.stack([np.convolve(f, np.ones(SMOOTH_WINDOW) / SMOOTH_WINDOW, 'same') for f in forces.T],
-                      axis=1)
-    smooth_dF = np.r_[0.0, np.linalg.norm(np.diff(smooth, axis=0), axis=1)]
-    smooth_mag = np.linalg.norm(smooth, axis=1)
-    some = steady.any()
-    return {
-        'frames': mag.size, 'steady_frames': int(steady.sum()),
-        'dF_p99_mN': float(np.percentile(dF[steady], 99) * 1e3) if some else float('nan'),
-        'dF_max_mN': float(dF[steady].max() * 1e3) if some else float('nan'),
-        'tick_change_pct': float(np.median(dF[tick] / mag[tick]) * 100) if tick.any() else float('nan'),
-        'ticks': int(tick.sum()),
-        'smooth_tick_change_pct': (float(np.median(smooth_dF[tick] / smooth_mag[tick]) * 100)
-                                   if tick.any() else float('nan')),
-        'still_tick_change_pct': (float(np.median(dF[still_tick] / mag[still_tick]) * 100)
-                                  if still_tick.any() else float('nan')),
-        'ripple_mN': float(np.sqrt(np.mean((mag - mean)[steady] ** 2)) * 1e3) if some else float('nan'),
-        'E_in_min_uJ': float(e_in.min() * 1e6), 'E_in_final_uJ': float(e_in[-1] * 1e6),
-        'peak_N': float(mag.max()),
-    }
+    """The smoothness and passivity measures of one replay (:func:`tissue_common.feel.feel`)."""
+    return feel(xs, forces)
 
 
 def stiff_params(p: dict, factor: float = 10.0) -> dict:
@@ -254,6 +237,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--bags', default=','.join(BAGS))
     ap.add_argument('--every', type=int, default=1, help='solver steps every K poses (renderer)')
+    ap.add_argument('--delays', default='8,16', help='also the renderer on the live schedule, the '
+                    'solver\'s reaction arriving D poses after its job, for each D (empty: none)')
     ap.add_argument('--live', action='store_true', help='also the live half (sim_node at 1 kHz, '
                     '3670/50k/100k livers, idle and busy; about 15 minutes)')
     ap.add_argument('--live-only', action='store_true', help='only the live half')
@@ -293,12 +278,14 @@ def main(argv=None) -> int:
     config = RendererConfig(force_limit=p['force_limit'], coupling_stiffness=args.coupling_stiffness)
     args.out.mkdir(parents=True, exist_ok=True)
     rows, press = [], {}
-    print(f'{"bag":6} {"way":9} {"dF p99":>7} {"dF max":>7} {"tick %":>6} {"still":>6} {"smooth":>6} '
-          f'{"ripple":>6} {"E_in min":>9} {"E_in end":>9} {"peak":>6}   (mN, %, %, %, mN, uJ, uJ, N)')
+    delays = [int(d) for d in args.delays.split(',') if d]
+    print(f'{"bag":6} {"way":9} {"dF p99":>7} {"dF max":>7} {"rev":>4} {"tick %":>6} {"still":>6} '
+          f'{"smooth":>6} {"ripple":>6} {"E_in min":>9} {"E_in end":>9} {"peak":>6}   (mN, mN, '
+          f'one-frame reversals > 10 mN, %, %, %, mN, uJ, uJ, N)')
 
     def row(bag: str, way: str, q: dict) -> None:
         rows.append({'bag': bag, 'way': way, **q})
-        print(f'{bag:6} {way:9} {q["dF_p99_mN"]:7.1f} {q["dF_max_mN"]:7.1f} '
+        print(f'{bag:6} {way:9} {q["dF_p99_mN"]:7.1f} {q["dF_max_mN"]:7.1f} {q["reversals"]:4d} '
               f'{q["tick_change_pct"]:6.2f} {q["still_tick_change_pct"]:6.2f} '
               f'{q["smooth_tick_change_pct"]:6.2f} {q["ripple_mN"]:6.2f} '
               f'{q["E_in_min_uJ"]:9.2f} {q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
@@ -310,6 +297,8 @@ def main(argv=None) -> int:
             if name == 'press':
                 press[way] = (xs, forces)
             row(name, way, quality(xs, forces))
+        for d in delays:
+            row(name, f'live {d}', quality(*replay(p, stamps, device, 'renderer', config=config, delay=d)))
     stamps, device = bag_poses('poke')
     for way in ('direct', 'renderer'):
         row('poke E x10', way, quality(*replay(stiff_params(p), stamps, device, way, config=config)))

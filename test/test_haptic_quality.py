@@ -89,3 +89,18 @@ def test_the_live_summary_gives_each_configurations_p99_over_its_rounds():
     assert (echo['p99_median_ms'], echo['p99_min_ms'], echo['p99_max_ms']) == (0.5, 0.4, 0.6)
     assert (small['p99_median_ms'], small['p99_min_ms'], small['p99_max_ms']) == (1.2, 0.9, 3.1)
     assert small['answered_min_pct'] == 100.0 - 0.3
+
+
+def test_on_the_live_schedule_a_reaction_16_poses_late_neither_clicks_nor_gives_energy_back():
+    """The live loop made repeatable: the solver's reaction reaches the renderer 16 poses after
+    its job, as from a solver thread whose steps take 16 ms. Before the fix the poke bag gave 11
+    one-frame reversals (up to 111 mN, the passivity damper kicking at encoder ticks) and E_in
+    -7.2 uJ (the stiffness learned per refresh, 20 refreshes of memory: a staircase on the way in)."""
+    hq = _load()
+    p = hq.golden_params()
+    stamps, device = hq.bag_poses('poke')
+    q = hq.quality(*hq.replay(p, stamps, device, 'renderer', delay=16))
+    assert q['reversals'] == 0
+    assert q['dF_p99_mN'] <= 5.0 and q['dF_max_mN'] < 10.0
+    assert q['E_in_min_uJ'] >= -1.0
+    assert q['steady_frames'] > 800

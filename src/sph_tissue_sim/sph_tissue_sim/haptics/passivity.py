@@ -8,10 +8,18 @@ has put into the virtual tissue after sample ``k`` is
 with ``x`` the device positions as sampled (not filtered: this is the energy the device really
 exchanged). A viscoelastic tissue only dissipates, so ``E_in`` of a faithful rendering never goes
 negative; sampling, delay and the solver's own integration errors can make it. When it has, the
-controller adds a damper ``-alpha v`` on the measured velocity (a filtered one lags, and a damper on
-a velocity of the wrong sign gives energy), sized to take the deficit back over the next sample,
-``alpha = -E_in / (T |v|^2)``, and never more than ``max_damping`` (what the device can render).
-It adds nothing while ``E_in >= 0``, so a passive rendering is left untouched.
+controller adds a damper ``-alpha v^`` on the device's filtered velocity, sized to take the deficit
+back over ``DISSIPATION_TIME``, ``alpha* = -E_in / (T_d |v^|^2)``, never more than ``max_damping``
+(what the device can render). ``alpha`` moves towards ``alpha*`` by at most ``max_damping`` per
+``RAMP_TIME``, so the added force changes as smoothly as the filtered velocity does. It adds
+nothing while ``E_in >= 0``, so a passive rendering is left untouched.
+
+Why the filtered velocity and a ramp: the device's positions come in encoder ticks (0.055 mm), so
+the measured velocity is one tick per sample on one frame and zero on the next. A damper sized to
+take the deficit back within one sample from that velocity kicked the hand by up to 0.19 N on
+every tick (``alpha`` 2 N s/m times 55 mm/s, then nothing), and the force it held was charged
+against the next sample's motion, usually none, so it did not even take the energy back
+(docs/decisions/passivity-controller.md).
 """
 
 from __future__ import annotations
@@ -22,6 +30,10 @@ import numpy as np
 
 #: slower than this the controller cannot dissipate (alpha would be unbounded) [m/s]
 MIN_SPEED = 1e-6
+#: the deficit is taken back over about this long [s]
+DISSIPATION_TIME = 0.01
+#: ``alpha`` takes this long to go from nothing to ``max_damping`` [s]
+RAMP_TIME = 0.02
 
 
 class PassivityObserver:
@@ -51,7 +63,7 @@ class PassivityObserver:
 
 
 class PassivityController:
-    """The damper that keeps ``E_in`` non-negative."""
+    """The damper that brings ``E_in`` back to zero, smoothly."""
 
     def __init__(self, max_damping: float) -> None:
         if not (math.isfinite(max_damping) and max_damping >= 0.0):
@@ -60,12 +72,24 @@ class PassivityController:
         self.alpha = 0.0              # damping added for the coming sample [N s/m]
         self.total = 0.0              # sum of alpha over samples (for averages) [N s/m]
 
-    def damp(self, energy: float, velocity: np.ndarray, dt: float) -> np.ndarray:
-        """The force [N] to add for the coming sample, given ``E_in`` and the device's velocity."""
+    def reset(self) -> None:
+        self.alpha = self.total = 0.0
+
+    def damp(self, energy: float, velocity: np.ndarray, dt: float, engaged: bool = True) -> np.ndarray:
+        """The force [N] to add for the coming sample, given ``E_in``, the device's filtered
+        velocity and whether the rendering pushes the device now (``engaged``; out of contact the
+        damper fades out: a drag in free space would be felt as a fault)."""
+        if dt <= 0.0:
+            return -self.alpha * velocity if self.alpha > 0.0 else np.zeros(3)
         speed2 = float(velocity @ velocity)
-        if energy >= 0.0 or dt <= 0.0 or speed2 < MIN_SPEED * MIN_SPEED:
+        target = 0.0
+        if engaged and energy < 0.0:
+            target = (self.max_damping if speed2 < MIN_SPEED * MIN_SPEED
+                      else min(self.max_damping, -energy / (DISSIPATION_TIME * speed2)))
+        step = self.max_damping * dt / RAMP_TIME
+        self.alpha = min(target, self.alpha + step) if target >= self.alpha else max(target, self.alpha - step)
+        if self.alpha <= 0.0:
             self.alpha = 0.0
             return np.zeros(3)
-        self.alpha = min(self.max_damping, -energy / (dt * speed2))
         self.total += self.alpha
         return -self.alpha * velocity

@@ -5,7 +5,7 @@ Per device sample (tissue frame, SI units)::
     E_in  <- observer.observe(x)            energy of the force held since the last sample
     x^, v^ <- estimator.update(x, dt)
     proxy, F <- coupling.render(x^, v^)      against the contact model
-    F <- F + controller.damp(E_in, v^, dt)   only while E_in < 0
+    F <- F + controller.damp(E_in, v^, dt)   only while E_in < 0, in contact
     F <- clamp(F, force_limit); observer.hold(F)
 
 The proxy is where the solver should put its tool; after each solver step, :meth:`refresh` hands
@@ -111,7 +111,7 @@ class HapticRenderer:
         self.model.clear()
         self.coupling.reset()
         self.observer.reset()
-        self.controller.alpha = self.controller.total = 0.0
+        self.controller.reset()
 
     def set_force_limit(self, limit: float) -> None:
         """A new force limit [N]: the clamp and the most the coupling pulls the tool with."""
@@ -120,19 +120,23 @@ class HapticRenderer:
 
     def answer(self, x, dt: float) -> Rendered:
         """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one."""
-        prev = self.observer.last
         energy = self.observer.observe(x)
         x_hat, v_hat = self.estimator.update(x, dt)
-        # the controller damps the measured motion: a filtered velocity lags, and a damper on a
-        # velocity of the wrong sign would give energy instead of taking it
-        v_meas = (self.observer.last - prev) / dt if prev is not None and dt > 0.0 else np.zeros(3)
         proxy, force = self.coupling.render(x_hat, v_hat, dt)
-        force = force + self.controller.damp(energy, v_meas, dt)
+        pushing = bool(force.any())
+        force = force + self.controller.damp(energy, v_hat, dt, engaged=pushing)
+        if self.controller.alpha > 0.0:
+            # the damper may slow the hand, never pull it into the tissue or push where the
+            # coupling does not
+            n = self.model.normal
+            if not pushing or float(force @ n) <= 0.0:
+                force = np.zeros(3)
         force, _ = clamp_norm(force, self.config.force_limit)
         self.observer.hold(force)
         self.proxy = proxy
         return Rendered(force, proxy, energy, self.controller.alpha, self.coupling.stretch)
 
-    def refresh(self, point, force) -> None:
-        """The solver found the reaction ``force`` [N] with its tool at ``point`` [m]."""
-        self.model.refresh(point, force)
+    def refresh(self, point, force, served: int = 1) -> None:
+        """The solver found the reaction ``force`` [N] with its tool at ``point`` [m]; the contact
+        model it replaces answered ``served`` poses."""
+        self.model.refresh(point, force, served)
