@@ -81,9 +81,10 @@ def test_tissue_status_warns_when_the_force_reaches_the_device_limit():
     assert tissue_status(stats.snapshot(0.03), Targets()).level == WARN
 
 
-def _multirate(stats: VizStats, now: float, energy_in: float) -> None:
-    stats.on_metrics(now, int(now * 1e9), 1e-4, (0.0, 0.0, 1.0), 0.002,
-                     haptic_mode=HAPTIC_MULTIRATE, solver_rate=400.0, model_age=2.5e-3,
+def _multirate(stats: VizStats, now: float, energy_in: float, model_age: float = 2.5e-3,
+               substeps: int = 0) -> None:
+    stats.on_metrics(now, int(now * 1e9), 1e-4, (0.0, 0.0, 1.0), 0.002, substeps=substeps,
+                     haptic_mode=HAPTIC_MULTIRATE, solver_rate=400.0, model_age=model_age,
                      coupling_stretch=1e-4, energy_in=energy_in,
                      energy_in_min=min(energy_in, 0.0), added_damping=0.75)
 
@@ -114,6 +115,25 @@ def test_haptic_status_warns_when_e_in_goes_below_the_target_until_the_dip_leave
     assert haptic_status(stats.snapshot(0.3), Targets(energy_in_min=-1e-5)).level == OK
     _multirate(stats, 1.5, 1e-6)
     assert haptic_status(stats.snapshot(1.6), Targets()).level == OK
+
+
+def test_haptic_status_warns_when_the_contact_model_is_older_than_the_limit():
+    stats = VizStats(window=1.0)
+    _multirate(stats, 0.0, 5e-6, model_age=0.019)
+    assert haptic_status(stats.snapshot(0.1), Targets()).level == OK
+    _multirate(stats, 0.2, 5e-6, model_age=0.029)           # the solver fell behind the hand
+    status = haptic_status(stats.snapshot(0.3), Targets())
+    assert status.level == WARN and status.message.startswith('contact model 29.000 ms old')
+    assert dict(status.values)['model age warn [ms]'] == '20.000'
+    assert haptic_status(stats.snapshot(0.3), Targets(model_age_warn=0.05)).level == OK
+
+
+def test_step_status_carries_the_sub_steps_per_step():
+    stats = VizStats(window=1.0)
+    for k, n in enumerate((2, 8, 8, 31)):
+        _multirate(stats, 0.01 * k, 5e-6, substeps=n)
+    values = dict(step_status(stats.snapshot(0.1), Targets()).values)
+    assert values['sub-steps per step p50'] == '8.0' and values['sub-steps per step max'] == '31'
 
 
 def test_haptic_status_says_direct_mode_or_no_metrics_at_ok_level():

@@ -56,6 +56,7 @@ class Targets:
     reply_loss_error_pct: float = 10.0
     force_limit: float = 3.3             # [N] device peak force (PHANTOM Omni)
     energy_in_min: float = -1e-6         # [J] lowest E_in of a passive rendering (round-off slack)
+    model_age_warn: float = 0.02         # [s] an older contact model is WARN (see haptic_status)
 
     def validate(self) -> 'Targets':
         """Raise VizConfigError on inconsistent thresholds; return self."""
@@ -81,6 +82,8 @@ class Targets:
             raise VizConfigError(f'latency_p50_warn must be > 0 s, got {self.latency_p50_warn}')
         if not self.force_limit > 0:
             raise VizConfigError(f'force_limit must be > 0 N, got {self.force_limit}')
+        if not self.model_age_warn > 0:
+            raise VizConfigError(f'model_age_warn must be > 0 s, got {self.model_age_warn}')
         if not self.energy_in_min <= 0:    # above zero even a passive rendering would warn
             raise VizConfigError(f'energy_in_min must be <= 0 J, got {self.energy_in_min}')
         return self
@@ -150,6 +153,8 @@ def step_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> S
     """Step wall time percentiles and deadline misses against the haptic period."""
     values = [('p50 [ms]', _ms(snap.step_p50)), ('p99 [ms]', _ms(snap.step_p99)),
               ('max [ms]', _ms(snap.step_max)), ('deadline misses', str(snap.deadline_misses)),
+              ('sub-steps per step p50', _num(snap.substeps_p50, 1)),
+              ('sub-steps per step max', _num(snap.substeps_max, 0)),
               ('deadline miss [%]', _num(snap.deadline_miss_pct, 2)),
               ('p99 warn [ms]', _ms(targets.step_p99_warn)),
               ('p99 error [ms]', _ms(targets.step_p99_error))]
@@ -214,9 +219,13 @@ def tissue_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') ->
 
 def haptic_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> Status:
     """Multirate haptic rendering: WARN when the lowest E_in in the window is below
-    ``energy_in_min`` (the rendering gave energy back to the hand, i.e. it is not passive)."""
+    ``energy_in_min`` (the rendering gave energy back to the hand, i.e. it is not passive), or when
+    the contact model the renderer answered from was older than ``model_age_warn`` (the solver is
+    falling behind the hand: replayed with the reaction 24 poses late, the poke bag gave energy
+    back at a first touch; 20 or fewer did not, benchmarks/haptic_quality.py ``--delays``)."""
     values = [('solver rate [Hz]', _num(snap.solver_rate, 1)),
               ('model age [ms]', _ms(snap.model_age)),
+              ('model age warn [ms]', _ms(targets.model_age_warn)),
               ('coupling stretch [mm]', _ms(snap.coupling_stretch)),
               ('E_in [uJ]', _uj(snap.energy_in)),
               ('lowest E_in in window [uJ]', _uj(snap.energy_in_low)),
@@ -237,6 +246,8 @@ def haptic_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') ->
             f'added damping {_num(snap.added_damping, 2)} N s/m')
     if snap.energy_in_low < targets.energy_in_min:
         return Status(name, WARN, 'gave energy back: ' + text, values)
+    if snap.model_age > targets.model_age_warn:
+        return Status(name, WARN, f'contact model {_ms(snap.model_age)} ms old: ' + text, values)
     return Status(name, OK, text, values)
 
 

@@ -313,6 +313,8 @@ class Snapshot:
     step_max: float = math.nan
     deadline_misses: int = 0                           # steps in window longer than the period
     deadline_miss_pct: float = math.nan
+    substeps_p50: float = math.nan                     # integration sub-steps per solver step
+    substeps_max: float = math.nan
     latency_p50: float = math.nan                      # [s] pose -> force
     latency_p99: float = math.nan
     latency_max: float = math.nan
@@ -370,6 +372,7 @@ class VizStats:
         self.order = {topic: StampOrder() for topic in TOPICS}
         self.step = WindowedSeries(window)
         self.latency = WindowedSeries(window)
+        self.substeps_window = WindowedSeries(window)
         self.force_window = WindowedSeries(window)
         self.bad_window = WindowedSeries(window)
         self.backwards_window = WindowedSeries(window)
@@ -447,6 +450,7 @@ class VizStats:
             return False
         fmag = math.sqrt(fx * fx + fy * fy + fz * fz)
         self.step.add(now, step_wall_time)
+        self.substeps_window.add(now, float(substeps))
         self.steps_total += 1
         if step_wall_time > self.period:
             self.deadline_misses_total += 1
@@ -537,6 +541,10 @@ class VizStats:
             snap.step_max = float(steps.max())
             snap.deadline_misses = int(np.count_nonzero(steps > self.period))
             snap.deadline_miss_pct = 100.0 * snap.deadline_misses / steps.size
+        subs = self.substeps_window.values(now)
+        if subs.size:
+            snap.substeps_p50 = percentile(subs, 50)
+            snap.substeps_max = float(subs.max())
         lat = self.latency.values(now)
         if lat.size:
             snap.latency_p50 = percentile(lat, 50)
