@@ -29,6 +29,7 @@ import sys
 import time
 from pathlib import Path
 
+from tissue_common import feel
 from tissue_testing import harness
 from tissue_testing import system_graph as graph
 
@@ -47,6 +48,15 @@ def _fmt_line(mon: graph.Monitor, t_prev: tuple, step_ms: float | None) -> tuple
     step = f'{step_ms:.3f} ms' if step_ms is not None else '-'
     return (f'|F| {fnorm:5.2f} N  latency {lat_ms:5.2f} ms  rate {rate:6.0f} Hz  step {step}',
             (now, n_forces))
+
+
+def feel_line(q: dict) -> str:
+    """The live force as the hand gets it (tissue_common.feel), against the targets."""
+    missed = feel.misses(q)
+    return (f'force sent: |dF| per frame in steady contact p99 {q["dF_p99_mN"]:.2f} mN, max '
+            f'{q["dF_max_mN"]:.1f} mN; {q["reversals"]} one-frame reversals above '
+            f'{feel.REVERSAL * 1e3:g} mN; E_in min {q["E_in_min_uJ"]:.2f} uJ; '
+            + ('targets met' if not missed else 'missed: ' + ', '.join(missed)))
 
 
 def main(argv=None) -> int:
@@ -175,12 +185,14 @@ def main(argv=None) -> int:
                 lat = sorted(mon.latencies)
                 n_poses, n_forces = mon.n_poses, mon.n_forces
             unanswered = mon.unanswered()
-        wall = time.monotonic() - t_start
+            felt = mon.feel()
         if lat:
             p99 = lat[min(len(lat) - 1, int(0.99 * len(lat)))]
             print(f'demo: {n_poses} poses, {n_forces} forces, {unanswered} poses without a reply; '
                   f'pose->force latency median {statistics.median(lat) * 1e3:.3f} ms, '
                   f'p99 {p99 * 1e3:.3f} ms', flush=True)
+        if felt is not None:
+            print(f'demo: {feel_line(felt)}', flush=True)
     except AssertionError as exc:
         print(f'demo: error: {exc}', file=sys.stderr)
         code = 1

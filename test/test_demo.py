@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -40,7 +41,12 @@ def test_demo_runs_the_scripted_stylus_on_a_block_with_a_capsule_from_params_fil
                               'release_time', 'sweep_time', 'return_time')}
     duration = script_duration(build_script(ScriptConfig(**times)))
     assert f'script finished: {round(duration * 1000) + 1} poses, one pass of {duration:.2f} s' in text
+    # the closing lines say what the hand got, as the report does
+    assert re.search(r'demo: force sent: \|dF\| per frame in steady contact p99 [\d.]+ mN, max '
+                     r'[\d.]+ mN; \d+ one-frame reversals above 10 mN; E_in min -?[\d.]+ uJ; '
+                     r'(targets met|missed: )', text), text[-3000:]
     summary = json.loads((report / 'summary.json').read_text())
+    assert 'feel_reversals' in summary and 'feel_E_in_min_uJ' in summary
     assert {'force_vs_time.png', 'tissue_deepest.png', 'tissue_press.gif'} <= set(summary['files'])
     assert summary['failed_files'] == {}, summary
 

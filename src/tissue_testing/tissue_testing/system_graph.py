@@ -14,6 +14,10 @@ import time
 from pathlib import Path
 from typing import Mapping
 
+import numpy as np
+
+from tissue_common.feel import feel
+
 from . import harness
 
 # A shell runs background jobs with SIGINT ignored, and child processes inherit an ignored signal:
@@ -182,6 +186,7 @@ class Monitor:
         self.depth = depth
         self.lock = __import__('threading').Lock()
         self.pose_rx: dict[int, float] = {}       # stamp -> receive time
+        self.pose_at: dict[int, tuple] = {}       # stamp -> stylus position (with ``keep``)
         self.force_rx: dict[int, float] = {}      # stamp -> receive time
         self.forces: list[tuple[int, float, tuple]] = []   # (stamp, rx time, force)
         self.wrenches: list[tuple[int, float, tuple]] = []  # (stamp, rx time, force + torque)
@@ -294,6 +299,9 @@ class Monitor:
         with self.lock:
             self.n_poses += 1
             self.pose_rx[stamp] = now
+            if self.keep:
+                p = msg.pose.position
+                self.pose_at[stamp] = (p.x, p.y, p.z)
             t_force = self.force_rx.get(stamp)
             if t_force is not None:  # the force overtook the pose to this reader
                 self.latencies.append(max(0.0, t_force - now))
@@ -317,6 +325,17 @@ class Monitor:
             t_pose = self.pose_rx.get(stamp)
             if t_pose is not None:
                 self.latencies.append(now - t_pose)
+
+    def feel(self) -> dict | None:
+        """:func:`tissue_common.feel.feel` of the forces received, each with the position of the pose
+        it answered, in stamp order (None before any such pair; needs ``keep``)."""
+        with self.lock:
+            pairs = sorted((stamp, self.pose_at[stamp], f) for stamp, _, f in self.forces
+                           if stamp in self.pose_at)
+        if len(pairs) < 3:
+            return None
+        t = np.array([p[0] for p in pairs]) * 1e-9
+        return feel(np.array([p[1] for p in pairs]), np.array([p[2] for p in pairs]), t)
 
     def _on_state(self, msg) -> None:
         with self.lock:

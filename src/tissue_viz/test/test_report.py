@@ -183,7 +183,10 @@ def test_a_direct_run_gets_an_e_in_placeholder_and_no_haptic_summary_rows(tmp_pa
     summary = _assert_complete_with_drawn_plots(out)
     # every other plot has its data (no clouds in this run: the tissue images say so too)
     assert said == ['multirate haptic rendering'] + ['tissue/particles cloud'] * 2
-    assert 'energy_in_min_j' not in summary and 'E_in' not in (out / 'summary.md').read_text()
+    md = (out / 'summary.md').read_text()
+    assert 'energy_in_min_j' not in summary and 'E_in final' not in md
+    # what the hand got is measured from the forces sent, whatever rendered them
+    assert 'E_in min of the forces sent' in md and summary['feel_reversals'] >= 0
 
 
 def test_an_old_report_without_the_haptic_columns_still_loads_and_renders(tmp_path, monkeypatch):
@@ -209,7 +212,7 @@ def test_an_old_report_without_the_haptic_columns_still_loads_and_renders(tmp_pa
         assert summary['steps'] == 250 and 'energy_in_min_j' not in summary, name
         assert not any(summary['bad_values'].get(c) for c in haptic), (name, summary['bad_values'])
         md = (tmp_path / name / 'summary.md').read_text()
-        assert 'E_in' not in md and '## Not shown' not in md, name
+        assert 'E_in final' not in md and '## Not shown' not in md, name
     assert said == (['multirate haptic rendering'] + ['tissue/particles cloud'] * 2) * len(runs)
 
 

@@ -353,3 +353,20 @@ def test_a_shaft_is_drawn_as_a_cylinder_along_its_axis_and_the_arrow_starts_at_t
     assert ToolShape.from_metrics(msg) is None
     start, end = force_arrow((0.0, 0.0, 0.01), (0.0, 0.0, 2.0), scale=0.02)
     assert end == pytest.approx([0.0, 0.0, 0.05]) and start == pytest.approx([0.0, 0.0, 0.01])
+
+
+def test_the_summary_says_what_the_hand_felt_frame_to_frame_in_stamp_order():
+    """A held 0.16 N press with one 50 mN click that comes straight back; the replies arrive out
+    of order. The summary counts the one reversal, and E_in of a still hand stays zero."""
+    stats = VizStats(window=1.0)
+    forces = np.full(100, 0.16)
+    forces[60] = 0.11
+    order = list(range(100))
+    order[10], order[11] = order[11], order[10]
+    for k in range(100):
+        stats.on_pose(k * 1e-3, k * MS, (0.0, 0.0, -0.002))
+    for k in order:
+        stats.on_force(0.1 + k * 1e-3, k * MS, (0.0, 0.0, forces[k]))
+    s = stats.summary(0.3)
+    assert s['feel_reversals'] == 1.0 and s['feel_E_in_min_uJ'] == 0.0
+    assert s['feel_dF_max_mN'] == pytest.approx(50.0) and s['feel_steady_frames'] == 100 - 1 - 20

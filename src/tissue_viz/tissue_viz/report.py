@@ -625,6 +625,15 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
                                        'N s/m')),
             ('solver rate p50', _fmt(summary.get('solver_rate_p50_hz'), 1, 1, 'Hz')),
         ]
+    if 'feel_dF_p99_mN' in summary:      # what the hand got: the forces sent, frame to frame
+        rows += [
+            ('force change per frame in steady contact p99 (target <= 5 mN)',
+             _fmt(summary.get('feel_dF_p99_mN'), 1, 2, 'mN')),
+            ('force change per frame in steady contact max', _fmt(summary.get('feel_dF_max_mN'), 1, 1, 'mN')),
+            ('one-frame force reversals above 10 mN (clicks; target 0)',
+             _fmt(summary.get('feel_reversals'), 1, 0)),
+            ('E_in min of the forces sent (target >= -1 uJ)', _fmt(summary.get('feel_E_in_min_uJ'), 1, 2, 'uJ')),
+        ]
     return rows
 
 

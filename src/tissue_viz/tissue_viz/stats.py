@@ -14,6 +14,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from tissue_common.feel import feel
 from tissue_viz.errors import VizConfigError
 
 TOPICS = ('metrics', 'particles', 'pose', 'force')
@@ -400,6 +401,10 @@ class VizStats:
         self.t0: float | None = None
         self.metrics_table = DecimatingRecorder(self.METRICS_COLUMNS, max_report_rows)
         self.force_table = DecimatingRecorder(self.FORCE_COLUMNS, max_report_rows)
+        # (pose stamp [s], force, pose position) of every answered pose, for what the hand felt
+        # (tissue_common.feel: frame to frame, so never thinned; the first max_report_rows)
+        self.felt: list[tuple[float, ...]] = []
+        self.max_felt = int(max_report_rows)
         self.latency_table = DecimatingRecorder(self.LATENCY_COLUMNS, max_report_rows)
         self.rate_table = DecimatingRecorder(self.RATE_COLUMNS, max_report_rows)
 
@@ -513,6 +518,8 @@ class VizStats:
             latency, pos = matched
             self.latency.add(now, latency)
             self.latency_table.append((t, latency))
+            if len(self.felt) < self.max_felt:
+                self.felt.append((stamp_ns * 1e-9, fx, fy, fz, *pos))
         self.force_table.append((t, fx, fy, fz, fmag, *pos))
         return latency
 
@@ -617,7 +624,20 @@ class VizStats:
             'bad_values': dict(self.bad_values),
             'backwards_stamps': {t: self.order[t].backwards for t in TOPICS},
             **{key: num(value) for key, value in haptic_summary(metrics).items()},
+            **{key: num(value) for key, value in self.feel_summary().items()},
         }
+
+    def feel_summary(self) -> dict[str, float]:
+        """What the hand felt (:func:`tissue_common.feel.feel` of the answered poses' forces, in
+        stamp order): |dF| per frame p99 and max in steady contact [mN], one-frame reversals,
+        E_in min [uJ]; empty before three answers."""
+        if len(self.felt) < 3:
+            return {}
+        rows = np.array(sorted(self.felt))
+        q = feel(rows[:, 4:7], rows[:, 1:4], rows[:, 0], self.period)
+        return {'feel_dF_p99_mN': q['dF_p99_mN'], 'feel_dF_max_mN': q['dF_max_mN'],
+                'feel_reversals': q['reversals'], 'feel_E_in_min_uJ': q['E_in_min_uJ'],
+                'feel_steady_frames': q['steady_frames']}
 
 
 def haptic_summary(metrics: dict[str, np.ndarray]) -> dict[str, float]:
