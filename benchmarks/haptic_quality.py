@@ -160,7 +160,8 @@ def quasi_static(p: dict, depths=(0.002, 0.004, 0.006), hold: int = 1500,
 
 LIVE_SIZES = (3670, 50000, 100000)
 LIVE_COLUMNS = ('round', 'particles', 'haptic_mode', 'load', 'poses_sent', 'replies', 'answered_pct',
-                'rtt_median_ms', 'rtt_p99_ms', 'rtt_max_ms', 'solver_rate_hz', 'max_force_n')
+                'rtt_median_ms', 'rtt_p99_ms', 'rtt_max_ms', 'solver_rate_hz', 'max_force_n',
+                'dF_p99_mN', 'dF_max_mN', 'reversals', 'E_in_min_uJ')
 
 
 def live(sizes=LIVE_SIZES, modes=('multirate', 'direct'), duration: float = 10.0,
@@ -197,7 +198,9 @@ def live(sizes=LIVE_SIZES, modes=('multirate', 'direct'), duration: float = 10.0
             rows.append(row)
             print(f'{rnd:>5} {row["particles"]:>7} {mode:9} {load:5} {row["answered_pct"]:8.2f} '
                   f'{row["rtt_median_ms"]:7.3f} {row["rtt_p99_ms"]:7.3f} {row["rtt_max_ms"]:7.2f} '
-                  f'{row["solver_rate_hz"]:8.1f} {row["max_force_n"]:6.3f}', flush=True)
+                  f'{row["solver_rate_hz"]:8.1f} {row["max_force_n"]:6.3f} {row["dF_p99_mN"]:6.2f} '
+                  f'{row["dF_max_mN"]:6.1f} {row["reversals"]:4.0f} {row["E_in_min_uJ"]:8.2f}',
+                  flush=True)
     return rows
 
 
@@ -254,7 +257,9 @@ def main(argv=None) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         print(f'live, 1 kHz poses for {args.live_duration:g} s (first second left out):')
         print(f'{"round":>5} {"N":>7} {"mode":9} {"load":5} {"answered":>8} {"p50":>7} {"p99":>7} '
-              f'{"max":>7} {"solver":>8} {"|F|max":>6}   (%, ms, ms, ms, Hz, N)')
+              f'{"max":>7} {"solver":>8} {"|F|max":>6} {"dFp99":>6} {"dFmax":>6} {"rev":>4} '
+              f'{"E_in min":>8}   (%, ms, ms, ms, Hz, N, mN, mN, one-frame reversals > 10 mN, uJ; '
+              f'the forces sent along the pressing path)')
         rows = live(modes=tuple(args.live_modes.split(',')), duration=args.live_duration,
                     repeats=max(1, args.live_repeats))
         with open(args.out / 'haptic_quality_live.csv', 'w', newline='') as fh:

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from tissue_common.feel import feel
 from tissue_testing import harness
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -47,6 +48,10 @@ def pressing_path(t: float, depth: float, period: float) -> tuple[float, float, 
 
 def percentile(a, q: float) -> float:
     return float(np.percentile(a, q)) if len(a) else math.nan
+
+
+#: what the hand got, in each summary (tissue_common.feel)
+FEEL_KEYS = ('dF_p99_mN', 'dF_max_mN', 'reversals', 'E_in_min_uJ')
 
 
 def run(args) -> dict:
@@ -185,6 +190,15 @@ def run(args) -> dict:
         'forces_finite': bool(np.all(np.isfinite(force[sel][got]))),
         'sim_totals': totals[-1].split('totals: ')[-1] if totals else '',
     }
+    # what the hand got (tissue_common.feel): every reply, each with the pose it answered (from the
+    # first pose: E_in counts what went in before the skipped second too)
+    k_got = np.flatnonzero(recv_ns > 0)
+    if k_got.size >= 3:
+        path_xyz = np.array([pressing_path(k / args.rate, args.depth, args.press_period) for k in k_got])
+        felt = feel(path_xyz, force[k_got], k_got / args.rate, 1.0 / args.rate)
+        summary.update({key: felt[key] for key in FEEL_KEYS})
+    else:
+        summary.update({key: math.nan for key in FEEL_KEYS})
     steps = re.search(r'([0-9]+) steps', summary['sim_totals'])
     summary['solver_rate_hz'] = int(steps.group(1)) / args.duration if steps else math.nan
     if args.csv:
@@ -267,6 +281,9 @@ def main(argv=None) -> int:
         ('round trip max', f"{s['rtt_max_ms']:.3f} ms"),
         ('step wall time median / p99', f"{s['step_median_ms']:.3f} / {s['step_p99_ms']:.3f} ms"),
         ('max |force|', f"{s['max_force_n']:.3f} N (all finite: {s['forces_finite']})"),
+        ('force sent, steady contact', f"|dF| per frame p99 {s['dF_p99_mN']:.2f} mN, max "
+                                       f"{s['dF_max_mN']:.1f} mN; {s['reversals']:.0f} one-frame "
+                                       f"reversals > 10 mN; E_in min {s['E_in_min_uJ']:.2f} uJ"),
         ('node totals', s['sim_totals']),
     ]
     width = max(len(r[0]) for r in rows)
