@@ -30,6 +30,8 @@ import resource
 import subprocess
 import sys
 import time
+import dataclasses
+import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -128,9 +130,10 @@ class Case:
     n_layers: int = 2
     paper_s: float | None = None
     parallel_min: int = 0                # SolverConfig.parallel_min_particles (0: serial)
-    viscosity: str = 'explicit'          # SolverConfig.viscosity
-    contact_integration: str = 'explicit'  # SolverConfig.contact_integration
-    integrator: str = 'explicit'         # SolverConfig.integrator
+    # None: SolverConfig's default (what the product runs), else that choice
+    viscosity: str | None = None         # SolverConfig.viscosity
+    contact_integration: str | None = None  # SolverConfig.contact_integration
+    integrator: str | None = None        # SolverConfig.integrator
     frame_dt: float = FRAME_DT           # [s] simulated time per frame (the implicit integrator: 16 ms)
 
 
@@ -195,16 +198,33 @@ class PressScript:
         return np.array([self.xy[0], self.xy[1], self.z0 - d])
 
 
+def case_config(case: Case) -> SolverConfig:
+    """The solver settings a case times: SolverConfig's defaults with the case's choices."""
+    chosen = {k: v for k, v in (('viscosity', case.viscosity), ('contact_integration', case.contact_integration),
+                                ('integrator', case.integrator)) if v is not None}
+    return SolverConfig(scheme=case.scheme, mode=case.mode, n_layers=case.n_layers, k1_gain=case.k1_gain,
+                        parallel_min_particles=case.parallel_min, **chosen)
+
+
+def fingerprint(cfg: SolverConfig) -> str:
+    """Eight hex digits naming every field of ``cfg``: a table made with other settings than
+    today's defaults shows another fingerprint (the docs test compares them)."""
+    text = json.dumps(dataclasses.asdict(cfg), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:8]
+
+
+def defaults_fingerprint() -> str:
+    """The fingerprint of the ``targets`` table's first row, the product's default local step."""
+    return fingerprint(case_config(Case('targets', 'local tlsph', 'tlsph', 'local', ANCHOR_N)))
+
+
 # ---------------------------------------------------------------------------------------------
 class Runner:
     """One solver driven along a :class:`PressScript`, timing each frame."""
 
     def __init__(self, case: Case, model: TissueModel, settings: Settings, material) -> None:
         self.case, self.model, self.st = case, model, settings
-        cfg = SolverConfig(scheme=case.scheme, mode=case.mode, n_layers=case.n_layers,
-                           k1_gain=case.k1_gain, parallel_min_particles=case.parallel_min,
-                           viscosity=case.viscosity, contact_integration=case.contact_integration,
-                           integrator=case.integrator)
+        cfg = case_config(case)
         if case.h_ratio is not None:
             cfg.h_ratio = float(case.h_ratio)
         if case.k1_pinned is not None:
@@ -703,6 +723,8 @@ def print_tables(rows: list[dict], meta: dict) -> str:
     if tg:
         p('')
         p('Targets and ratios (one interleaved run: all solvers alive, stepped round-robin)')
+        p(f"  defaults fingerprint {meta.get('defaults_fingerprint', defaults_fingerprint())} (SolverConfig as "
+          f"the first row timed it; benchmarks/README.md's table must name the same)")
         if meta.get('quick'):
             p('  (--quick: small stand-in sizes, so the verdicts below do not judge the real targets)')
         p(f"{'config':<26} {'N':>7} {'frame':>5} {'step ms':>9} {'p90':>8} {'sub':>3} {'CG':>4} {'us/sub':>8} "
@@ -853,6 +875,7 @@ def main(argv: list[str] | None = None) -> int:
     material = liver_default()
     models = Models(args.model)
     meta['model_kind'] = models.kind
+    meta['defaults_fingerprint'] = defaults_fingerprint()
     meta['h_unit_mm'] = h_unit(models) * 1e3
     cases = build_cases(tables, st, models)
     n_total = len(cases) + ((19 if _numba_threads() > 1 else 14) if 'targets' in tables else 0) + (1 if 'memory' in tables else 0)

@@ -37,3 +37,24 @@ def test_readme_commands_and_linked_files_exist():
     assert 'scripts/test.sh' in ci
     for link in re.findall(r'\]\(([^)#:]+)\)', text):
         assert (harness.REPO_ROOT / link).exists(), f'README links to missing {link}'
+
+
+def test_the_benchmarks_targets_table_was_timed_with_todays_defaults():
+    """A change of SolverConfig's defaults changes the fingerprint bench_core.py prints with its
+    targets table: the table in benchmarks/README.md must then be made again (its command is beside
+    it), or it would describe a configuration nobody runs (it once timed explicit contact with the
+    samples: 8 sub-steps per frame where the product takes 2)."""
+    import importlib.util
+    import sys
+
+    path = harness.REPO_ROOT / 'benchmarks' / 'bench_core.py'
+    spec = importlib.util.spec_from_file_location('bench_core', path)
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules['bench_core'] = bench
+    spec.loader.exec_module(bench)
+    text = (harness.REPO_ROOT / 'benchmarks' / 'README.md').read_text()
+    named = re.findall(r'defaults fingerprint ([0-9a-f]{8})', text)
+    assert named, 'benchmarks/README.md has no targets table with a defaults fingerprint'
+    assert set(named) == {bench.defaults_fingerprint()}, (
+        f'benchmarks/README.md names {named}, the defaults are {bench.defaults_fingerprint()}: run '
+        f'python benchmarks/bench_core.py --tables targets and put its table there')
