@@ -169,9 +169,6 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                  'step per pose, its reaction sent as is)', HAPTIC_MODES, True, None),
     'solver_every': (1, 'multirate, lockstep: the solver steps after every n-th pose, in order (live: '
                         'a solver thread steps as fast as it can)', (1, 1000), False, None),
-    'solver_max_dt': (0.004, '[s] multirate live: the most pose time one solver step simulates; a '
-                             'solver slower than real time then lags in simulated time instead of '
-                             'answering from an ever older contact model', (1e-4, 1.0), True, None),
     'solver_nice': (10, 'multirate live: the solver thread runs this much nicer than the thread '
                         'answering the poses (Linux thread priority; 0 = the same), so a solver '
                         'that fills a core never delays an answer', (0, 19), True, None),
@@ -332,9 +329,6 @@ def build_config(p: dict) -> SolverConfig:
                        integrator=p['integrator'], implicit_max_dt=float(p['implicit_max_dt']),
                        implicit_tol=float(p['implicit_tol']))
     cfg.validate()
-    if not p['nominal_dt'] <= p['solver_max_dt'] <= p['max_dt']:
-        raise ConfigError(f'solver_max_dt ({p["solver_max_dt"]}) must be within nominal_dt '
-                          f'({p["nominal_dt"]}) and max_dt ({p["max_dt"]})')
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')
     if not math.isfinite(p['force_limit']) or p['force_limit'] > HARD_FORCE_LIMIT:

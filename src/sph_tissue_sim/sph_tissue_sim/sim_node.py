@@ -176,11 +176,8 @@ class SimNode(Node):
         # every solver_every-th pose (lockstep, in order) or from its own thread (live)
         self.haptic: MultiRate | None = None
         if p['haptic_mode'] == 'multirate':
-            # live: a job is at most solver_max_dt of pose time, so a solver slower than real time
-            # refreshes the contact model every few poses instead of every few hundred
             self.haptic = MultiRate(HapticRenderer(build_renderer(p)),
-                                    p['solver_every'] if self.lockstep else 0,
-                                    p['max_dt'] if self.lockstep else p['solver_max_dt'])
+                                    p['solver_every'] if self.lockstep else 0, p['max_dt'])
         self._pose_lock = threading.Lock()       # the stamp clock and the last answer (multirate)
         self._wake = threading.Event()           # a pose came: the live solver thread has a job
 

@@ -218,8 +218,6 @@ def test_solver_config_cross_checks():
         build_config(defaults(k1_min=5.0, k1_max=2.0))
     with pytest.raises(ConfigError, match='max_dt'):
         build_config(defaults(nominal_dt=0.05, max_dt=0.01))
-    with pytest.raises(ConfigError, match='solver_max_dt'):
-        build_config(defaults(solver_max_dt=0.03))        # beyond max_dt (0.02)
 
 
 def test_the_far_field_solves_in_the_background_unless_the_timing_is_lockstep():
