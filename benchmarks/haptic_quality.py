@@ -14,7 +14,7 @@ ROS), two ways:
   the newest proxy whenever it is free and its reaction arrives D poses later, as from a solver
   thread whose steps take D ms (what the live graph does, without its timing noise);
 * ``rtf R`` (``--rtfs``): the same with a solver at real-time factor R: a job of ``dt`` pose time
-  (at most ``--solver-max-dt``, ``sim_node``'s ``solver_max_dt``) arrives ``dt / R`` later.
+  (at most ``max_dt``) arrives ``dt / R`` later.
 
 Per bag and way (measures defined once in :mod:`tissue_common.feel`), in steady contact (more than
 20 frames after contact onset): per-frame |dF| p99 and max, the one-frame reversals above 10 mN
@@ -91,23 +91,22 @@ def bag_poses(name: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int = 1,
-           config: RendererConfig | None = None, delay: int = 0, rtf: float = 0.0,
-           job_max_dt: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+           config: RendererConfig | None = None, delay: int = 0,
+           rtf: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Tissue-frame (positions, forces) per pose, ``way`` 'direct' or 'renderer'.
 
     The renderer's schedule: by default the lockstep one of ``sim_node`` (the solver steps at the
     proxy after every ``every``-th pose and its reaction serves the next pose). The live one, made
     repeatable: the solver takes a job (the newest proxy and the pose time since its last job, at
-    most ``job_max_dt``: ``sim_node``'s ``solver_max_dt``) whenever it is free, and its reaction
+    most ``max_dt``) whenever it is free, and its reaction
     reaches the renderer ``delay`` poses later (``delay`` > 0), or, with ``rtf`` > 0, as from a
     solver at that real-time factor: a job of ``dt`` pose time takes ``dt / rtf``."""
     solver = make_solver(sim_params.build_model(p), sim_params.build_material(p),
                          sim_params.build_config(p), p['nominal_dt'])
     mapping = SimNode._make_mapping(p, solver)
     live = bool(delay or rtf)
-    cap = p['max_dt'] if not live else (job_max_dt or p['max_dt'])
     handoff = MultiRate(HapticRenderer(config or RendererConfig(force_limit=p['force_limit'])),
-                        0 if live else every, cap)
+                        0 if live else every, p['max_dt'])
     xs = np.array([mapping.to_tissue(d) for d in device])
     dts = np.r_[p['nominal_dt'], np.diff(stamps) * 1e-9]
     forces = np.empty_like(xs)
@@ -251,9 +250,7 @@ def main(argv=None) -> int:
     ap.add_argument('--delays', default='8,16', help='also the renderer on the live schedule, the '
                     'solver\'s reaction arriving D poses after its job, for each D (empty: none)')
     ap.add_argument('--rtfs', default='0.5,0.2', help='also the live schedule of a solver at each of '
-                    'these real-time factors, jobs of at most --solver-max-dt (empty: none)')
-    ap.add_argument('--solver-max-dt', type=float, default=sim_params.SIM_PARAMS['solver_max_dt'][0],
-                    help='[s] the live schedule\'s most pose time per solver job (sim_node\'s default)')
+                    'these real-time factors (empty: none)')
     ap.add_argument('--live', action='store_true', help='also the live half (sim_node at 1 kHz, '
                     '3670/50k/100k livers, idle and busy; about 15 minutes)')
     ap.add_argument('--live-only', action='store_true', help='only the live half')
@@ -318,8 +315,7 @@ def main(argv=None) -> int:
         for d in delays:
             row(name, f'live {d}', quality(*replay(p, stamps, device, 'renderer', config=config, delay=d)))
         for r in rtfs:
-            row(name, f'rtf {r:g}', quality(*replay(p, stamps, device, 'renderer', config=config, rtf=r,
-                                                    job_max_dt=args.solver_max_dt)))
+            row(name, f'rtf {r:g}', quality(*replay(p, stamps, device, 'renderer', config=config, rtf=r)))
     stamps, device = bag_poses('poke')
     for way in ('direct', 'renderer'):
         row('poke E x10', way, quality(*replay(stiff_params(p), stamps, device, way, config=config)))
