@@ -167,7 +167,7 @@ def _matvec9(T, b):
             _row(T, 5, b), _row(T, 6, b), _row(T, 7, b), _row(T, 8, b))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _positive_definite(T, L):
     """Whether the symmetric (9, 9) ``T`` is positive semi-definite, up to 1e-9 of its largest
     diagonal entry: a Cholesky factorisation of ``T`` plus that much of the identity into the
@@ -192,7 +192,7 @@ def _positive_definite(T, L):
     return True
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def spring_tangents(s, sets):
     """Mark the stressed particles whose spring tangent (:func:`spring_tangent` at ``s.F``) is
     not positive definite and store it, its negative eigenvalues set to zero, in ``s.T``.
@@ -340,7 +340,7 @@ def _apply_one(i, s, x, vel, scale, base, out):
     out[i, 2] = base[i, 2] - scale * f2
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def _apply(s, x, vel, sets, scale, base, out):
     """``out_i = base_i - scale f(vel)_i`` for ``i`` in ``sets.sph`` (``base`` may be ``out``):
     ``f = -C vel`` (the dashpots), with ``stiffness`` ``-(C + dt K + (hg_c + dt hg_k) L) vel``."""
@@ -350,7 +350,7 @@ def _apply(s, x, vel, sets, scale, base, out):
         _apply_one(sets.sph[t], s, x, vel, scale, base, out)
 
 
-@njit(cache=True, fastmath=True, parallel=True, nogil=True)
+@njit(cache=True, fastmath=True, parallel=True)
 def _apply_parallel(s, x, vel, sets, scale, base, out):
     """:func:`_apply` over numba's thread pool: both loops are gathers in the serial order, so
     the result is bit-identical (its own function: a serial solve must not wake the pool)."""
@@ -361,7 +361,7 @@ def _apply_parallel(s, x, vel, sets, scale, base, out):
         _apply_one(sph[t], s, x, vel, scale, base, out)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _operator(s, x, vel, sets, scale, base, out):
     """:func:`_apply`, on the thread pool from ``s.par_min`` stressed particles."""
     if sets.n_stress >= s.par_min:
@@ -370,7 +370,7 @@ def _operator(s, x, vel, sets, scale, base, out):
         _apply(s, x, vel, sets, scale, base, out)
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def _bonds_at(s, x, vel, sets, scale, out):
     """``out_i -= scale (L vel)_i`` with the bonds' damping ``hg_c`` (:func:`bond_force_one`)."""
     for t in range(sets.n_sph):
@@ -381,7 +381,7 @@ def _bonds_at(s, x, vel, sets, scale, out):
         out[i, 2] += scale * f2
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def _dot(a, b, sph, n):
     t = 0.0
     for k in range(n):
@@ -390,7 +390,7 @@ def _dot(a, b, sph, n):
     return t
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def backward_euler_step(s, body, motion, sets):
     """One sub-step: ``v* = v + dt a``, then ``(I + dt/m C + contacts) v' = v* + ...`` (the
     dashpots if ``s.dashpots``, the contact terms of :mod:`.implicit_contact` for what the contact

@@ -185,7 +185,7 @@ def contact_vector_py(i, x, seg, surf):
     return contact_vector(i, x, seg, surf)
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
     """Add contact accelerations to ``motion.acc`` for ``cand[:n_cand]``; accumulate the reaction
     in ``react``.

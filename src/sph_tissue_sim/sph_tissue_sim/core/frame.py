@@ -34,14 +34,14 @@ from .protocols import (STATUS_ABORTED, STATUS_FULL, STATUS_OK, FrameScheme, adv
 from .state import Body, Loads, Motion, Sets, ToolPath
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def _segment_velocity(seg0, seg1, frame_dt, out):
     for e in range(2):
         for a in range(3):
             out[e, a] = (seg1[e, a] - seg0[e, a]) / frame_dt
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def _segment_at(seg0, seg1, s, n_sub, out):
     frac = (s + 1.0) / n_sub
     for e in range(2):
@@ -49,7 +49,7 @@ def _segment_at(seg0, seg1, s, n_sub, out):
             out[e, a] = seg0[e, a] + frac * (seg1[e, a] - seg0[e, a])
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def _apply_loads(idx, force, n, fixed, acc, inv_mass):
     for t in range(n):
         i = idx[t]
@@ -58,7 +58,7 @@ def _apply_loads(idx, force, n, fixed, acc, inv_mass):
                 acc[i, a] += force[t, a] * inv_mass
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def _mean(react, n):
     for a in range(3):
         react[a] /= max(n, 1)

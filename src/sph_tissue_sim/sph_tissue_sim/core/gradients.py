@@ -32,7 +32,7 @@ from .kernel import kernel_dwdr, kernel_w
 MAX_CONDITION = 1e4
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def pair_weights(X, offsets, indices, h):
     """Per pair ``dW/dr(R0) / R0`` (<= 0) and the hourglass weight ``W(R0) / R0^2``."""
     nnz = indices.shape[0]
@@ -50,7 +50,7 @@ def pair_weights(X, offsets, indices, h):
     return dw, w0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _basis(X, i, j, h, order, p):
     """``p(X_j - X_i)`` into ``p`` (3 or 9 entries)."""
     d0 = X[j, 0] - X[i, 0]
@@ -68,7 +68,7 @@ def _basis(X, i, j, h, order, p):
         p[8] = d1 * d2 / h
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _moments(X, offsets, indices, dw, volume, h, order):
     n = 3 if order == 1 else 9
     M = np.zeros((X.shape[0], n, n))
@@ -83,7 +83,7 @@ def _moments(X, offsets, indices, dw, volume, h, order):
     return M
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _gradients(X, offsets, indices, dw, volume, h, order, Q):
     """``g_k = phi_k Q_i p(D_k)`` with ``Q_i`` the first three rows of ``M_i^-1`` (N, 3, n)."""
     n = Q.shape[2]
@@ -101,7 +101,7 @@ def _gradients(X, offsets, indices, dw, volume, h, order, Q):
     return g
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def reverse_pairs(offsets, indices):
     """``rev[k]``: the index of pair (j, i) for pair k = (i, j) (the lists are symmetric)."""
     rev = np.full(indices.shape[0], -1, dtype=np.int64)

@@ -92,7 +92,7 @@ def _spread(c, t, amount, out):
         out[i, 0] += a * n0; out[i, 1] += a * n1; out[i, 2] += a * n2
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def contact_residual(c, inv_m, dt, v, dv, r):
     """``r += -(1/m) sum_t Phi^T n [dt^2 k n . Phi v + (dt^2 k + dt c) n . Phi dv]``: the contacts'
     share of the residual at ``v* = v + dv`` (``dv`` zero off the solved set); keeps each touch's
@@ -104,7 +104,7 @@ def contact_residual(c, inv_m, dt, v, dv, r):
         _spread(c, t, -(dt * dt * kk * vn + (dt * dt * kk + dt * cc) * _point_normal_velocity(c, t, dv)) * inv_m, r)
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def contact_apply(c, inv_m, dt, w, q):
     """``q += sum_t (dt^2 k + dt c) / m Phi^T n n^T Phi w`` (``w`` zero off the solved set)."""
     for t in range(c.touches.count[0]):
@@ -112,7 +112,7 @@ def contact_apply(c, inv_m, dt, w, q):
         _spread(c, t, (dt * dt * kk + dt * cc) * inv_m * _point_normal_velocity(c, t, w), q)
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def contact_reaction(c, dt, dv):
     """The reaction's share of the solve: ``react += (dt k n . Phi v'' + c n . Phi (v'' - v)) n``
     with ``dv = v'' - v`` (zero off the solved set) and ``n . Phi v`` from :func:`contact_residual`."""

@@ -26,7 +26,7 @@ class SymplecticEuler(NamedTuple):
     dt: float
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def symplectic_euler(x, v, acc, sph, n_sph, dt):
     for t in range(n_sph):
         i = sph[t]
@@ -45,7 +45,7 @@ def _advance_symplectic_euler(integrator, body, motion, sets):
     return impl
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def move_layers(x, v, fixed, layer, layer_w, n_layer, touch, touch_w, n_touch, contact, dt):
     """Transmission layers (paper eqs. 20-21) follow the contact: ``v_i = w(i) v_c``, ``x_i += dt v_i``.
 

@@ -27,7 +27,7 @@ SUPPORT = 2.0
 """Support radius in units of h."""
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def kernel_w(rij: float, h: float) -> float:
     """WIJ: cubic spline value for a pair distance ``rij`` [m] and smoothing length ``h`` [m]."""
     q = rij / h
@@ -40,7 +40,7 @@ def kernel_w(rij: float, h: float) -> float:
     return 0.0
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def kernel_dwdr(rij: float, h: float) -> float:
     """dW/dr at ``rij``: ``1/(pi h^4) * (-3R + 2.25R^2 | -0.75(2-R)^2)`` (<= 0 inside the support)."""
     q = rij / h
@@ -53,7 +53,7 @@ def kernel_dwdr(rij: float, h: float) -> float:
     return 0.0
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def kernel_dwij(xij0: float, xij1: float, xij2: float, h: float, out: np.ndarray) -> None:
     """DWIJ = dW/dr(RIJ) * XIJ / RIJ written into ``out`` (3,); zero at RIJ = 0."""
     rij = math.sqrt(xij0 * xij0 + xij1 * xij1 + xij2 * xij2)
@@ -94,7 +94,7 @@ def strain_rate(f, h):
             0.5 * (h01 * f02 + h11 * f12 + h21 * f22 + f01 * h02 + f11 * h12 + f21 * h22))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def kernel_w_array(r: np.ndarray, h: float) -> np.ndarray:
     """:func:`kernel_w` over an array of distances (the surface discs' pair weights)."""
     out = np.empty(r.shape[0])

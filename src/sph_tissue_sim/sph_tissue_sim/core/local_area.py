@@ -164,7 +164,7 @@ def local_release(X, x, v, area, n_active, disp_tol, vel_tol):
 FAR_FIELD_MAX_STRAIN = 0.25
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def boussinesq(d, load, G, nu, out):
     """Displacement [m] of an elastic half-space under a point load, at offsets ``d`` (n, 3).
 

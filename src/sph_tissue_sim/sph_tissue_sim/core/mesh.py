@@ -27,7 +27,7 @@ from .models import TissueModel, _fixed_layers, fit_spacing
 _RAY_SHIFT = (math.sqrt(2.0) * 1e-6, math.pi * 1e-7)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _column_crossings(tri, x0, y0, s, nx, ny, counts, offsets, zcross, fill):
     """Crossings of the z-parallel lines (x0 + i s, y0 + j s) with triangles ``tri`` (T, 3, 3).
 
@@ -61,7 +61,7 @@ def _column_crossings(tri, x0, y0, s, nx, ny, counts, offsets, zcross, fill):
                 counts[col] += 1
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _fill_inside(offsets, zcross, z0, s, nz, ny, inside):
     """Mark lattice points ``z0 + k s`` between pairs of sorted crossings. Returns odd columns."""
     odd = 0

@@ -52,7 +52,7 @@ def grid_geometry(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarr
     return lo.astype(np.float64), dims
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _cell_of(x: float, origin: float, cell: float, dim: int) -> int:
     c = int(math.floor((x - origin) / cell))
     if c < 0:
@@ -79,7 +79,7 @@ def cell_block(p0: float, p1: float, p2: float, origin: np.ndarray, cell: float,
     return n
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def bin_points(points: np.ndarray, origin: np.ndarray, cell: float,
                dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Counting sort of points into cells: returns ``(cell_start, cell_particles)``."""
@@ -105,7 +105,7 @@ def bin_points(points: np.ndarray, origin: np.ndarray, cell: float,
     return count, cell_particles
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def query_ball(centre: np.ndarray, radius: float, points: np.ndarray, grid: Grid, out: np.ndarray) -> int:
     """Write indices of ``points`` (binned in ``grid``) within ``radius`` of ``centre`` into
     ``out``; return how many (possibly more than ``out`` holds: only those fit are written).
@@ -137,7 +137,7 @@ def query_ball(centre: np.ndarray, radius: float, points: np.ndarray, grid: Grid
     return n
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _neighbour_pass(points, radius, origin, cell, dims, cell_start, cell_particles, offsets, indices,
                     fill):
     """Count every point's neighbours into ``offsets[i + 1]`` (``fill`` False), or write them to
@@ -165,7 +165,7 @@ def _neighbour_pass(points, radius, origin, cell, dims, cell_start, cell_particl
             offsets[i + 1] = m
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def neighbour_lists(points: np.ndarray, radius: float, origin: np.ndarray, cell: float,
                     dims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """CSR neighbour lists of all points within ``radius`` (< ``cell``), self excluded."""

@@ -77,7 +77,7 @@ _MAX_CELLS = 50_000_000   # a larger current-configuration grid means the body f
 
 
 # ---------------------------------------------------------------------------- neighbour search
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _fill_pairs(x, search, rows, n_rows, h, pos, origin, dims, cell_start, cell_particles,
                 nb_off, nb_idx, nb_dw, nb_w):
     """Pair lists of :func:`current_neighbours` into fixed buffers; -1 if they are too small.
@@ -116,7 +116,7 @@ def _fill_pairs(x, search, rows, n_rows, h, pos, origin, dims, cell_start, cell_
     return m
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def search_pairs(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx, nb_dw, nb_w):
     """CSR neighbours (within 2h, current positions) of ``rows[:n_rows]`` among ``search[:n_search]``.
 
@@ -180,7 +180,7 @@ def current_neighbours(x, search, n_search, rows, n_rows, h, pos, nb_off, nb_idx
 
 
 # ---------------------------------------------------------------------------- density, strain, stress
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def summation_density(rows, n_rows, nb_off, nb_w, mass, h, rho):
     """Eq. 15 with equal masses: ``rho_i = m (W(0) + sum_j WIJ)`` for ``rows[:n_rows]``."""
     w_self = kernel_w(0.0, h)
@@ -191,7 +191,7 @@ def summation_density(rows, n_rows, nb_off, nb_w, mass, h, rho):
         rho[rows[r]] = mass * s
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def strain_stress(p, X, x, v, mass):
     """Strain, strain rate (difference form of eq. 16) and Kelvin-Voigt stress (eqs. 1-3).
 
@@ -246,7 +246,7 @@ MOMENTUM_EQ14 = 14
 MOMENTUM_EQ12 = 12
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def momentum_one(r, p, x, mass):
     """Internal acceleration ``(a0, a1, a2)`` of ``i = p.rows[r]`` (``p`` a :class:`Paper`).
 

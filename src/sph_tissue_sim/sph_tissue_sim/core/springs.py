@@ -35,7 +35,7 @@ class MassSpring(NamedTuple):
     tau: float             # [s] dashpot time (material retardation time)
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def spring_force_one(i, x, v, offsets, indices, k_spring, rest, tau):
     """Spring force ``(f0, f1, f2)`` [N] on particle ``i``."""
     f0 = 0.0; f1 = 0.0; f2 = 0.0
@@ -52,7 +52,7 @@ def spring_force_one(i, x, v, offsets, indices, k_spring, rest, tau):
     return f0, f1, f2
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def spring_pass(sph, n_sph, x, v, acc, inv_mass, offsets, indices, k_spring, rest, tau):
     """``acc = f / m`` of ``sph[:n_sph]``."""
     for t in range(n_sph):

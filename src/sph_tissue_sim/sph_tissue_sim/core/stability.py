@@ -45,7 +45,7 @@ CLOSE = 1.0
 RISING = 1e-3
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _load(u, v, idx, n):
     """``v = u / |u|`` on the particles ``idx[:n]`` (zero elsewhere already); returns ``|u|``."""
     total = 0.0
@@ -62,7 +62,7 @@ def _load(u, v, idx, n):
     return norm
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _contact_dashpots(x, v, acc, cand, n_cand, seg, reach, surf, rate):
     """``acc -= rate (v . n) n`` on the candidates the tool touches (``n`` the normal it pushes
     them along, ``rate`` = c_c / m): the explicit contact dashpots' share of ``-M^-1 C v``. A
@@ -78,7 +78,7 @@ def _contact_dashpots(x, v, acc, cand, n_cand, seg, reach, surf, rate):
             acc[i, 2] -= vn * n2
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _store(acc, u, v, idx, n):
     """The next vector ``u = -acc`` (``acc = -M^-1 C v``) on ``idx[:n]``, ``v`` back to zero there;
     returns ``|acc|``: for a unit ``v``, the rate estimate (from below)."""

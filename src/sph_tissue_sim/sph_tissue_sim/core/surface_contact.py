@@ -60,7 +60,7 @@ def surface_normals(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: 
     return N
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _sample_weights(Y, X, grid, h, count_only, w_start, w_idx, w_val):
     """Shepard interpolation weights ``W(|Y_s - X_j|, h) / sum_j W`` of the samples ``Y`` (S, 3)
     over the reference particles ``X`` (binned in ``grid``) within ``2 h``.
@@ -172,7 +172,7 @@ def sample_offset(s, x, v, seg, samples):
     return y0 - c0, y1 - c1, y2 - c2, t, u0, u1, u2
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def nearest_sample_gap(x, v, cand, n_cand, seg, samples):
     """The smallest distance [m] between the tool (segment ``seg`` swept by ``samples.radius``)
     and a sample of ``cand[:n_cand]`` (negative: one is inside the tool; ``inf``: none within
@@ -187,7 +187,7 @@ def nearest_sample_gap(x, v, cand, n_cand, seg, samples):
     return gap
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, react, touches):
     """Contact of the samples of ``cand[:n_cand]`` with the tool (segment ``seg`` (2, 3) swept by
     a sphere of ``samples.radius`` [m], its ends moving at ``seg_vel`` [m/s]).

@@ -206,7 +206,7 @@ def tlsph_force_one(i, s, X, x, v):
     return f0, f1, f2
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def surface_extrapolate(s, sets):
     """Second pass of ``surface_extrapolation``: the stress of each particle of ``s.ext`` at
 
@@ -292,7 +292,7 @@ def surface_extrapolate(s, sets):
                     A[j, c, e] -= acc
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True)
 def tlsph_pass(s, body, motion, sets):
     """One sub-step of TLSPH internal forces (``s`` a :class:`Tlsph`): stresses of
     ``sets.stress``, then ``acc = f / m`` of ``sets.sph`` (serial: no thread-pool wake-up on small sets)."""
@@ -309,7 +309,7 @@ def tlsph_pass(s, body, motion, sets):
         acc[i, 2] = f2 * inv_mass
 
 
-@njit(cache=True, fastmath=True, parallel=True, nogil=True)
+@njit(cache=True, fastmath=True, parallel=True)
 def tlsph_pass_parallel(s, body, motion, sets):
     """:func:`tlsph_pass` over numba's thread pool (``prange``).
 
@@ -332,14 +332,14 @@ def tlsph_pass_parallel(s, body, motion, sets):
         acc[i, 2] = f2 * inv_mass
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _matmul3(a, b, out):
     for p in range(3):
         for q in range(3):
             out[p, q] = a[p, 0] * b[0, q] + a[p, 1] * b[1, q] + a[p, 2] * b[2, q]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _det3(a):
     return (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
             - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
