@@ -25,16 +25,19 @@ from pathlib import Path
 
 import numpy as np
 
+from tissue_common import feel
 from tissue_viz.errors import ReportError
 from tissue_viz.tissue_images import TissueSnapshots, draw_animation, draw_snapshot
 from tissue_viz.stats import (HAPTIC_MULTIRATE, LIMITS, MAX_RATE, MAX_SECONDS, Limit, VizStats,
-                              haptic_summary, within, percentile, press_displacement)
+                              feel_summary_of, haptic_summary, within, percentile,
+                              press_displacement)
 
 TABLES = {
     'metrics': VizStats.METRICS_COLUMNS,
     'force': VizStats.FORCE_COLUMNS,
     'latency': VizStats.LATENCY_COLUMNS,
     'rates': VizStats.RATE_COLUMNS,
+    'feel': VizStats.FEEL_COLUMNS,
 }
 PLOTS = (
     ('force_vs_time.png', 'Force on the tool over time'),
@@ -43,6 +46,7 @@ PLOTS = (
     ('rates.png', 'Topic rates over time'),
     ('latency_hist.png', 'Pose to force latency'),
     ('energy_in.png', 'Energy the hand put into the rendered tissue (multirate haptic rendering)'),
+    ('force_change.png', 'What the hand got: the force sent, change from one frame to the next'),
     ('tissue_rest.png', 'The tissue at rest (the first tissue/particles cloud received)'),
     ('tissue_deepest.png', 'The tissue at the deepest press (the cloud with the largest '
                            'displacement), with the simulated tool'),
@@ -69,7 +73,8 @@ class ReportData:
     @classmethod
     def from_stats(cls, stats: VizStats, now: float, **kw) -> 'ReportData':
         tables = {'metrics': stats.metrics_table.as_dict(), 'force': stats.force_table.as_dict(),
-                  'latency': stats.latency_table.as_dict(), 'rates': stats.rate_table.as_dict()}
+                  'latency': stats.latency_table.as_dict(), 'rates': stats.rate_table.as_dict(),
+                  'feel': stats.feel_table()}
         return cls(tables=tables, summary=stats.summary(now), haptic_period=stats.period, **kw)
 
     def table(self, name: str) -> dict:
@@ -422,6 +427,40 @@ def plot_energy_in(data: ReportData, path: Path) -> None:
     _finish(plt, fig, ax, path, 'time [s]', 'E_in [uJ]', dropped, 'energies')
 
 
+def plot_force_change(data: ReportData, path: Path) -> None:
+    """|dF| of the force sent from one answered pose to the next (stamp order), against the
+    goldens' targets: p99 at most 5 mN in steady contact, no one-frame reversal above 10 mN."""
+    plt, fig, ax = _figure()
+    f = data.table('feel')
+    t = f['stamp']
+    vec = np.column_stack([f['fx'], f['fy'], f['fz']])
+    ok = _TIMES.mask(t) & LIMITS['wrench_force'].mask(vec).all(axis=1)
+    dropped = int(ok.size - np.count_nonzero(ok))
+    t, vec = t[ok], vec[ok]
+    near = feel.neighbour_frames(t, len(t), data.haptic_period)
+    if near.any():
+        d_mn = np.linalg.norm(np.diff(vec, axis=0), axis=1)[near] * 1e3
+        tt = t[1:][near]
+        sel = _thin(len(tt), d_mn)
+        ax.plot(tt[sel], d_mn[sel], color='tab:blue', lw=0.6, label='|dF| per frame')
+        ax.axhline(feel.TARGETS['dF_p99_mN'], color='tab:green', ls='--', lw=1.0,
+                   label='target for the p99 in steady contact')
+        ax.axhline(feel.REVERSAL * 1e3, color='tab:red', ls=':', lw=1.0,
+                   label='a change this large that comes straight back is a click')
+        ax.set_yscale('symlog', linthresh=1.0)
+        ax.set_ylim(bottom=0.0)
+        ax.legend(loc='upper right', fontsize=8)
+        s = data.summary
+        ax.set_title(f"Force sent, change per frame: p99 {_fmt(s.get('feel_dF_p99_mN'), 1, 2, 'mN')} "
+                     f"in steady contact,\n{_fmt(s.get('feel_reversals'), 1, 0)} one-frame reversals "
+                     f"above {feel.REVERSAL * 1e3:g} mN, E_in min {_fmt(s.get('feel_E_in_min_uJ'), 1, 2, 'uJ')} "
+                     f"(targets: 5 mN, none, -1 uJ)", fontsize=10)
+    else:
+        _no_data(ax, 'answered poses')
+        ax.set_title('Force sent, change per frame')
+    _finish(plt, fig, ax, path, 'pose stamp [s]', '|dF| [mN]', dropped, 'forces')
+
+
 def _placeholder(path: Path, title: str, reason: str) -> None:
     """A plot that says why it could not be drawn (a plain grey PNG if not even text can be).
 
@@ -489,6 +528,7 @@ PLOTTERS = {
     'rates.png': plot_rates,
     'latency_hist.png': plot_latency_hist,
     'energy_in.png': plot_energy_in,
+    'force_change.png': plot_force_change,
 }
 
 
@@ -575,6 +615,8 @@ def summary_from_tables(data: ReportData) -> dict:
         'max_displacement_m': num(float(disp.max()) if disp.size else math.nan),
         'bad_values': bad_values_in_tables(data),
         **{key: num(value) for key, value in haptic_summary(m).items()},
+        **{key: num(value) for key, value in feel_summary_of(data.table('feel'), period
+                                                              if math.isfinite(period) else 1e-3).items()},
     }
 
 

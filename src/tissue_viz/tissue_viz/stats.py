@@ -360,6 +360,8 @@ class VizStats:
                        'contact_index', 'penetration', 'fx', 'fy', 'fz', 'force',
                        'max_displacement', 'kinetic_energy', 'haptic_mode') + HAPTIC_COLUMNS
     FORCE_COLUMNS = ('t', 'fx', 'fy', 'fz', 'force', 'px', 'py', 'pz')
+    #: every answered pose, in stamp order: what the hand got (never thinned, see ``felt``)
+    FEEL_COLUMNS = ('stamp', 'fx', 'fy', 'fz', 'px', 'py', 'pz')
     LATENCY_COLUMNS = ('t', 'latency')
     RATE_COLUMNS = ('t',) + TOPICS
 
@@ -627,17 +629,32 @@ class VizStats:
             **{key: num(value) for key, value in self.feel_summary().items()},
         }
 
+    def feel_table(self) -> dict[str, np.ndarray]:
+        """The answered poses (``FEEL_COLUMNS``, stamp [s] relative to the first) in stamp order."""
+        rows = np.array(sorted(self.felt)).reshape(-1, len(self.FEEL_COLUMNS))
+        if len(rows):
+            rows[:, 0] -= rows[0, 0]
+        return {c: rows[:, i] for i, c in enumerate(self.FEEL_COLUMNS)}
+
     def feel_summary(self) -> dict[str, float]:
-        """What the hand felt (:func:`tissue_common.feel.feel` of the answered poses' forces, in
-        stamp order): |dF| per frame p99 and max in steady contact [mN], one-frame reversals,
-        E_in min [uJ]; empty before three answers."""
-        if len(self.felt) < 3:
-            return {}
-        rows = np.array(sorted(self.felt))
-        q = feel(rows[:, 4:7], rows[:, 1:4], rows[:, 0], self.period)
-        return {'feel_dF_p99_mN': q['dF_p99_mN'], 'feel_dF_max_mN': q['dF_max_mN'],
-                'feel_reversals': q['reversals'], 'feel_E_in_min_uJ': q['E_in_min_uJ'],
-                'feel_steady_frames': q['steady_frames']}
+        """What the hand felt (:func:`feel_summary_of` the answered poses)."""
+        return feel_summary_of(self.feel_table(), self.period)
+
+
+def feel_summary_of(table: dict[str, np.ndarray], period: float) -> dict[str, float]:
+    """:func:`tissue_common.feel.feel` of a ``FEEL_COLUMNS`` table: |dF| per frame p99 and max in
+    steady contact [mN], one-frame reversals, E_in min [uJ]; empty below three rows."""
+    x = np.column_stack([table[c] for c in ('px', 'py', 'pz')])
+    f = np.column_stack([table[c] for c in ('fx', 'fy', 'fz')])
+    # a table read back from a folder may hold anything: only rows a live run could have recorded
+    ok = (np.isfinite(table['stamp']) & LIMITS['wrench_force'].mask(f).all(axis=1)
+          & LIMITS['pose_position'].mask(x).all(axis=1))
+    if np.count_nonzero(ok) < 3:
+        return {}
+    q = feel(x[ok], f[ok], table['stamp'][ok], period)
+    return {'feel_dF_p99_mN': q['dF_p99_mN'], 'feel_dF_max_mN': q['dF_max_mN'],
+            'feel_reversals': q['reversals'], 'feel_E_in_min_uJ': q['E_in_min_uJ'],
+            'feel_steady_frames': q['steady_frames']}
 
 
 def haptic_summary(metrics: dict[str, np.ndarray]) -> dict[str, float]:
