@@ -86,8 +86,8 @@ PARAMETERS: dict[str, tuple] = {
     'force_limit': (3.3, 'device force limit [N]; reaching it is WARN', (0.01, 100.0), False),
     'energy_in_min': (-1e-6, 'energy the hand put into the multirate rendering below this is WARN '
                       '(the rendering gave energy back) [J]', (-1000.0, 0.0), False),
-    'model_age_warn': (0.02, 'a multirate contact model older than this when replaced is WARN (the '
-                       'solver falls behind the hand) [s]', (1e-4, 10.0), False),
+    'model_age_warn': (0.02, 'a multirate contact model older than this (the pose time between two '
+                       'solver jobs) is WARN: the solver falls behind the hand [s]', (1e-4, 10.0), False),
     'report_dir': ('', 'report folder; empty = ./reports/<timestamp> for each report', None, False),
     'report_on_shutdown': (True, 'write the report when the node shuts down', None, False),
     'report_title': ('SPH soft-tissue simulation run', 'title of the report', None, False),

@@ -45,7 +45,8 @@ class HapticStatus:
     """The rendering's state for metrics and diagnostics."""
 
     solver_rate: float                # [Hz] solver refreshes per wall-clock second, last RATE_WINDOW
-    model_age: float                  # [s] pose time the replaced model served, at the last refresh
+    model_age: float                  # [s] pose time between the solver's last two jobs: how long a
+                                      # contact model serves before the next one replaces it
     stretch: float                    # [m] coupling stretch at the newest pose
     energy: float                     # [J] E_in at the device port
     energy_min: float                 # [J] lowest E_in so far
@@ -69,7 +70,6 @@ class MultiRate:
     def _clear(self) -> None:
         self._poses = 0               # poses answered since the last job
         self._served = 0              # poses the contact model answered since its last refresh
-        self._served_time = 0.0       # their pose time [s]
         self._pending = 0.0           # their pose time [s]
         self._point: np.ndarray | None = None
         self._rotation = None
@@ -90,7 +90,6 @@ class MultiRate:
             out = self.renderer.answer(x, dt)
             self._poses += 1
             self._served += 1
-            self._served_time += dt
             self._pending += dt
             self._point, self._rotation, self._stamp, self._last = out.proxy, rotation, stamp, out
             return out
@@ -121,8 +120,8 @@ class MultiRate:
         point = result.tool_segment[0] if result.tool_segment is not None else job.point
         with self._lock:
             self.renderer.refresh(point, result.force_raw, self._served)
-            self._age = self._served_time
-            self._served, self._served_time = 0, 0.0
+            self._age = job.age
+            self._served = 0
             self._refreshes.append(self._clock())
 
     def rate(self) -> float:
