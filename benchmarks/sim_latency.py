@@ -88,9 +88,20 @@ def run(args) -> dict:
     stamp0 = time.time_ns()
     period_ns = int(round(1e9 / args.rate))
 
-    peer = ([sys.executable, str(ROOT / 'benchmarks' / 'echo_node.py')] if args.peer else None)
-    with harness.NodeProcess('sph_tissue_sim', 'sim_node', params=params, command=peer) as sim:
-        m = None if peer else sim.wait_for_output(r'numba warm-up .*: ([0-9.]+) s', 600)
+    peer, env = None, None
+    if args.peer:
+        peer = [sys.executable, str(ROOT / 'benchmarks' / 'echo_node.py')]
+    elif args.node_src:
+        # another checkout's sim_node (before / after a change, timed in one run)
+        peer = [sys.executable, '-m', 'sph_tissue_sim.sim_node']
+        env = harness.ros_env(int(os.environ['ROS_DOMAIN_ID']) if 'ROS_DOMAIN_ID' in os.environ
+                              else None)
+        src = Path(args.node_src).resolve() / 'src'
+        env['PYTHONPATH'] = os.pathsep.join([str(src / 'sph_tissue_sim'), str(src / 'tissue_common'),
+                                             env.get('PYTHONPATH', '')])
+    with harness.NodeProcess('sph_tissue_sim', 'sim_node', params=params, command=peer,
+                             env=env) as sim:
+        m = None if args.peer else sim.wait_for_output(r'numba warm-up .*: ([0-9.]+) s', 600)
         sim.wait_for_output(r'ready:', 60)
         ready_line = [ln for ln in sim.output().splitlines() if 'ready:' in ln][-1]
         rclpy.init()
@@ -254,6 +265,9 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument('--peer', action='store_true',
                     help='time benchmarks/echo_node.py instead of sim_node: the same transport and '
                          'executor answering at once with no simulation (the floor of the round trip)')
+    ap.add_argument('--node-src', default='',
+                    help='run sim_node from this checkout\'s sources instead of the installed one '
+                         '(a before/after comparison; its numba cache is its own)')
     ap.add_argument('--metrics', action='store_true',
                     help='also subscribe tissue/metrics for the step time (default: the node\'s own '
                          'step-time line at shutdown)')
