@@ -362,26 +362,6 @@ def live_wall(path: np.ndarray, wall: Wall, delay: int):
     return np.array(forces), np.array(energy)
 
 
-def live_wall_cadence(path: np.ndarray, walls, delays):
-    """Like :func:`live_wall`, the wall ``walls(k)`` answering the job taken after pose ``k`` before
-    pose ``k + delays(k)`` is answered (1: within the pose's interval, as a live solver's quick
-    step does; its cadence changes with its steps' cost)."""
-    from sph_tissue_sim.haptics.multirate import MultiRate
-
-    h = MultiRate(HapticRenderer(), 0, 0.02)
-    forces, energy, job, due, taken = [], [], None, 0, 0
-    for k, x in enumerate(path):
-        if job is not None and k >= due:
-            h.refresh(job, WallStep(walls(taken), job.point))
-            job = None
-        out = h.answer(x, T)
-        forces.append(out.force)
-        energy.append(out.energy)
-        if job is None:
-            job, due, taken = h.take(), k + delays(k), k
-    return np.array(forces), np.array(energy)
-
-
 def repress(depth: float = 0.003, period: int = 600, n: int = 3):
     """Presses of ``depth`` [m] at one place, ``n`` times, ``period`` poses each (cosine)."""
     t = np.arange(n * period)
@@ -411,16 +391,16 @@ def test_a_solver_20_poses_late_no_longer_gives_a_second_touch_all_at_once(k_wal
 
 def test_the_remembered_surface_never_acts_on_a_model_refreshed_at_every_pose():
     """Lockstep refreshes the model after every pose: the surface stays out of its forces (the
-    goldens' figures); where the schedule allows it, it acts."""
+    goldens' figures); a model older than the pose renders it."""
     model = ContactModel(k_max=1e5)
     coupling = VirtualCoupling(700.0, 1.5, 4.0, model)
     model.stiffness = 300.0
     model.surface = (np.zeros(3), Z)
-    _, force = coupling.render(np.array([0.0, 0.0, -0.001]), np.zeros(3), T, surface=False)
+    _, force = coupling.render(np.array([0.0, 0.0, -0.001]), np.zeros(3), T, stale=False)
     assert not force.any()
     coupling.reset()
-    coupling.render(np.array([0.0, 0.0, -0.001]), np.zeros(3), T, surface=True)
-    _, force = coupling.render(np.array([0.0, 0.0, -0.001]), np.zeros(3), T, surface=True)
+    coupling.render(np.array([0.0, 0.0, -0.001]), np.zeros(3), T, stale=True)
+    _, force = coupling.render(np.array([0.0, 0.0, -0.001]), np.zeros(3), T, stale=True)
     assert force[2] > 0.0
 
 
@@ -445,26 +425,3 @@ def test_a_surface_the_solver_finds_empty_moves_in_to_where_it_found_it_empty():
     np.testing.assert_allclose(model.surface[0], x_s - 4e-4 * Z, atol=1e-15)
     assert not model.plane(np.array([0.0, 0.0, x_s[2] - 3e-4]))
     assert model.plane(np.array([0.0, 0.0, x_s[2] - 5e-4]))
-
-
-def test_a_surface_the_tissue_sank_under_never_chatters_when_the_solver_answers_within_a_pose():
-    """The first touch leaves a surface at z = 0; the tissue then sinks 1 mm (the organ moved). A
-    live solver answering one, then three poses late presses it again: the remembered surface
-    acts at every pose or not at all, never pose by pose with the model's age (that made the live
-    demo's force switch between 0.02-0.05 N and zero 28 times in 0.2 s)."""
-    path = repress(depth=0.003, period=600, n=2)
-    sunk = lambda k: Wall(300.0) if k < 600 else Shifted(300.0, -0.001)  # noqa: E731
-    forces, energy = live_wall_cadence(path, sunk, lambda k: 1 + 2 * (k % 2))
-    assert one_frame_reversals(forces, threshold=0.002) == 0
-    assert energy.min() >= -1e-6
-
-
-class Shifted(Wall):
-    """A wall whose surface is at ``z0`` [m]."""
-
-    def __init__(self, k: float, z0: float) -> None:
-        super().__init__(k)
-        self.z0 = z0
-
-    def force(self, x: np.ndarray) -> np.ndarray:
-        return self.k * max(0.0, self.z0 - x[2]) * Z

@@ -14,15 +14,12 @@ When a contact ends the model keeps its **surface**: the plane through the point
 force would have fallen to zero (``x0 + (|F0| / k) n``, not beyond the first point the solver found
 free), normal ``n``. A live solver answers 5-250 poses late: a device that goes back into the tissue
 meanwhile got no force until the solver's answer arrived, then all of it at once (a 0.08-0.35 N
-step, measured in the live demo). Where the caller allows it (``surface``: every schedule but a
-lockstep refresh at every pose, whose forces stay as they were), while the model has no contact and
-the device is past that surface and within ``SURFACE_REACH`` of its point along it, the coupling
-renders the plane instead, ``F(x) = -k n (n . (x - x_s))``, from zero at the surface. The solver's
-next answer with a force replaces it; an answer without force from a tool past the surface moves it
-in to that point (the tissue is not where it was). Allowed or not per schedule, never per pose: a
-live solver answers some poses within the pose's interval and others many poses late, and a plane
-that acted only on the late ones switched the force on and off pose by pose (the live demo: 28
-one-frame reversals of 20-50 mN within 0.2 s).
+step, measured in the live demo). While the model is older than the pose (``stale``), the device is
+past that surface and within ``SURFACE_REACH`` of its point along it, the coupling renders the
+plane instead, ``F(x) = -k n (n . (x - x_s))``, from zero at the surface. The solver's next answer
+replaces it; an answer without force from a tool past the surface refutes it (the tissue is not
+there any more), and it is forgotten. A model refreshed at every pose (lockstep) is never stale: the
+plane never acts there.
 
 The simulated tool (the proxy ``x_t = x^ + a``) is held by a spring ``K_c`` to the filtered device
 point ``x^``, pushed by the contact model, and its offset ``a`` from the device point is damped by
@@ -184,13 +181,13 @@ class VirtualCoupling:
         self.normal = np.zeros(3)
 
     def render(self, x_hat: np.ndarray, v_hat: np.ndarray, dt: float,
-               surface: bool = False) -> tuple[np.ndarray, np.ndarray]:
+               stale: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Proxy position and device force for the filtered device point and velocity, ``dt`` [s]
-        after the previous sample (``dt <= 0``: the proxy stays where it is); ``surface``: the
-        remembered surface may act."""
+        after the previous sample (``dt <= 0``: the proxy stays where it is); ``stale``: the model
+        is older than this sample (the remembered surface may act)."""
         m = self.model
         force0, point0, n, touching = m.force, m.point, m.normal, m.magnitude > 0.0
-        if not touching and surface and m.plane(x_hat):
+        if not touching and stale and m.plane(x_hat):
             point0, n = m.surface
             force0, touching = np.zeros(3), True
         if self.proxy is None:

@@ -118,12 +118,12 @@ class HapticRenderer:
         self.config.force_limit = limit
         self.coupling.push_limit = limit
 
-    def answer(self, x, dt: float, surface: bool = False) -> Rendered:
+    def answer(self, x, dt: float, stale: bool = False) -> Rendered:
         """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one;
-        ``surface``: the contact model's remembered surface may act (see :mod:`.coupling`)."""
+        ``stale``: the contact model has answered a pose before (see :mod:`.coupling`)."""
         energy = self.observer.observe(x)
         x_hat, v_hat = self.estimator.update(x, dt)
-        proxy, force = self.coupling.render(x_hat, v_hat, dt, surface)
+        proxy, force = self.coupling.render(x_hat, v_hat, dt, stale)
         pushing = bool(force.any())
         force = force + self.controller.damp(energy, v_hat, dt, engaged=pushing)
         if self.controller.alpha > 0.0:
