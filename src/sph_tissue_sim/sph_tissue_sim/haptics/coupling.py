@@ -133,12 +133,8 @@ class ContactModel:
                 n = self.normal
                 lift = min(self.magnitude / self.stiffness, max(float(n @ (free_point - self.point)), 0.0))
                 self.surface = (self.point + lift * n, n)
-        elif self.surface is not None:
-            x_s, n = self.surface
-            past = float(n @ (free_point - x_s))
-            if past < 0.0:
-                # the tissue is not where it was: its surface lies at least as deep as this point
-                self.surface = (x_s + past * n, n)
+        elif self.surface is not None and float(self.surface[1] @ (free_point - self.surface[0])) < 0.0:
+            self.surface = None
 
     def plane(self, x: np.ndarray) -> bool:
         """The remembered surface applies to a device at ``x``: past it, within its reach."""
