@@ -10,17 +10,6 @@ tissue's stiffness ``k`` along the contact normal ``n = F0 / |F0|``::
 series, so it is what the hand should feel, not the stiffer frozen-particle penalty), low-pass
 filtered over refreshes and kept in ``[0, k_max]``.
 
-When a contact ends the model keeps its **surface**: the plane through the point where the last
-force would have fallen to zero (``x0 + (|F0| / k) n``, not beyond the first point the solver found
-free), normal ``n``. A live solver answers 5-250 poses late: a device that goes back into the tissue
-meanwhile got no force until the solver's answer arrived, then all of it at once (a 0.08-0.35 N
-step, measured in the live demo). While the model is older than the pose (``stale``), the device is
-past that surface and within ``SURFACE_REACH`` of its point along it, the coupling renders the
-plane instead, ``F(x) = -k n (n . (x - x_s))``, from zero at the surface. The solver's next answer
-replaces it; an answer without force from a tool past the surface refutes it (the tissue is not
-there any more), and it is forgotten. A model refreshed at every pose (lockstep) is never stale: the
-plane never acts there.
-
 The simulated tool (the proxy ``x_t = x^ + a``) is held by a spring ``K_c`` to the filtered device
 point ``x^``, pushed by the contact model, and its offset ``a`` from the device point is damped by
 ``B_p``. Each sample updates the offset implicitly (a 3x3 solve, Sherman-Morrison)::
@@ -69,9 +58,6 @@ MIN_SECANT_TRAVEL = 2e-6
 #: weight of a new secant in the filtered stiffness when the model served one pose (about 20 poses
 #: of memory; a model that served ``m`` poses weighs its successor's secant ``1 - (1 - gain)^m``)
 STIFFNESS_GAIN = 0.05
-#: [m] the remembered surface acts within this distance of its point, along it (about a tool's
-#: radius: beyond it the organ's surface may have turned)
-SURFACE_REACH = 5e-3
 
 
 class ContactModel:
@@ -86,7 +72,6 @@ class ContactModel:
         self.lose()
         self.stiffness = 0.0          # k [N/m]
         self.refreshes = 0
-        self.surface: tuple[np.ndarray, np.ndarray] | None = None   # (x_s, n) of the last contact
 
     def lose(self) -> None:
         """The contact ended: no force, but the tissue's stiffness is kept for the next touch (with
@@ -108,11 +93,9 @@ class ContactModel:
         force = np.array(force, dtype=float)
         mag = math.sqrt(float(force @ force))
         if mag == 0.0:
-            self._remember_surface(point)
             self.lose()
             self.point = point
             return
-        self.surface = None
         normal = force / mag
         if self.magnitude > 0.0:
             travel = float(normal @ (point - self.point))
@@ -123,29 +106,6 @@ class ContactModel:
                 self.stiffness += gain * (secant - self.stiffness)
         self.force, self.point, self.normal, self.magnitude = force, point, normal, mag
         self.refreshes += 1
-
-
-    def _remember_surface(self, free_point: np.ndarray) -> None:
-        """The solver found no force with its tool at ``free_point``: keep the surface of the contact
-        that ended there, or forget a surface the tool went past."""
-        if self.magnitude > 0.0:
-            if self.stiffness > 0.0:
-                n = self.normal
-                lift = min(self.magnitude / self.stiffness, max(float(n @ (free_point - self.point)), 0.0))
-                self.surface = (self.point + lift * n, n)
-        elif self.surface is not None and float(self.surface[1] @ (free_point - self.surface[0])) < 0.0:
-            self.surface = None
-
-    def plane(self, x: np.ndarray) -> bool:
-        """The remembered surface applies to a device at ``x``: past it, within its reach."""
-        if self.surface is None or self.stiffness <= 0.0:
-            return False
-        x_s, n = self.surface
-        d = x - x_s
-        depth = float(n @ d)
-        if depth >= 0.0:
-            return False
-        return float(d @ d) - depth * depth <= SURFACE_REACH * SURFACE_REACH
 
 
 class VirtualCoupling:
@@ -168,42 +128,34 @@ class VirtualCoupling:
         self.proxy: np.ndarray | None = None
         self.offset = np.zeros(3)     # x_t - x^ [m]
         self.stretch = 0.0            # [m] how far the proxy sits outside the device point
-        self.normal = np.zeros(3)     # the contact normal of the last sample (model or surface)
 
     def reset(self) -> None:
         self.proxy = None
         self.offset = np.zeros(3)
         self.stretch = 0.0
-        self.normal = np.zeros(3)
 
-    def render(self, x_hat: np.ndarray, v_hat: np.ndarray, dt: float,
-               stale: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def render(self, x_hat: np.ndarray, v_hat: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Proxy position and device force for the filtered device point and velocity, ``dt`` [s]
-        after the previous sample (``dt <= 0``: the proxy stays where it is); ``stale``: the model
-        is older than this sample (the remembered surface may act)."""
+        after the previous sample (``dt <= 0``: the proxy stays where it is)."""
         m = self.model
-        force0, point0, n, touching = m.force, m.point, m.normal, m.magnitude > 0.0
-        if not touching and stale and m.plane(x_hat):
-            point0, n = m.surface
-            force0, touching = np.zeros(3), True
         if self.proxy is None:
             self.offset = np.zeros(3)
         elif dt > 0.0:
             # B_p (a - a_prev) / dt = -K_c a + F0 - k n n.(x^ + a - x0) for the offset a = x_t - x^,
             # solved for a: ((b + K_c) I + k n n^T) a = r, inverted by Sherman-Morrison
-            b, kc, k = self.proxy_damping / dt, self.stiffness, m.stiffness
-            r = b * self.offset + force0 - (k * float(n @ (x_hat - point0))) * n
+            b, kc, k, n = self.proxy_damping / dt, self.stiffness, m.stiffness, m.normal
+            r = b * self.offset + m.force - (k * float(n @ (x_hat - m.point))) * n
             self.offset = (r - (k * float(n @ r) / (b + kc + k)) * n) / (b + kc)
             length = math.sqrt(float(self.offset @ self.offset))
-            if touching and kc * length > self.push_limit:
+            if m.magnitude > 0.0 and kc * length > self.push_limit:
                 # saturated: the spring pulls with P along u = a / |a| (from the unsaturated
                 # solution), (b I + k n n^T) a = r - P u
                 q = r - (self.push_limit / length) * self.offset
                 self.offset = (q - (k * float(n @ q) / (b + k)) * n) / b
         self.proxy = x_hat + self.offset
-        self.normal = n
+        n = m.normal
         a_n = float(self.offset @ n)
-        if not touching or a_n <= 0.0:
+        if m.magnitude == 0.0 or a_n <= 0.0:
             self.stretch = 0.0
             return self.proxy, np.zeros(3)
         self.stretch = a_n

@@ -38,7 +38,6 @@ class SolverJob:
     dt: float                         # [s] pose time to simulate (clamped to ``max_dt``)
     age: float                        # [s] pose time the contact model has served (unclamped)
     stamp: Any                        # the newest pose's stamp (for the metrics)
-    answered: int = 0                 # poses answered before this job was taken
 
 
 @dataclass
@@ -70,8 +69,6 @@ class MultiRate:
 
     def _clear(self) -> None:
         self._poses = 0               # poses answered since the last job
-        self._answered = 0            # poses answered in all
-        self._model_from = 0          # ... when the job behind the contact model was taken
         self._served = 0              # poses the contact model answered since its last refresh
         self._pending = 0.0           # their pose time [s]
         self._point: np.ndarray | None = None
@@ -90,10 +87,7 @@ class MultiRate:
     def answer(self, x, dt: float, rotation=None, stamp=None) -> Rendered:
         """The force for the device sample ``x`` [m, tissue frame], ``dt`` [s] after the previous."""
         with self._lock:
-            # the model is stale when the pose it was found for is not the previous one (live: it
-            # always is; lockstep refreshes it after every solver_every-th pose)
-            out = self.renderer.answer(x, dt, stale=self._answered > self._model_from)
-            self._answered += 1
+            out = self.renderer.answer(x, dt)
             self._poses += 1
             self._served += 1
             self._pending += dt
@@ -115,7 +109,7 @@ class MultiRate:
             if self._poses == 0 or self._point is None:
                 return None
             job = SolverJob(self._point.copy(), self._rotation, min(self._pending, self.max_dt),
-                            self._pending, self._stamp, self._answered)
+                            self._pending, self._stamp)
             self._poses = 0
             self._pending = 0.0
             return job
@@ -128,7 +122,6 @@ class MultiRate:
             self.renderer.refresh(point, result.force_raw, self._served)
             self._age = job.age
             self._served = 0
-            self._model_from = job.answered
             self._refreshes.append(self._clock())
 
     def rate(self) -> float:

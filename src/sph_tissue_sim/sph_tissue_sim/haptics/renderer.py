@@ -118,18 +118,17 @@ class HapticRenderer:
         self.config.force_limit = limit
         self.coupling.push_limit = limit
 
-    def answer(self, x, dt: float, stale: bool = False) -> Rendered:
-        """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one;
-        ``stale``: the contact model has answered a pose before (see :mod:`.coupling`)."""
+    def answer(self, x, dt: float) -> Rendered:
+        """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one."""
         energy = self.observer.observe(x)
         x_hat, v_hat = self.estimator.update(x, dt)
-        proxy, force = self.coupling.render(x_hat, v_hat, dt, stale)
+        proxy, force = self.coupling.render(x_hat, v_hat, dt)
         pushing = bool(force.any())
         force = force + self.controller.damp(energy, v_hat, dt, engaged=pushing)
         if self.controller.alpha > 0.0:
             # the damper may slow the hand, never pull it into the tissue or push where the
             # coupling does not
-            n = self.coupling.normal
+            n = self.model.normal
             if not pushing or float(force @ n) <= 0.0:
                 force = np.zeros(3)
         force, _ = clamp_norm(force, self.config.force_limit)
