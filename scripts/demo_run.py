@@ -53,8 +53,12 @@ def _fmt_line(mon: graph.Monitor, t_prev: tuple, step_ms: float | None) -> tuple
 def feel_line(q: dict) -> str:
     """The live force as the hand gets it (tissue_common.feel), against the targets."""
     missed = feel.misses(q)
-    return (f'force sent: |dF| per frame in steady contact p99 {q["dF_p99_mN"]:.2f} mN, max '
-            f'{q["dF_max_mN"]:.1f} mN; {q["reversals"]} one-frame reversals above '
+    if math.isfinite(q['dF_p99_mN']):
+        steady = (f'|dF| per frame in steady contact p99 {q["dF_p99_mN"]:.2f} mN, max '
+                  f'{q["dF_max_mN"]:.1f} mN')
+    else:   # a touch too short or too starved to hold steady contact for a frame pair
+        steady = 'no frames in steady contact'
+    return (f'force sent: {steady}; {q["reversals"]} one-frame reversals above '
             f'{feel.REVERSAL * 1e3:g} mN; E_in min {q["E_in_min_uJ"]:.2f} uJ; '
             + ('targets met' if not missed else 'missed: ' + ', '.join(missed)))
 
