@@ -9,7 +9,7 @@ from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import Material, liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig
-from sph_tissue_sim.core.surface_contact import nearest_sample_gap
+from sph_tissue_sim.core.surface_contact import nearest_sample_gap, samples_in_reach
 from sph_tissue_sim.validation.cases import gives_way, press_and_hold, press_curve
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
@@ -261,7 +261,8 @@ def test_backstop_samples_that_push_widen_the_local_area_so_local_stays_with_glo
         res = press(solver, 0.0035, frames=150)
         area[name] = res.n_active
     everyone = np.arange(solver.n, dtype=np.int32)
-    gap = nearest_sample_gap(solver.x, solver.v, everyone, solver.n, solver.seg_prev, solver.samples)
+    gap = nearest_sample_gap(solver.x, solver.v, everyone, solver.n, solver.seg_prev, solver.samples,
+                           1e-3)
     assert 0.0 < gap < 1e-3
     assert not solver.samples_push
     assert area['backstop'] == area['balls']
@@ -270,3 +271,35 @@ def test_backstop_samples_that_push_widen_the_local_area_so_local_stays_with_glo
          for mode in ('global', 'local')}
     print(f)
     assert f['local'] == pytest.approx(f['global'], rel=0.05)
+
+
+@pytest.mark.parametrize('within', [0.0, 0.002])
+def test_the_owner_test_never_skips_a_sample_near_the_tool_and_skips_most_owners_the_margin_passes(within):
+    """samples_in_reach's exact bound (the weights sum to one) against the samples' positions,
+    through a smooth dent and a few particles thrown several spacings (torn material)."""
+    solver = _block_solver()
+    X = solver.X
+    rng = np.random.default_rng(3)
+    cx, cy = _centre(make_block(8, 8, 5, spacing=SPACING))
+    top = X[:, 2].max()
+    r2 = (X[:, 0] - cx) ** 2 + (X[:, 1] - cy) ** 2
+    x = X.copy()
+    x[:, 2] -= 0.008 * np.exp(-r2 / (2 * 0.012 ** 2)) * np.exp(-(top - X[:, 2]) / 0.02)
+    x += rng.normal(scale=1e-4, size=x.shape)
+    torn = rng.choice(len(x), 5, replace=False)
+    x[torn] += rng.normal(scale=3 * SPACING, size=(5, 3))
+    x = np.ascontiguousarray(x)
+    y = _sample_positions(solver, x)
+    s = solver.samples
+    owner = np.repeat(np.arange(solver.n), np.diff(s.start))
+    seg = np.array([[cx, cy, top + 0.003], [cx, cy, top - 0.004]])
+    dist = np.linalg.norm(y - np.array([cx, cy, 0.0]) * [1, 1, 0] - [0, 0, 1] * np.clip(y[:, 2:3], seg[1, 2], seg[0, 2]),
+                          axis=1) - s.radius
+    near = set(owner[dist < within])
+    assert near, 'the tool reaches some samples'
+    passing = {i for i in set(owner) if samples_in_reach(i, x, seg, s, within)}
+    assert near <= passing
+    d_owner = np.linalg.norm(x - np.array([cx, cy, 0.0]) * [1, 1, 0] - [0, 0, 1] * np.clip(x[:, 2:3], seg[1, 2], seg[0, 2]),
+                             axis=1)
+    loose = {i for i in set(owner) if d_owner[i] < s.radius + within + s.margin}
+    assert passing <= loose and len(passing) < len(loose) / 2

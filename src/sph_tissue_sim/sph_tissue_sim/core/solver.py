@@ -579,8 +579,8 @@ class Solver:
         per = cfg.contact_samples
         if per > 0:
             # a sample carries 1/per**2 of its particle's mass: the same damping ratio per sample
-            self.samples = Samples(*self.sample_arrays, self.tool.radius, cfg.contact_stiffness,
-                                   self.contact_damping / per, self.sample_margin)
+            self.samples = Samples(*self.sample_arrays[:5], self.tool.radius, cfg.contact_stiffness,
+                                   self.contact_damping / per, self.sample_margin, *self.sample_arrays[5:])
         else:
             self.samples = no_samples(self.n)
         self.scheme.set_material(material, self.mass)
@@ -938,7 +938,7 @@ class Solver:
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
         if cfg.sample_mode == 'backstop':
             push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
-                                                  self.samples) < 0.0
+                                                  self.samples, 0.0) < 0.0
             # and while the tool still touches: shrinking the area as the samples slide past a
             # deep tool (the tissue giving way) made the 30k liver's step blow up at 28.5 mm
             self.samples_push = push or (self.samples_push and overlap > 0.0)

@@ -102,6 +102,10 @@ class Samples(NamedTuple):
     stiffness: float       # [N/m] penalty stiffness per sample
     damping: float         # [N s/m] contact dashpot per sample
     margin: float          # [m] a sample is never farther than this from its owning particle
+    ref: np.ndarray        # (N, 3) the reference positions (Body.X)
+    read_start: np.ndarray  # (N + 1,) CSR of the particles any of particle i's samples read
+    read_idx: np.ndarray
+    own_reach: np.ndarray  # (N,) [m] the farthest reference distance of particle i's samples from it
 
 
 class Touches(NamedTuple):
