@@ -8,7 +8,7 @@ bash "$ROOT/scripts/setup.sh"
 source "$ROOT/scripts/env.sh"
 cd "$ROOT"
 set +e
-python -m pytest "$@"
+python -m pytest --durations=15 "$@"
 rc=$?
 set -e
 if [[ $rc == 5 ]]; then
