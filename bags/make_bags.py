@@ -41,7 +41,9 @@ sys.path.insert(0, str(HERE))   # sessions.py, beside this script
 
 from tissue_testing import harness  # noqa: E402
 from tissue_testing import system_graph as graph  # noqa: E402
-from haptic_omni_driver import bagio  # noqa: E402
+from haptic_omni_driver.bag_reader import read_bag  # noqa: E402
+from haptic_omni_driver.bag_types import POSE_TYPE, WRENCH_TYPE, typestore  # noqa: E402
+from haptic_omni_driver.bag_writer import qos_profile, write_bag  # noqa: E402
 from sessions import SESSIONS, Geometry, session_messages  # noqa: E402
 
 #: name -> (pose rate [Hz], seed, t0 [ns]); the long session is recorded at 1 kHz too
@@ -65,7 +67,7 @@ def log(text: str) -> None:
 
 def stamp_of(raw: bytes, msgtype: str) -> int:
     """Header stamp [ns] of a CDR-encoded stamped message."""
-    msg = bagio.typestore().deserialize_cdr(raw, msgtype)
+    msg = typestore().deserialize_cdr(raw, msgtype)
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
@@ -101,13 +103,13 @@ def record(name: str, input_bag: Path, raw_out: Path, timeout: float) -> None:
 
 def finalise(raw_bag: Path, out: Path, expected_poses: int) -> dict:
     """Re-time the recording onto the device clock and write ``out`` (zstd MCAP); returns counts."""
-    msgs = list(bagio.read_bag(raw_bag, raw=True))
+    msgs = list(read_bag(raw_bag, raw=True))
     poses = [m for m in msgs if m[0] == POSE]
     forces = [m for m in msgs if m[0] == FORCE]
     if len(poses) != expected_poses:
         raise IncompleteRecording(f'recorded {len(poses)} poses, the script has {expected_poses}')
-    pose_stamps = [stamp_of(m[3], bagio.POSE_TYPE) for m in poses]
-    force_stamps = [stamp_of(m[3], bagio.WRENCH_TYPE) for m in forces]
+    pose_stamps = [stamp_of(m[3], POSE_TYPE) for m in poses]
+    force_stamps = [stamp_of(m[3], WRENCH_TYPE) for m in forces]
     if sorted(force_stamps) != pose_stamps:
         missing = len(set(pose_stamps) - set(force_stamps))
         raise IncompleteRecording(f'{len(forces)} forces for {len(poses)} poses ({missing} poses '
@@ -125,9 +127,9 @@ def finalise(raw_bag: Path, out: Path, expected_poses: int) -> dict:
     out_msgs.sort(key=lambda m: (m[0], m[1]))
     tmp_dir = Path(tempfile.mkdtemp(prefix='make_bags_'))
     tmp = tmp_dir / out.name  # rosbags names the .mcap file after the folder
-    qos = {POSE: [bagio.qos_profile(True, 1000)], FORCE: [bagio.qos_profile(True, 1000)],
-           STATE: [bagio.qos_profile(True, 10)]}
-    bagio.write_bag(tmp, [(t, mt, log_ns, raw) for log_ns, _, t, mt, raw in out_msgs], qos=qos)
+    qos = {POSE: [qos_profile(True, 1000)], FORCE: [qos_profile(True, 1000)],
+           STATE: [qos_profile(True, 10)]}
+    write_bag(tmp, [(t, mt, log_ns, raw) for log_ns, _, t, mt, raw in out_msgs], qos=qos)
     try:
         compress_mcap(tmp, out)
     finally:
@@ -169,7 +171,7 @@ def stream_digest(bag: Path, topic: str) -> tuple[int, str]:
     """(count, sha256 of the concatenated CDR bytes) of one topic, in log-time order."""
     h = hashlib.sha256()
     n = 0
-    for _, _, _, raw in bagio.read_bag(bag, [topic], raw=True):
+    for _, _, _, raw in read_bag(bag, [topic], raw=True):
         h.update(raw)
         n += 1
     return n, h.hexdigest()
@@ -183,7 +185,7 @@ def make(name: str, out_dir: Path, geometry: Geometry) -> dict:
     with tempfile.TemporaryDirectory(prefix=f'make_bags_{name}_') as tmp:
         input_bag = Path(tmp) / f'{name}_script'
         messages = session_messages(name, rate, geometry, seed, t0)
-        bagio.write_bag(input_bag, messages)
+        write_bag(input_bag, messages)
         n = sum(1 for m in messages if m[0] == POSE)
         log(f'{name}: script of {n} poses ({n / rate:.1f} s at {rate:g} Hz); recording')
         for attempt in range(1, 4):

@@ -177,13 +177,13 @@ def session_messages(name: str, rate: float = 1000.0, geometry: Geometry | None 
                      seed: int = 0, t0_ns: int = 1_700_000_000_000_000_000,
                      frame_id: str = 'omni_base', state_rate: float = 100.0) -> list:
     """A session as bag messages ``[(topic, msgtype, log_ns, rosbags msg)]`` (poses + buttons)."""
-    from haptic_omni_driver import bagio
+    from haptic_omni_driver.bag_types import POSE_TYPE, STATE_TYPE, typestore
 
-    types = bagio.typestore().types
+    types = typestore().types
     Time, Header = types['builtin_interfaces/msg/Time'], types['std_msgs/msg/Header']
     Pose, Point, Quat = (types['geometry_msgs/msg/Pose'], types['geometry_msgs/msg/Point'],
                          types['geometry_msgs/msg/Quaternion'])
-    PoseStamped, State = types[bagio.POSE_TYPE], types[bagio.STATE_TYPE]
+    PoseStamped, State = types[POSE_TYPE], types[STATE_TYPE]
     Vec = types['geometry_msgs/msg/Vector3']
     t, pos, buttons, _ = session_trajectory(name, rate, geometry, seed)
     every = max(1, int(round(rate / state_rate)))
@@ -191,10 +191,10 @@ def session_messages(name: str, rate: float = 1000.0, geometry: Geometry | None 
     for k in range(t.size):
         stamp = int(t0_ns + round(t[k] * 1e9))
         header = Header(Time(*divmod(stamp, 1_000_000_000)), frame_id)
-        out.append(('/omni/pose', bagio.POSE_TYPE, stamp,
+        out.append(('/omni/pose', POSE_TYPE, stamp,
                     PoseStamped(header, Pose(Point(*map(float, pos[k])), Quat(0.0, 0.0, 0.0, 1.0)))))
         if k % every == 0 or (k and buttons[k] != buttons[k - 1]):
-            out.append(('/omni/state', bagio.STATE_TYPE, stamp, State(
+            out.append(('/omni/state', STATE_TYPE, stamp, State(
                 header, bool(buttons[k]), False, False, False, False, True, Vec(0.0, 0.0, 0.0),
                 0.0, -1.0, 0, 'scripted', f'session {name} (seed {seed})')))
     return out

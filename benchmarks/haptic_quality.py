@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from haptic_omni_driver import bagio
+from haptic_omni_driver.bag_reader import read_bag
 from sph_tissue_sim import params as sim_params
 from sph_tissue_sim.haptics.multirate import MultiRate
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
@@ -83,7 +83,7 @@ def golden_params() -> dict:
 def bag_poses(name: str) -> tuple[np.ndarray, np.ndarray]:
     """(stamps [ns] (M,), device positions [m] (M, 3)) of a bundled bag, in order."""
     stamps, pos = [], []
-    for _, _, _, msg in bagio.read_bag(ROOT / 'bags' / name, ['/omni/pose']):
+    for _, _, _, msg in read_bag(ROOT / 'bags' / name, ['/omni/pose']):
         stamps.append(stamp_to_ns(msg.header.stamp))
         q = msg.pose.position
         pos.append((q.x, q.y, q.z))

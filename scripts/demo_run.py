@@ -95,7 +95,7 @@ def main(argv=None) -> int:
 
     signal.signal(signal.SIGTERM, _terminate)
 
-    from haptic_omni_driver import bagio
+    from haptic_omni_driver.bag_reader import bag_topics
 
     if args.mode == 'lockstep' and args.backend != 'replay':
         print('demo: error: --timing lockstep needs --backend replay (a live source cannot wait '
@@ -109,7 +109,7 @@ def main(argv=None) -> int:
     n_total = 0
     if args.backend == 'replay':
         try:
-            topics = bagio.bag_topics(bag)
+            topics = bag_topics(bag)
         except Exception as exc:  # noqa: BLE001
             print(f'demo: error: {exc}', file=sys.stderr)
             return 1

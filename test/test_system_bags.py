@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from tissue_testing import system_graph as graph
-from haptic_omni_driver import bagio
 from haptic_omni_driver.backends.replay import load_replay
+from haptic_omni_driver.bag_reader import read_bag
+from haptic_omni_driver.bag_types import POSE_TYPE, STATE_TYPE, WRENCH_TYPE, typestore
 
 sys.path.insert(0, str(graph.BAGS))
 import make_bags  # noqa: E402
@@ -29,15 +30,14 @@ def test_bundled_bag_is_a_complete_golden_on_the_device_clock(name):
     from rosbags.highlevel import AnyReader
 
     bag = graph.BAGS / name
-    with AnyReader([bag], default_typestore=bagio.typestore()) as reader:
+    with AnyReader([bag], default_typestore=typestore()) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
-        assert {c.msgtype for c in reader.connections} == {
-            bagio.POSE_TYPE, bagio.WRENCH_TYPE, bagio.STATE_TYPE}
+        assert {c.msgtype for c in reader.connections} == {POSE_TYPE, WRENCH_TYPE, STATE_TYPE}
     assert counts['/omni/pose'] == counts['/omni/force_feedback'] > 1000
     assert counts['/omni/state'] > 0
 
     poses, forces = [], []
-    for topic, _, log_ns, msg in bagio.read_bag(bag, ['/omni/pose', '/omni/force_feedback']):
+    for topic, _, log_ns, msg in read_bag(bag, ['/omni/pose', '/omni/force_feedback']):
         (poses if topic == '/omni/pose' else forces).append((log_ns, _stamp(msg), msg))
     # every pose answered exactly once, by a force carrying its stamp in the device frame
     assert sorted(s for _, s, _ in forces) == [s for _, s, _ in poses]
@@ -56,7 +56,7 @@ def test_bundled_bag_is_a_complete_golden_on_the_device_clock(name):
     events = load_replay(bag)
     samples = [e.sample for e in events if e.sample is not None]
     assert [s.stamp_ns for s in samples] == [s for _, s, _ in poses]
-    raw = [r for *_, r in bagio.read_bag(bag, ['/omni/pose'], raw=True)]
+    raw = [r for *_, r in read_bag(bag, ['/omni/pose'], raw=True)]
     assert [s.raw for s in samples] == raw
 
 
@@ -65,10 +65,10 @@ def test_bundled_bag_poses_are_exactly_the_session_script(name):
     rate, seed, t0 = make_bags.PLAN[name]
     _, positions, buttons, _ = session_trajectory(name, rate, Geometry(), seed)
     got = np.array([(m.pose.position.x, m.pose.position.y, m.pose.position.z)
-                    for *_, m in bagio.read_bag(graph.BAGS / name, ['/omni/pose'])])
+                    for *_, m in read_bag(graph.BAGS / name, ['/omni/pose'])])
     assert got.shape == positions.shape
     assert np.array_equal(got, positions)  # bit for bit: the bag is the documented script
-    first = next(m for *_, m in bagio.read_bag(graph.BAGS / name, ['/omni/pose']))
+    first = next(m for *_, m in read_bag(graph.BAGS / name, ['/omni/pose']))
     assert _stamp(first) == t0
 
 

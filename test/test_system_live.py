@@ -16,7 +16,7 @@ import yaml
 
 from tissue_testing import harness
 from tissue_testing import system_graph as graph
-from haptic_omni_driver import bagio
+from haptic_omni_driver.bag_reader import read_bag
 
 pytestmark = pytest.mark.ros
 
@@ -60,7 +60,7 @@ def test_timed_replay_at_1khz_keeps_the_graph_running_with_finite_clamped_forces
         codes = graph.stop_all(procs, timeout=30)
 
     # the driver played the whole session (its own count: best-effort readers here miss some)
-    bag_poses = sum(1 for _ in bagio.read_bag(bag, ['/omni/pose'], raw=True))
+    bag_poses = sum(1 for _ in read_bag(bag, ['/omni/pose'], raw=True))
     assert re.search(rf'replay finished: {bag_poses} poses', drv.output()), drv.output()[-2000:]
     # how many of them reached this monitor and were answered depends on the machine's load
     assert n_poses > 0 and forces, f'{len(forces)} force replies to {n_poses} poses'

@@ -20,7 +20,7 @@ import pytest
 
 from tissue_testing import harness
 from tissue_testing import system_graph as graph
-from haptic_omni_driver import bagio
+from haptic_omni_driver.bag_reader import read_bag
 
 pytestmark = pytest.mark.ros
 
@@ -31,7 +31,7 @@ FORCE_TOLERANCE = 1e-9
 def golden(bag) -> tuple[list[int], dict[int, tuple]]:
     """Pose stamps in order and stamp -> golden force (fx, fy, fz, tx, ty, tz) of a bundled bag."""
     poses, forces = [], {}
-    for topic, _, _, msg in bagio.read_bag(bag, ['/omni/pose', '/omni/force_feedback']):
+    for topic, _, _, msg in read_bag(bag, ['/omni/pose', '/omni/force_feedback']):
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         if topic == '/omni/pose':
             poses.append(stamp)

@@ -27,7 +27,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from tissue_common.node_start import EXIT_PARAMS, init_rclpy, stop_on_signals
 from tissue_common.params import declare_all
 
-from . import bagio
+from .bag_types import POSE_TYPE, STATE_TYPE, WRENCH_TYPE, typestore
+from .bag_writer import BagWriter, qos_profile
 from .errors import ConfigError, DriverError
 from .params import RECORDER_PARAMS
 
@@ -37,9 +38,9 @@ MATCH_POLL = 0.05
 
 #: message types of the topics this recorder knows (by last name component)
 KNOWN_TYPES = {
-    'pose': ('geometry_msgs.msg', 'PoseStamped', bagio.POSE_TYPE),
-    'force_feedback': ('geometry_msgs.msg', 'WrenchStamped', bagio.WRENCH_TYPE),
-    'state': ('tissue_msgs.msg', 'DeviceState', bagio.STATE_TYPE),
+    'pose': ('geometry_msgs.msg', 'PoseStamped', POSE_TYPE),
+    'force_feedback': ('geometry_msgs.msg', 'WrenchStamped', WRENCH_TYPE),
+    'state': ('tissue_msgs.msg', 'DeviceState', STATE_TYPE),
 }
 
 
@@ -60,14 +61,14 @@ def _qos_to_rosbags(info_qos):
 
 
 class OmniRecorder(Node):
-    """Raw subscriptions -> :class:`bagio.BagWriter`."""
+    """Raw subscriptions -> :class:`BagWriter`."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__('omni_record', **kwargs)
         self.p = declare_all(self, RECORDER_PARAMS, ConfigError)
         p = self.p
         topics = resolve_topics(p['topics'])  # ConfigError before anything exists on disk
-        bagio.typestore()  # built now (~1 s): in the first callback it stalled the stream that long
+        typestore()  # built now (~1 s): in the first callback it stalled the stream that long
         out = p['output'] or time.strftime('omni_%Y%m%d_%H%M%S')
         self.path = Path(out).expanduser().resolve()
         self.finished = threading.Event()
@@ -75,7 +76,7 @@ class OmniRecorder(Node):
         self._lock = threading.Lock()
         self._t_first: float | None = None
         self._t_created = time.monotonic()
-        self.writer: bagio.BagWriter | None = None
+        self.writer: BagWriter | None = None
         rel = ReliabilityPolicy.RELIABLE if p['reliable'] else ReliabilityPolicy.BEST_EFFORT
         self._subs = []
         for topic, key, msg_cls, msgtype in topics:
@@ -90,8 +91,8 @@ class OmniRecorder(Node):
                 raise ConfigError(f'cannot record {topic!r}: {exc}') from exc
             self._subs.append(sub)
         # last: only a start that is going to record creates the bag (OutputError if it cannot)
-        self.writer = bagio.BagWriter(self.path, p['metadata_version'],
-                                      flush_period=p['flush_period'])
+        self.writer = BagWriter(self.path, p['metadata_version'],
+                                flush_period=p['flush_period'])
         self.get_logger().info(f'recording {", ".join(s.topic_name for s in self._subs)} to '
                                f'{self.path}')
         self._matched = [0] * len(self._subs)
@@ -141,7 +142,7 @@ class OmniRecorder(Node):
             profiles = [_qos_to_rosbags(i.qos_profile) for i in infos]
         except Exception:  # noqa: BLE001 - QoS metadata is informative only
             profiles = []
-        return profiles or [bagio.qos_profile()]
+        return profiles or [qos_profile()]
 
     def _check_duration(self) -> None:
         start = self._t_first if self.p['wait_for_topics'] else self._t_created

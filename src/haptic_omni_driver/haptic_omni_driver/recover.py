@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import bagio
+from .bag_recovery import Recovery, recover_bag
 from .errors import DriverError, OutputError
 
 EXIT_OK, EXIT_INPUT, EXIT_USAGE = 0, 1, 2
@@ -35,7 +35,7 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _summary(result: bagio.Recovery) -> str:
+def _summary(result: Recovery) -> str:
     counts = ', '.join(f'{t}: {n}' for t, n in result.counts.items()) or 'nothing'
     if result.complete:
         return f'{result.path} is a complete bag ({result.messages} messages: {counts}); unchanged'
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``omni_bag_recover``; returns the exit code (see the module docstring)."""
     args = _parser().parse_args(argv)  # exits 2 on bad usage
     try:
-        result = bagio.recover_bag(args.bag, args.output)
+        result = recover_bag(args.bag, args.output)
     except OutputError as exc:
         hint = '' if args.output else ' (use --output to write the recovered bag elsewhere)'
         print(f'omni_bag_recover: error: {exc}{hint}', file=sys.stderr)

@@ -6,14 +6,15 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from haptic_omni_driver import bagio
+from haptic_omni_driver.bag_types import POSE_TYPE, typestore
+from haptic_omni_driver.bag_writer import write_bag
 
 FIXTURES = Path(__file__).resolve().parent / 'fixtures'
 
 
 def pose_msg(stamp_ns: int, xyz, frame: str = 'omni_base'):
     """A rosbags geometry_msgs/PoseStamped."""
-    ts = bagio.typestore().types
+    ts = typestore().types
     Time, Header = ts['builtin_interfaces/msg/Time'], ts['std_msgs/msg/Header']
     Pose, Point, Quat = (ts['geometry_msgs/msg/Pose'], ts['geometry_msgs/msg/Point'],
                          ts['geometry_msgs/msg/Quaternion'])
@@ -24,7 +25,7 @@ def pose_msg(stamp_ns: int, xyz, frame: str = 'omni_base'):
 
 def wrench_msg(stamp_ns: int, force, frame: str = 'omni_base'):
     """A rosbags geometry_msgs/WrenchStamped."""
-    ts = bagio.typestore().types
+    ts = typestore().types
     Time, Header, Vec = (ts['builtin_interfaces/msg/Time'], ts['std_msgs/msg/Header'],
                          ts['geometry_msgs/msg/Vector3'])
     sec, nsec = divmod(stamp_ns, 1_000_000_000)
@@ -37,8 +38,7 @@ def make_pose_bag(path: Path, n: int = 50, period_ns: int = 1_000_000,
                   t0_ns: int = 1_700_000_000_123_000_000, topic: str = '/omni/pose') -> list:
     """Bag of ``n`` poses at ``period_ns`` (x = k mm); returns the rosbags messages written."""
     msgs = [pose_msg(t0_ns + k * period_ns, (k * 1e-3, 0.01, -0.02)) for k in range(n)]
-    bagio.write_bag(path, [(topic, bagio.POSE_TYPE, t0_ns + k * period_ns, m)
-                           for k, m in enumerate(msgs)])
+    write_bag(path, [(topic, POSE_TYPE, t0_ns + k * period_ns, m) for k, m in enumerate(msgs)])
     return msgs
 
 

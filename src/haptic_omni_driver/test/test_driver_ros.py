@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from tissue_testing import harness
-from haptic_omni_driver import bagio
+from haptic_omni_driver.bag_reader import bag_topics, read_bag
+from haptic_omni_driver.bag_types import POSE_TYPE, STATE_TYPE, WRENCH_TYPE
+from haptic_omni_driver.bag_writer import write_bag
 from omni_test_utils import build_fake_libhd, make_pose_bag
 
 pytestmark = pytest.mark.ros
@@ -57,7 +59,7 @@ def test_replay_publishes_exactly_the_bag_poses_in_order_with_stamps(rclpy_node,
     from geometry_msgs.msg import PoseStamped
 
     make_pose_bag(tmp_path / 'bag', n=200, period_ns=1_000_000)
-    bag_raw = [d for *_, d in bagio.read_bag(tmp_path / 'bag', raw=True)]
+    bag_raw = [d for *_, d in read_bag(tmp_path / 'bag', raw=True)]
     got = []
     rclpy_node.create_subscription(PoseStamped, 'omni/pose', got.append, reliable_qos(), raw=True)
     with driver({'backend': 'replay', 'bag': str(tmp_path / 'bag'), 'reliable': True,
@@ -287,10 +289,9 @@ def test_bad_bag_exits_with_clear_error(ros_domain, tmp_path, case):
         make_pose_bag(bag, n=100)
         (bag / 'bag.mcap').write_bytes(b'\x89MCAP0\r\n' + b'\x00garbage' * 20)
     elif case == 'no_pose_topic':
-        bagio.write_bag(bag, [('/omni/force_feedback', bagio.WRENCH_TYPE, 1,
-                               wrench_msg(1, (0, 0, 0)))])
+        write_bag(bag, [('/omni/force_feedback', WRENCH_TYPE, 1, wrench_msg(1, (0, 0, 0)))])
     elif case == 'wrong_type':
-        bagio.write_bag(bag, [('/omni/pose', bagio.WRENCH_TYPE, 1, wrench_msg(1, (0, 0, 0)))])
+        write_bag(bag, [('/omni/pose', WRENCH_TYPE, 1, wrench_msg(1, (0, 0, 0)))])
     expected = {'missing': 'bag not found', 'corrupt': 'corrupt', 'no_pose_topic': 'no pose topic',
                 'wrong_type': 'expected geometry_msgs/msg/PoseStamped'}[case]
     with driver({'backend': 'replay', 'bag': str(bag), 'exit_on_end': True}) as proc:
@@ -309,7 +310,7 @@ def test_recorder_replay_round_trip_is_byte_identical(rclpy_node, tmp_path):
     from geometry_msgs.msg import PoseStamped
 
     make_pose_bag(tmp_path / 'a', n=300, period_ns=1_000_000)
-    a_raw = [d for *_, d in bagio.read_bag(tmp_path / 'a', topics=['/omni/pose'], raw=True)]
+    a_raw = [d for *_, d in read_bag(tmp_path / 'a', topics=['/omni/pose'], raw=True)]
     rec = harness.NodeProcess(PKG, 'omni_record', params={'output': str(tmp_path / 'b'),
                                                           'reliable': True, 'progress_period': 0.1})
     with rec:
@@ -321,10 +322,10 @@ def test_recorder_replay_round_trip_is_byte_identical(rclpy_node, tmp_path):
         rec.wait_for_output(r'/omni/pose: 300\b', 30)
         assert rec.stop() == 0  # SIGINT finalises the bag
         assert 'bag closed' in rec.output()
-    topics = bagio.bag_topics(tmp_path / 'b')
-    assert topics['/omni/pose'].msgtype == bagio.POSE_TYPE and topics['/omni/pose'].count == 300
-    assert topics['/omni/state'].msgtype == bagio.STATE_TYPE
-    b_raw = [d for *_, d in bagio.read_bag(tmp_path / 'b', topics=['/omni/pose'], raw=True)]
+    topics = bag_topics(tmp_path / 'b')
+    assert topics['/omni/pose'].msgtype == POSE_TYPE and topics['/omni/pose'].count == 300
+    assert topics['/omni/state'].msgtype == STATE_TYPE
+    b_raw = [d for *_, d in read_bag(tmp_path / 'b', topics=['/omni/pose'], raw=True)]
     assert b_raw == a_raw  # recorded bytes == replayed bytes
     # ...and replaying the recording publishes those bytes again
     got = []
@@ -353,7 +354,7 @@ def test_recorder_says_when_each_publisher_is_matched_and_when_it_leaves(ros_dom
             assert proc.wait(30) == 0
         rec.wait_for_output(r'/omni/pose: a publisher left \(0 now\)', 30)
         assert rec.stop() == 0
-    assert bagio.bag_topics(tmp_path / 'b')['/omni/pose'].count == 50
+    assert bag_topics(tmp_path / 'b')['/omni/pose'].count == 50
 
 
 # -- scripted and parameters ----------------------------------------------------------------------

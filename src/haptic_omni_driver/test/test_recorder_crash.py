@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from tissue_testing import harness
-from haptic_omni_driver import bagio
+from haptic_omni_driver.bag_reader import read_bag
 from omni_test_utils import make_pose_bag
 
 pytestmark = pytest.mark.ros
@@ -60,7 +60,7 @@ def _contiguous_run(got: list[bytes], ref: list[bytes]) -> bool:
 
 def test_killed_recorder_loses_at_most_the_last_second_after_recovery(ros_domain, tmp_path):
     make_pose_bag(tmp_path / 'input', n=8000, period_ns=1_000_000)  # 8 s at 1 kHz
-    published = [d for *_, d in bagio.read_bag(tmp_path / 'input', ['/omni/pose'], raw=True)]
+    published = [d for *_, d in read_bag(tmp_path / 'input', ['/omni/pose'], raw=True)]
     out = tmp_path / 'session'
     rec = recorder({'output': str(out), 'reliable': True, 'progress_period': 0.1})
     with rec:
@@ -90,7 +90,7 @@ def test_killed_recorder_loses_at_most_the_last_second_after_recovery(ros_domain
     # (a) every pose written at least 1 s before the kill is back, in order, byte for byte (the
     # stream may start a little late: a reliable reader that DDS discovery matched after the
     # replay began does not get the poses sent before)
-    recovered = [d for *_, d in bagio.read_bag(out, ['/omni/pose'], raw=True)]
+    recovered = [d for *_, d in read_bag(out, ['/omni/pose'], raw=True)]
     assert len(recovered) >= written_1s_before
     assert _contiguous_run(recovered, published)
     # (b) rosbags reads the bag and metadata.yaml counts what is in it

@@ -16,8 +16,12 @@ import pytest
 import yaml
 
 from tissue_testing import harness
-from haptic_omni_driver import bagio, recover
+from haptic_omni_driver import recover
 from haptic_omni_driver.backends.replay import load_replay
+from haptic_omni_driver.bag_reader import read_bag
+from haptic_omni_driver.bag_recovery import recover_bag, salvage_records
+from haptic_omni_driver.bag_types import POSE_TYPE, STATE_TYPE, WRENCH_TYPE, typestore
+from haptic_omni_driver.bag_writer import BagWriter, qos_profile
 from haptic_omni_driver.errors import BagError, OutputError
 from omni_test_utils import pose_msg, wrench_msg
 
@@ -26,22 +30,22 @@ T0 = 1_700_000_000_000_000_000
 
 def pose_raw(k: int) -> bytes:
     """CDR bytes of pose k (stamp T0 + k ms, x = k mm)."""
-    return bytes(bagio.typestore().serialize_cdr(pose_msg(T0 + k * 1_000_000, (k * 1e-3, 0, 0)),
-                                                 bagio.POSE_TYPE))
+    return bytes(typestore().serialize_cdr(pose_msg(T0 + k * 1_000_000, (k * 1e-3, 0, 0)),
+                                           POSE_TYPE))
 
 
-def write_pose(writer: bagio.BagWriter, k: int) -> None:
-    writer.write('/omni/pose', bagio.POSE_TYPE, T0 + k * 1_000_000, pose_raw(k))
+def write_pose(writer: BagWriter, k: int) -> None:
+    writer.write('/omni/pose', POSE_TYPE, T0 + k * 1_000_000, pose_raw(k))
 
 
-def snapshot(writer: bagio.BagWriter, dest: Path) -> Path:
+def snapshot(writer: BagWriter, dest: Path) -> Path:
     """Copy of the bag folder as a kill of the writing process would leave it now."""
     shutil.copytree(writer.path, dest)
     return dest
 
 
 def pose_stamps(bag: Path) -> list[int]:
-    return [stamp for _, _, stamp, _ in bagio.read_bag(bag, ['/omni/pose'], raw=True)]
+    return [stamp for _, _, stamp, _ in read_bag(bag, ['/omni/pose'], raw=True)]
 
 
 def metadata(bag: Path) -> dict:
@@ -66,7 +70,7 @@ def assert_reads_with_rosbags_and_counts_match(bag: Path) -> dict[str, int]:
 
 # -- what a kill leaves ---------------------------------------------------------------------------
 def test_flushed_messages_survive_a_writer_that_never_closes(tmp_path):
-    writer = bagio.BagWriter(tmp_path / 'live')
+    writer = BagWriter(tmp_path / 'live')
     for k in range(300):
         write_pose(writer, k)
     writer.flush()
@@ -75,20 +79,20 @@ def test_flushed_messages_survive_a_writer_that_never_closes(tmp_path):
     killed = snapshot(writer, tmp_path / 'killed')
     writer.close()
     assert not (killed / 'metadata.yaml').exists()
-    result = bagio.recover_bag(killed)
+    result = recover_bag(killed)
     assert result.counts == {'/omni/pose': 300} and not result.complete
     assert pose_stamps(killed) == [T0 + k * 1_000_000 for k in range(300)]
     assert_reads_with_rosbags_and_counts_match(killed)
 
 
 def test_flush_period_puts_messages_on_disk_without_any_call(tmp_path):
-    writer = bagio.BagWriter(tmp_path / 'live', flush_period=0.05)
+    writer = BagWriter(tmp_path / 'live', flush_period=0.05)
     try:
         for k in range(200):
             write_pose(writer, k)
         deadline = time.monotonic() + 30
         while True:
-            salvaged = sum(1 for r in bagio.salvage_records(writer.mcap_path)
+            salvaged = sum(1 for r in salvage_records(writer.mcap_path)
                            if type(r).__name__ == 'Message')
             if salvaged == 200 or time.monotonic() > deadline:
                 break
@@ -102,7 +106,7 @@ def test_recovery_after_a_cut_anywhere_keeps_every_complete_chunk(tmp_path):
     """Cut the file at many offsets: every chunk written before the cut comes back, nothing else."""
     from mcap.reader import make_reader
 
-    writer = bagio.BagWriter(tmp_path / 'full')
+    writer = BagWriter(tmp_path / 'full')
     for k in range(1000):
         write_pose(writer, k)
         if k % 100 == 99:
@@ -121,32 +125,32 @@ def test_recovery_after_a_cut_anywhere_keeps_every_complete_chunk(tmp_path):
         expected = 100 * sum(end <= cut for end in chunk_ends)
         if expected == 0:
             with pytest.raises(BagError, match='no complete message'):
-                bagio.recover_bag(bag)
+                recover_bag(bag)
             continue
-        result = bagio.recover_bag(bag)
+        result = recover_bag(bag)
         assert result.counts == {'/omni/pose': expected}, f'cut at {cut} of {len(data)}'
         assert pose_stamps(bag) == [T0 + k * 1_000_000 for k in range(expected)]
         assert assert_reads_with_rosbags_and_counts_match(bag) == {'/omni/pose': expected}
 
 
 def test_recovery_keeps_topics_types_qos_hashes_and_metadata_version(tmp_path):
-    qos = [bagio.qos_profile(reliable=False, depth=7)]
-    writer = bagio.BagWriter(tmp_path / 'live', version=8)
-    writer.add_topic('/omni/pose', bagio.POSE_TYPE, qos)
+    qos = [qos_profile(reliable=False, depth=7)]
+    writer = BagWriter(tmp_path / 'live', version=8)
+    writer.add_topic('/omni/pose', POSE_TYPE, qos)
     write_pose(writer, 0)
-    writer.write('/omni/force_feedback', bagio.WRENCH_TYPE, T0 + 1, wrench_msg(T0, (0.1, 0, 0)))
+    writer.write('/omni/force_feedback', WRENCH_TYPE, T0 + 1, wrench_msg(T0, (0.1, 0, 0)))
     from tissue_msgs.msg import DeviceState
 
-    writer.write('/omni/state', bagio.STATE_TYPE, T0 + 2, DeviceState(backend='replay'))
+    writer.write('/omni/state', STATE_TYPE, T0 + 2, DeviceState(backend='replay'))
     writer.flush()
     killed = snapshot(writer, tmp_path / 'killed')
     writer.close()
-    bagio.recover_bag(killed)
+    recover_bag(killed)
     got, ref = metadata(killed), metadata(writer.path)
     assert got['version'] == 8
     assert got['topics_with_message_count'] == ref['topics_with_message_count']
     assert got['starting_time'] == ref['starting_time'] and got['duration'] == ref['duration']
-    assert list(bagio.read_bag(killed, raw=True)) == list(bagio.read_bag(writer.path, raw=True))
+    assert list(read_bag(killed, raw=True)) == list(read_bag(writer.path, raw=True))
 
 
 def test_unfinished_bag_of_the_previous_rosbags_writer_is_recovered(tmp_path):
@@ -155,7 +159,7 @@ def test_unfinished_bag_of_the_previous_rosbags_writer_is_recovered(tmp_path):
 
     rb = Writer(tmp_path / 'old', version=9, storage_plugin=StoragePlugin.MCAP)
     rb.open()
-    conn = rb.add_connection('/omni/pose', bagio.POSE_TYPE, typestore=bagio.typestore())
+    conn = rb.add_connection('/omni/pose', POSE_TYPE, typestore=typestore())
     raw = pose_raw(0)
     n = 20_000  # > 2 chunks of 1 MiB
     for k in range(n):
@@ -164,13 +168,13 @@ def test_unfinished_bag_of_the_previous_rosbags_writer_is_recovered(tmp_path):
     killed = snapshot(rb, tmp_path / 'killed')
     rb.close()
     assert not (killed / 'metadata.yaml').exists()
-    result = bagio.recover_bag(killed)
+    result = recover_bag(killed)
     whole_chunks = chunk_message_counts(tmp_path / 'old' / 'old.mcap')[:-1]  # the last was open
     assert len(whole_chunks) >= 2
     assert result.counts == {'/omni/pose': sum(whole_chunks)}
     assert pose_stamps(killed) == [T0 + k for k in range(sum(whole_chunks))]
     assert metadata(killed)['topics_with_message_count'][0]['topic_metadata'][
-        'type_description_hash'] == bagio.typestore().hash_rihs01(bagio.POSE_TYPE)
+        'type_description_hash'] == typestore().hash_rihs01(POSE_TYPE)
     assert_reads_with_rosbags_and_counts_match(killed)
 
 
@@ -185,34 +189,34 @@ def chunk_message_counts(mcap_path: Path) -> list[int]:
 
 
 def test_complete_bag_is_left_unchanged(tmp_path):
-    with bagio.BagWriter(tmp_path / 'b') as writer:
+    with BagWriter(tmp_path / 'b') as writer:
         for k in range(5):
             write_pose(writer, k)
     before = {p.name: p.read_bytes() for p in (tmp_path / 'b').iterdir()}
-    result = bagio.recover_bag(tmp_path / 'b')
+    result = recover_bag(tmp_path / 'b')
     assert result.complete and result.counts == {'/omni/pose': 5}
     assert {p.name: p.read_bytes() for p in (tmp_path / 'b').iterdir()} == before
 
 
 def test_recovery_into_an_output_folder_leaves_the_input_untouched(tmp_path):
-    writer = bagio.BagWriter(tmp_path / 'live')
+    writer = BagWriter(tmp_path / 'live')
     for k in range(10):
         write_pose(writer, k)
     writer.flush()
     killed = snapshot(writer, tmp_path / 'killed')
     writer.close()
     before = (killed / 'live.mcap').read_bytes()
-    result = bagio.recover_bag(killed, tmp_path / 'out')
+    result = recover_bag(killed, tmp_path / 'out')
     assert result.path == tmp_path / 'out' and result.counts == {'/omni/pose': 10}
     assert (killed / 'live.mcap').read_bytes() == before and not (killed / 'metadata.yaml').exists()
     assert assert_reads_with_rosbags_and_counts_match(tmp_path / 'out') == {'/omni/pose': 10}
     with pytest.raises(OutputError, match='already exists'):
-        bagio.recover_bag(killed, tmp_path / 'out')
+        recover_bag(killed, tmp_path / 'out')
 
 
 # -- clear errors ---------------------------------------------------------------------------------
 def _unfinished(tmp_path: Path, n: int = 50) -> Path:
-    writer = bagio.BagWriter(tmp_path / 'live')
+    writer = BagWriter(tmp_path / 'live')
     for k in range(n):
         write_pose(writer, k)
     writer.flush()
@@ -228,7 +232,7 @@ def test_replay_of_an_unfinished_bag_names_the_recover_command(tmp_path):
     shutil.copy(tmp_path / 'live' / 'metadata.yaml', bag / 'metadata.yaml')  # ...but no summary
     with pytest.raises(BagError, match=r'corrupt or unreadable.*omni_bag_recover'):
         load_replay(bag)
-    bagio.recover_bag(bag)
+    recover_bag(bag)
     assert len(load_replay(bag)) == 50
 
 
@@ -241,7 +245,7 @@ def test_unrecoverable_input_is_a_clear_error(tmp_path, case):
     elif case == 'not_mcap':
         (bag / 'bag.mcap').write_bytes(b'SQLite format 3\x00' + bytes(200))
     elif case == 'header_only':
-        bagio.BagWriter(tmp_path / 'h').abort()
+        BagWriter(tmp_path / 'h').abort()
         shutil.copy(tmp_path / 'h' / 'h.mcap', bag / 'bag.mcap')
     elif case == 'missing':
         bag = tmp_path / 'nope'
@@ -252,12 +256,12 @@ def test_unrecoverable_input_is_a_clear_error(tmp_path, case):
                 'no complete message', 'no_mcap': 'no .mcap file', 'missing': 'bag not found',
                 'file': 'got a file'}[case]
     with pytest.raises(BagError, match=expected):
-        bagio.recover_bag(bag)
+        recover_bag(bag)
 
 
 def test_damaged_or_truncated_bags_never_raise_anything_but_bag_error(tmp_path):
     """Replay loading and recovery of a bag cut or flipped anywhere: BagError or success only."""
-    writer = bagio.BagWriter(tmp_path / 'src')
+    writer = BagWriter(tmp_path / 'src')
     for k in range(400):
         write_pose(writer, k)
         if k % 50 == 49:
@@ -272,7 +276,7 @@ def test_damaged_or_truncated_bags_never_raise_anything_but_bag_error(tmp_path):
         bag.mkdir()
         (bag / f'd{i}.mcap').write_bytes(damaged)
         (bag / 'metadata.yaml').write_bytes(meta.replace(b'src.mcap', f'd{i}.mcap'.encode()))
-        for action in (load_replay, bagio.recover_bag, load_replay):
+        for action in (load_replay, recover_bag, load_replay):
             try:
                 action(bag)
             except BagError:
@@ -307,7 +311,7 @@ def test_installed_recover_command_gives_an_error_line_not_a_traceback(tmp_path)
 def test_a_failed_background_flush_makes_the_next_write_fail_cleanly(tmp_path, monkeypatch):
     import os
 
-    writer = bagio.BagWriter(tmp_path / 'b', flush_period=0.02)
+    writer = BagWriter(tmp_path / 'b', flush_period=0.02)
     monkeypatch.setattr(os, 'fsync', lambda fd: (_ for _ in ()).throw(
         OSError(errno.ENOSPC, 'No space left on device')))
     write_pose(writer, 0)
@@ -318,38 +322,3 @@ def test_a_failed_background_flush_makes_the_next_write_fail_cleanly(tmp_path, m
             time.sleep(0.01)
     monkeypatch.undo()
     writer.abort()
-
-
-# -- unwritable output ----------------------------------------------------------------------------
-def test_output_under_a_file_is_a_clear_error(tmp_path):
-    (tmp_path / 'afile').write_text('x')
-    with pytest.raises(OutputError, match=r'afile is a file, not a folder'):
-        bagio.BagWriter(tmp_path / 'afile' / 'sub' / 'bag')
-
-
-def test_read_only_file_system_is_a_clear_error_and_leaves_nothing(tmp_path, monkeypatch):
-    def refuse(self, *a, **kw):
-        raise OSError(errno.EROFS, 'Read-only file system', str(self))
-
-    monkeypatch.setattr(Path, 'mkdir', refuse)
-    with pytest.raises(OutputError, match='cannot create bag folder .*Read-only file system'):
-        bagio.BagWriter(tmp_path / 'bag')
-    monkeypatch.undo()
-    assert list(tmp_path.iterdir()) == []
-
-
-def test_a_refused_mcap_file_removes_the_folder_it_created(tmp_path, monkeypatch):
-    import builtins
-
-    real_open = builtins.open
-
-    def refuse(file, mode='r', *a, **kw):
-        if str(file).endswith('.mcap') and 'x' in mode:
-            raise OSError(errno.ENOSPC, 'No space left on device', str(file))
-        return real_open(file, mode, *a, **kw)
-
-    monkeypatch.setattr(builtins, 'open', refuse)
-    with pytest.raises(OutputError, match='No space left on device'):
-        bagio.BagWriter(tmp_path / 'bag')
-    monkeypatch.undo()
-    assert list(tmp_path.iterdir()) == []

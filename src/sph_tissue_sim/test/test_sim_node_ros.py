@@ -600,10 +600,11 @@ def test_driver_lockstep_bag_replay_gives_bit_identical_forces_run_after_run(rcl
     """The regression use: omni_driver replays a bag in lockstep (each pose waits for its force),
     sim_node in lockstep; two separate runs (fresh processes) give the same force bytes."""
     from geometry_msgs.msg import WrenchStamped
-    from haptic_omni_driver import bagio
+    from haptic_omni_driver.bag_types import POSE_TYPE, typestore
+    from haptic_omni_driver.bag_writer import write_bag
 
     n = 200
-    ts = bagio.typestore().types
+    ts = typestore().types
     Time, Header = ts['builtin_interfaces/msg/Time'], ts['std_msgs/msg/Header']
     Pose, Point, Quat = (ts['geometry_msgs/msg/Pose'], ts['geometry_msgs/msg/Point'],
                          ts['geometry_msgs/msg/Quaternion'])
@@ -615,8 +616,8 @@ def test_driver_lockstep_bag_replay_gives_bit_identical_forces_run_after_run(rcl
         msg = ts['geometry_msgs/msg/PoseStamped'](
             Header(Time(*divmod(stamp, 1_000_000_000)), 'omni_base'),
             Pose(Point(*map(float, p)), Quat(0.0, 0.0, 0.0, 1.0)))
-        records.append(('/omni/pose', bagio.POSE_TYPE, stamp, msg))
-    bagio.write_bag(tmp_path / 'press', records)
+        records.append(('/omni/pose', POSE_TYPE, stamp, msg))
+    write_bag(tmp_path / 'press', records)
 
     runs = []
     for run in range(2):

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 from tissue_common.stamps import stamp_to_ns
 
-from .. import bagio
+from ..bag_reader import bag_topics, normalise_topic, read_bag
+from ..bag_types import POSE_TYPE, STATE_TYPE, typestore
 from ..errors import BagError, ConfigError
 from .base import Backend, BackendSink, Sample
 
@@ -46,23 +47,23 @@ def load_replay(path: str | Path, pose_topic: str = '/omni/pose',
     Raises:
         BagError: missing/corrupt/empty bag, no pose topic, wrong pose type, no poses.
     """
-    topics = bagio.bag_topics(path)
-    by_norm = {bagio.normalise_topic(name): t for name, t in topics.items()}
-    pose = by_norm.get(bagio.normalise_topic(pose_topic))
+    topics = bag_topics(path)
+    by_norm = {normalise_topic(name): t for name, t in topics.items()}
+    pose = by_norm.get(normalise_topic(pose_topic))
     if pose is None:
         have = ', '.join(f'{t.name} [{t.msgtype}]' for t in topics.values()) or 'none'
         raise BagError(f'bag {path} has no pose topic {pose_topic!r} (topics: {have}); '
                        f'set pose_topic_in_bag')
-    if pose.msgtype != bagio.POSE_TYPE:
+    if pose.msgtype != POSE_TYPE:
         raise BagError(f'bag {path}: topic {pose.name} has type {pose.msgtype}, '
-                       f'expected {bagio.POSE_TYPE}')
-    state = by_norm.get(bagio.normalise_topic(state_topic)) if state_topic else None
-    if state is not None and state.msgtype != bagio.STATE_TYPE:
+                       f'expected {POSE_TYPE}')
+    state = by_norm.get(normalise_topic(state_topic)) if state_topic else None
+    if state is not None and state.msgtype != STATE_TYPE:
         state = None  # buttons are optional: ignore a foreign state topic
     wanted = [pose.name] + ([state.name] if state is not None else [])
-    store = bagio.typestore()
+    store = typestore()
     events: list[ReplayEvent] = []
-    for topic, msgtype, log_ns, raw in bagio.read_bag(path, wanted, raw=True):
+    for topic, msgtype, log_ns, raw in read_bag(path, wanted, raw=True):
         try:
             msg = store.deserialize_cdr(raw, msgtype)
         except Exception as exc:  # noqa: BLE001

@@ -284,15 +284,15 @@ def script_messages(cfg: ScriptConfig, rate: float = 1000.0, t0_ns: int = 1_700_
 
     Poses on ``/omni/pose`` at ``rate`` (header stamp = log time = ``t0_ns`` + t) and, if
     ``state_rate`` > 0, DeviceState on ``/omni/state`` carrying the script's button1 (no force
-    fields: a scripted session has no device). Feed the result to :func:`bagio.write_bag`.
+    fields: a scripted session has no device). Feed the result to :func:`.bag_writer.write_bag`.
     """
-    from .. import bagio
+    from ..bag_types import POSE_TYPE, STATE_TYPE, typestore
 
-    types = bagio.typestore().types
+    types = typestore().types
     Time, Header = types['builtin_interfaces/msg/Time'], types['std_msgs/msg/Header']
     Pose, Point, Quat = (types['geometry_msgs/msg/Pose'], types['geometry_msgs/msg/Point'],
                          types['geometry_msgs/msg/Quaternion'])
-    PoseStamped, State = types[bagio.POSE_TYPE], types[bagio.STATE_TYPE]
+    PoseStamped, State = types[POSE_TYPE], types[STATE_TYPE]
     Vec = types['geometry_msgs/msg/Vector3']
     t, pos, buttons, _ = generate_trajectory(cfg, rate, loops)
     out = []
@@ -300,10 +300,10 @@ def script_messages(cfg: ScriptConfig, rate: float = 1000.0, t0_ns: int = 1_700_
     for k in range(t.size):
         stamp = int(t0_ns + round(t[k] * 1e9))
         header = Header(Time(*divmod(stamp, 1_000_000_000)), frame_id)
-        out.append(('/omni/pose', bagio.POSE_TYPE, stamp,
+        out.append(('/omni/pose', POSE_TYPE, stamp,
                     PoseStamped(header, Pose(Point(*map(float, pos[k])), Quat(0.0, 0.0, 0.0, 1.0)))))
         if state_every and k % state_every == 0:
-            out.append(('/omni/state', bagio.STATE_TYPE, stamp, State(
+            out.append(('/omni/state', STATE_TYPE, stamp, State(
                 header, bool(buttons[k]), False, False, False, False, True, Vec(0.0, 0.0, 0.0),
                 0.0, -1.0, 0, 'scripted', f'script(seed={cfg.seed})')))
     return out
@@ -311,6 +311,6 @@ def script_messages(cfg: ScriptConfig, rate: float = 1000.0, t0_ns: int = 1_700_
 
 def write_script_bag(path, cfg: ScriptConfig, rate: float = 1000.0, **kw):
     """Write the script to a new rosbag2 MCAP bag folder (see :func:`script_messages`)."""
-    from .. import bagio
+    from ..bag_writer import write_bag
 
-    return bagio.write_bag(path, script_messages(cfg, rate, **kw))
+    return write_bag(path, script_messages(cfg, rate, **kw))
