@@ -131,7 +131,6 @@ class Case:
     paper_s: float | None = None
     parallel_min: int = 0                # SolverConfig.parallel_min_particles (0: serial)
     # None: SolverConfig's default (what the product runs), else that choice
-    viscosity: str | None = None         # SolverConfig.viscosity
     contact_integration: str | None = None  # SolverConfig.contact_integration
     integrator: str | None = None        # SolverConfig.integrator
     frame_dt: float = FRAME_DT           # [s] simulated time per frame (the implicit integrator: 16 ms)
@@ -200,7 +199,7 @@ class PressScript:
 
 def case_config(case: Case) -> SolverConfig:
     """The solver settings a case times: SolverConfig's defaults with the case's choices."""
-    chosen = {k: v for k, v in (('viscosity', case.viscosity), ('contact_integration', case.contact_integration),
+    chosen = {k: v for k, v in (('contact_integration', case.contact_integration),
                                 ('integrator', case.integrator)) if v is not None}
     return SolverConfig(scheme=case.scheme, mode=case.mode, n_layers=case.n_layers, k1_gain=case.k1_gain,
                         parallel_min_particles=case.parallel_min, **chosen)
@@ -432,14 +431,10 @@ def run_targets(st: Settings, models: Models, material, progress) -> list[dict]:
              Case('targets', 'global mass_spring', 'mass_spring', 'global', n, paper_s=PAPER_T1.get(n, (None,))[0]),
              Case('targets', 'local tlsph big', 'tlsph', 'local', st.targets_local_big),
              Case('targets', 'global tlsph 50k', 'tlsph', 'global', st.targets_global_big)]
-    # the same tlsph cases with implicit dashpots and contacts (the sub-step follows the CFL bound)
-    implicit = [Case('targets', f'{c.label} implicit', c.scheme, c.mode, c.n_target, paper_s=c.paper_s,
-                     viscosity='implicit', contact_integration='implicit') for c in cases if c.scheme == 'tlsph']
     if _numba_threads() > 1:
         # the same tlsph cases on numba's thread pool (SolverConfig.parallel_min_particles=1)
         cases += [Case('targets', f'{c.label} threads', c.scheme, c.mode, c.n_target, paper_s=c.paper_s,
                        parallel_min=1) for c in cases if c.scheme == 'tlsph']
-    cases += implicit
     # the implicit integrator at a visual frame rate (16 ms frames, one sub-step each)
     cases += [Case('targets', f'global tlsph{size} 16ms', 'tlsph', 'global', n_big, integrator='implicit',
                    frame_dt=0.016)
@@ -507,13 +502,6 @@ def target_lines(rows: list[dict]) -> list[str]:
         nb = by['global tlsph 50k']['n_particles']
         out.append(f'global tlsph step, {nb} particles: {gb:.2f} ms ({by["global tlsph 50k"]["substeps"]:.0f} sub-steps); '
                    f'target <= 16 ms: {verdict(gb <= 16.0)}')
-    li, lbi = ms('local tlsph implicit'), ms('local tlsph big implicit')
-    if li is not None and lbi is not None and lt:
-        bi, si = by['local tlsph big implicit'], by['local tlsph implicit']
-        out.append(f'implicit dashpots and contacts: local {li:.4f} ms ({li / lt:.2f}x the explicit step, '
-                   f'{si["substeps"]:.0f} sub-steps), big {lbi:.4f} ms ({lbi / lb:.2f}x explicit, '
-                   f'{bi["substeps"]:.0f} sub-steps against {by["local tlsph big"]["substeps"]:.0f}) = '
-                   f'{lbi / li:.2f}x the implicit {n}-particle step; target <= 2x: {verdict(lbi / li <= 2.0)}')
     for size, budget, rate in (('', 1000.0 / 60.0, '60 Hz'), (' 50k', 16.0, '60 Hz'), (' 100k', 33.0, '30 Hz')):
         r = by.get(f'global tlsph{size} 16ms')
         gi = ms(f'global tlsph{size} 16ms')

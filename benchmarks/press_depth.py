@@ -9,11 +9,11 @@ at 10 mm/s from first touch, one 1 ms frame at a time (``cases.press_curve``), f
 combination of
 
 * ``--particles``: the liver's resolution (3670 is the default model; 12k and 30k the finer ones);
-* ``--contacts``: ``balls`` (particles as balls, the default contact before 2026-11-27:
-  ``solver.BALL_CONTACT``), ``discs`` (``contact_disc: 0.5``), ``samples`` (``contact_samples: 3``
-  with ``contact_integration: implicit``) and ``backstop`` (the same samples behind the balls:
-  ``sample_mode: backstop``), all with the half-space far field, and ``backstop_organ`` (those with
-  the organ's own far field, ``far_field_model: organ`` with ``far_field: 1``: the defaults);
+* ``--contacts``: ``balls`` (particles as balls: ``solver.BALL_CONTACT``), ``discs``
+  (``contact_disc: 0.5``) and ``backstop`` (the surface samples behind the balls:
+  ``contact_samples: 3`` with ``contact_integration: implicit``), all with the half-space far
+  field, and ``backstop_organ`` (those with the organ's own far field, ``far_field_model: organ``
+  with ``far_field: 1``: the defaults);
 * ``--tools``: ``sphere`` (the default 5 mm probe tip) and ``capsule`` (the same tip on a 60 mm
   shaft along +z: an instrument, whose shaft fills the pit above the tip).
 
@@ -51,12 +51,9 @@ ROOT = Path(__file__).resolve().parents[1]
 #: (x, y) [m] of the press: the top of the right lobe's dome (validate.py's LIVER_TOP)
 LIVER_TOP = (-0.034, 0.0)
 CONTACTS = {'balls': dict(BALL_CONTACT), 'discs': {**BALL_CONTACT, 'contact_disc': 0.5},
-            'samples': {**BALL_CONTACT, 'contact_samples': 3, 'sample_mode': 'surface',
-                        'contact_integration': 'implicit'},
-            'backstop': {**BALL_CONTACT, 'contact_samples': 3, 'sample_mode': 'backstop',
-                         'contact_integration': 'implicit'},
+            'backstop': {**BALL_CONTACT, 'contact_samples': 3, 'contact_integration': 'implicit'},
             # the same with the organ's own far field, whose area needs no widening (the defaults)
-            'backstop_organ': {'contact_samples': 3, 'sample_mode': 'backstop', 'contact_integration': 'implicit',
+            'backstop_organ': {'contact_samples': 3, 'contact_integration': 'implicit',
                                'far_field_model': 'organ', 'far_field': 1.0}}
 TOOLS = {'sphere': {}, 'capsule': {'tool_shape': 'capsule', 'tool_length': 0.06}}
 REPORT_DEPTHS = (0.010, 0.020, 0.030, 0.040)
@@ -123,7 +120,7 @@ def plot(curves: dict, rows: list[dict], limit: float, path: Path) -> None:
 
     sizes = sorted({r['particles'] for r in rows})
     fig, axes = plt.subplots(1, len(sizes), figsize=(5.0 * len(sizes), 3.8), sharey=True, squeeze=False)
-    colours = {'balls': '#d62728', 'discs': '#2ca02c', 'samples': '#1f77b4', 'backstop': '#9467bd',
+    colours = {'balls': '#d62728', 'discs': '#2ca02c', 'backstop': '#9467bd',
                'backstop_organ': '#8c564b'}
     for ax, n in zip(axes[0], sizes):
         for r in rows:

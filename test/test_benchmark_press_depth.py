@@ -35,14 +35,13 @@ def test_the_force_gives_way_where_it_first_falls_below_its_running_maximum():
 
 def test_a_small_grid_writes_its_table_curves_and_plot(tmp_path):
     proc = subprocess.run([sys.executable, str(SCRIPT), '--particles', '743', '--depth', '0.008',
-                           '--contacts', 'balls,samples,backstop', '--tools', 'sphere', '--out', str(tmp_path)],
+                           '--contacts', 'balls,backstop', '--tools', 'sphere', '--out', str(tmp_path)],
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert '| particles | contact | tool |' in proc.stdout
     with open(tmp_path / 'press_depth.csv', newline='') as fh:
         rows = list(csv.DictReader(fh))
-    assert [(r['contact'], r['tool']) for r in rows] == [('balls', 'sphere'), ('samples', 'sphere'),
-                                                         ('backstop', 'sphere')]
+    assert [(r['contact'], r['tool']) for r in rows] == [('balls', 'sphere'), ('backstop', 'sphere')]
     for r in rows:
         assert float(r['peak_n']) > 0.0 and 0.0 < float(r['peak_mm']) <= 8.0 + 1e-6
     with open(tmp_path / 'press_depth_curves.csv', newline='') as fh:

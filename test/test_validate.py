@@ -73,7 +73,7 @@ def test_an_unknown_check_is_refused_with_the_list_of_checks():
     ('nope=1', "'nope=1': expected FIELD=VALUE with FIELD a SolverConfig field"),
     ('contact_samples=three', "'three' is not a int"),
     ('contact_samples=9', 'contact_samples must be in [0, 5], got 9'),
-    ('surface_extrapolation=maybe', "'maybe' is not a bool"),
+    ('far_field_background=maybe', "'maybe' is not a bool"),
 ])
 def test_a_bad_solver_setting_is_refused_before_any_check_runs(setting, message):
     proc = subprocess.run([sys.executable, str(VALIDATE), '--set', setting, '--checks', 'creep'],
@@ -93,7 +93,7 @@ def test_the_report_names_the_solver_settings_it_ran_with(tmp_path):
 
 def test_a_boolean_setting_reads_false_as_false(tmp_path):
     proc = subprocess.run([sys.executable, str(VALIDATE), '--quick', '--checks', 'creep', '--set',
-                           'surface_extrapolation=false', '--out', str(tmp_path)],
+                           'far_field_background=false', '--out', str(tmp_path)],
                           capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "surface_extrapolation=False;" in (tmp_path / 'validate.md').read_text()
+    assert "far_field_background=False;" in (tmp_path / 'validate.md').read_text()

@@ -25,8 +25,7 @@ from .core.errors import ConfigError, ModelError
 from .core.material import Material, load_material
 from .core.factory import MODELS, make_model
 from .core.models import TissueModel
-from .core.solver import (CONTACT_INTEGRATIONS, FAR_FIELD_MODELS, INTEGRATORS, MODES, SAMPLE_MODES, SCHEMES,
-                          VISCOSITIES, SolverConfig)
+from .core.solver import (CONTACT_INTEGRATIONS, FAR_FIELD_MODELS, INTEGRATORS, MODES, SCHEMES, SolverConfig)
 from .core.tools import TOOLS
 from .haptics.renderer import RENDERER_RANGES, RendererConfig
 from .mapping import ANCHORS, DEFAULT_ROTATION
@@ -89,19 +88,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'contact_samples': (3, 'contact with the material surface: this many samples per side of a '
                            'surface particle\'s patch (0 = the tool touches particle balls alone and '
                            'slips between them: the liver gives way near 10 mm); 3 stops the tool '
-                           'slipping between particles (with sample_mode backstop: the force rises to '
-                           'the 3.3 N limit near 30 mm on the 3670 liver) at about 4x the sub-steps '
+                           'slipping between particles (the tool meets the balls first; the samples '
+                           'hold it out of the gaps: the force rises to the 3.3 N limit near 30 mm on '
+                           'the 3670 liver) at about 4x the sub-steps '
                            'unless contact_integration is implicit', (0, 5), False, 'solver'),
-    'sample_mode': ('backstop', 'with contact_samples: surface (the tool meets the samples) | backstop (it '
-                               'meets the particle balls first, as without samples; the samples only hold '
-                               'it out of the gaps between particles: a shallow press as the balls, no '
-                               'pop-through to ~32 mm on the 3670 liver; the local area widens once the '
-                               'samples carry the load)', SAMPLE_MODES, False, 'solver'),
-    'viscosity': ('explicit', 'tlsph dashpots: explicit (sub-step bounded by rho h^2 / eta) | implicit '
-                              '(backward Euler by conjugate gradients: no viscous bound; fewer sub-steps '
-                              'on fine models, each dearer)', VISCOSITIES, False, 'solver'),
-    'viscous_tol': (1e-3, 'implicit dashpots: the solve stops at this residual relative to the '
-                          'velocities', (1e-9, 0.1), False, 'solver'),
     'contact_integration': ('implicit', 'contact springs and dashpots: explicit (sub-step bounded by '
                                         'the penalty) | implicit (backward along the normals: no contact '
                                         'bound; contact_samples 3 then costs 2 sub-steps, not 8)',
@@ -113,17 +103,6 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'implicit_max_dt': (0.016, '[s] implicit integrator: largest sub-step', (1e-5, 1.0), False, 'solver'),
     'implicit_tol': (0.01, 'implicit integrator: the solve stops at this velocity error relative to the '
                            'velocities', (1e-9, 0.1), False, 'solver'),
-    'gradient_order': (1, 'tlsph corrected gradients: 1 (Bonet-Lok) | 2 (exact for quadratic fields: '
-                          'thin parts bend right, within 3 % at 10 particles across instead of -6 %, '
-                          'but a point contact is half as stiff, and the liver needs 4x the '
-                          'sub-steps)', (1, 2), False, 'solver'),
-    'surface_extrapolation': (False, 'tlsph, gradient_order 1: move a surface particle\'s deformation '
-                                     'gradient from its neighbours\' centroid to the particle (thin '
-                                     'parts bend within 3 % at 10 particles across instead of -5 %, '
-                                     'the point contact kept; the liver needs 3 sub-steps per ms '
-                                     'instead of 2)', None, False, 'solver'),
-    'paper_momentum': (14, 'paper scheme: momentum equation 14 (the paper\'s eq. 14) or 12 (eq. 12, '
-                           'steadier at free surfaces)', (12, 14), False, 'solver'),
     'far_field': (1.0, 'local mode: still particles next to the solved ones follow this times the '
                        'far field model\'s response to the contact force (1, the default: the organ\'s '
                        'own response; with the half-space 0.9 suits the balls on the liver, an organ '
@@ -317,15 +296,10 @@ def build_config(p: dict) -> SolverConfig:
                        parallel_min_particles=int(p['parallel_min_particles']),
                        contact_disc=float(p['contact_disc']),
                        contact_samples=int(p['contact_samples']),
-                       sample_mode=p['sample_mode'],
-                       paper_momentum=int(p['paper_momentum']),
                        far_field=float(p['far_field']), far_field_model=p['far_field_model'],
                        far_field_background=bool(p['far_field_background']) and p['timing_mode'] != 'lockstep',
                        max_tool_speed=float(p['max_tool_speed']), friction=float(p['friction']),
-                       viscosity=p['viscosity'], viscous_tol=float(p['viscous_tol']),
                        contact_integration=p['contact_integration'],
-                       gradient_order=int(p['gradient_order']),
-                       surface_extrapolation=bool(p['surface_extrapolation']),
                        integrator=p['integrator'], implicit_max_dt=float(p['implicit_max_dt']),
                        implicit_tol=float(p['implicit_tol']))
     cfg.validate()

@@ -152,7 +152,7 @@ class SimNode(Node):
         t0 = time.perf_counter()
         if p['warmup']:
             try:
-                warmup(config.scheme, config.viscosity, config.contact_integration, config.integrator)
+                warmup(config.scheme, config.contact_integration, config.integrator)
             except SimError as exc:  # the probe step below still compiles what this model needs
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
         self.solver = make_solver(self.model, self.material, config, p['nominal_dt'])
@@ -272,7 +272,7 @@ class SimNode(Node):
         return (f'model {self.model.name} ({s.n_particles} particles, {int(s.fixed.sum())} fixed, '
                 f'spacing {self.model.spacing * 1e3:.2f} mm, h {s.smoothing_length * 1e3:.2f} mm), '
                 f'tool {s.tool.name} (radius {s.tool.radius * 1e3:g} mm), '
-                f'scheme {c.scheme}{self._describe_gradients()}, mode {c.mode}, {self._describe_contact()}, '
+                f'scheme {c.scheme}, mode {c.mode}, {self._describe_contact()}, '
                 f'material {m.name} '
                 f'(E {m.E:.4g} Pa, nu {m.nu:g}, '
                 f'eta_shear {m.eta_shear:g} Pa s), timing {self.p["timing_mode"]}, pose QoS '
@@ -285,7 +285,7 @@ class SimNode(Node):
         s = self.solver
         c = s.config
         what = (f'contact {c.contact_samples}x{c.contact_samples} samples per surface particle '
-                f'({c.sample_mode}), {c.contact_integration}' if c.contact_samples else
+                f'(backstop), {c.contact_integration}' if c.contact_samples else
                 f'contact particle balls, {c.contact_integration}')
         ff = s.far_field_in_use
         if ff == 'organ':
@@ -295,19 +295,6 @@ class SimNode(Node):
         if ff == 'half_space':
             return f'{what}, far field half_space x{c.far_field:g}'
         return what
-
-    def _describe_gradients(self) -> str:
-        s = self.solver
-        if s.config.scheme != 'tlsph':
-            return ''
-        if s.config.surface_extrapolation:
-            what = f'surface extrapolation at {len(s.scheme.ext)} particles'
-        elif s.config.gradient_order > 1:
-            what = f'second-order gradients: {s.scheme.fallen} particles keep first order'
-        else:
-            return ''
-        return (f' ({what}, the stiffest mode {s.stiffness_gain:.2f}x stiffer, sub-step '
-                f'{s.dt_max_free * 1e3:.3f} ms without a tool)')
 
     def _describe_haptic(self) -> str:
         if self.haptic is None:

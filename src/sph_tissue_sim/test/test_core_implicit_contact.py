@@ -14,8 +14,9 @@ from sph_tissue_sim.validation.cases import press_and_hold
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 SPACING = 0.0075
-#: the samples as the surface, explicit unless a test says implicit
-SURFACE = {**BALL_CONTACT, 'contact_samples': 3, 'sample_mode': 'surface'}
+#: the samples as the surface (the particles' balls too small to meet the tool first), explicit
+#: unless a test says implicit
+SURFACE = {**BALL_CONTACT, 'contact_samples': 3, 'contact_particle_radius': 1e-3}
 
 
 def _pressed(**config) -> Solver:
@@ -97,22 +98,6 @@ def test_a_ten_times_stiffer_contact_needs_no_contact_sub_steps_and_holds_the_sa
                            ramp=100, hold=200)
     print(f'sub-steps per ms: explicit {1e-3 / exp.dt_max:.1f}, implicit {1e-3 / imp.dt_max:.1f}; '
           f'held force: explicit {f_exp[2]:.4f} N, implicit {f_imp[2]:.4f} N')
-    assert f_exp[2] > 0.1
-    assert f_imp[2] == pytest.approx(f_exp[2], rel=0.02)
-
-
-def test_with_implicit_dashpots_too_the_sub_step_follows_the_material_and_the_force_holds():
-    """Both implicit (one solve: dashpots and contacts): samples at 3000 N/m and the viscosity x10
-    leave the CFL and hourglass-dashpot bounds alone; the held force is the explicit one."""
-    model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
-    thick = LIVER.with_viscosity_scale(10.0)
-    base = dict(SURFACE, mode='global', contact_stiffness=3000.0, max_substeps=100000)
-    both = dict(viscosity='implicit', contact_integration='implicit', viscous_tol=1e-6)
-    imp = Solver(model, thick, SolverConfig(**{**base, **both}))
-    assert set(imp.dt_bounds) == {'cfl', 'hourglass_damping'}
-    f_exp = press_and_hold(model, thick, SolverConfig(**base), 0.003, ramp=100, hold=200)
-    f_imp = press_and_hold(model, thick, SolverConfig(**{**base, **both}), 0.003, ramp=100, hold=200)
-    print(f'held force: explicit {f_exp[2]:.4f} N, implicit {f_imp[2]:.4f} N')
     assert f_exp[2] > 0.1
     assert f_imp[2] == pytest.approx(f_exp[2], rel=0.02)
 

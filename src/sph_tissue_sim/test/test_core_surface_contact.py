@@ -16,7 +16,7 @@ LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 LIVER_DEFAULT = liver_default()
 SPACING = 0.0075
 #: the samples as the surface (explicit, with the half-space far field, as these tests were measured)
-SURFACE = {**BALL_CONTACT, 'contact_samples': 3, 'sample_mode': 'surface'}
+SURFACE = {**BALL_CONTACT, 'contact_samples': 3, 'contact_particle_radius': 1e-3}
 
 
 def _sample_positions(solver: Solver, x: np.ndarray) -> np.ndarray:
@@ -184,12 +184,7 @@ def test_the_far_field_does_not_ring_when_a_fine_liver_is_pressed_deep():
 
 # ----------------------------------------------------------------------------- samples as a backstop
 #: with the half-space far field (the organ's is the default on the liver: test_core_compliance.py)
-BACKSTOP = {**BALL_CONTACT, 'contact_samples': 3, 'sample_mode': 'backstop', 'contact_integration': 'implicit'}
-
-
-def test_an_unknown_sample_mode_is_refused():
-    with pytest.raises(ConfigError, match='sample_mode'):
-        SolverConfig(contact_samples=3, sample_mode='behind').validate()
+BACKSTOP = {**BALL_CONTACT, 'contact_samples': 3, 'contact_integration': 'implicit'}
 
 
 def test_backstop_samples_leave_a_shallow_press_to_the_balls():

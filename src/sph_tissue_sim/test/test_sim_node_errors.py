@@ -282,17 +282,3 @@ def test_a_cloud_that_fails_to_publish_is_logged_and_the_next_one_goes_out(multi
     assert sent == [None, node.solver.n_particles]
     assert node._log_throttle.counts['cloud'] == 1
 
-
-def test_a_node_with_implicit_dashpots_presses_like_the_explicit_one(ros_domain):
-    """``viscosity: implicit`` reaches the node's solver; pressed the same way (4 mm over 300
-    poses), the node answers every pose and its force matches the explicit node's within 1 %."""
-    forces = {}
-    for visc in ('explicit', 'implicit'):
-        with make_node(haptic_mode='direct', viscosity=visc) as n:
-            assert n.solver.config.viscosity == visc
-            t = press(n, n=300)
-            assert len(n.sent) == 300 and n.sent[-1][0] == t - 1_000_000
-            forces[visc] = n.sent[-1][1]
-    assert np.linalg.norm(forces['explicit']) > 0.01
-    np.testing.assert_allclose(forces['implicit'], forces['explicit'], rtol=0.01,
-                               atol=0.01 * np.linalg.norm(forces['explicit']))

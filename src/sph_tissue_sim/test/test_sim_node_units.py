@@ -238,25 +238,14 @@ def test_one_blas_thread_leaves_every_blas_library_with_one_thread():
         assert blas and all(i['num_threads'] == 1 for i in blas)
 
 
-def test_threads_disc_contact_and_paper_momentum_parameters_reach_the_solver_config():
+def test_threads_and_disc_contact_parameters_reach_the_solver_config():
     cfg = build_config(defaults())
-    assert (cfg.parallel_min_particles, cfg.contact_disc, cfg.paper_momentum) == (0, 0.0, 14)
-    cfg = build_config(defaults(parallel_min_particles=2000, contact_disc=0.5, contact_samples=0, paper_momentum=12))
-    assert (cfg.parallel_min_particles, cfg.contact_disc, cfg.paper_momentum) == (2000, 0.5, 12)
-    with pytest.raises(ConfigError, match='paper_momentum'):
-        build_config(defaults(paper_momentum=13))
+    assert (cfg.parallel_min_particles, cfg.contact_disc) == (0, 0.0)
+    cfg = build_config(defaults(parallel_min_particles=2000, contact_disc=0.5, contact_samples=0))
+    assert (cfg.parallel_min_particles, cfg.contact_disc) == (2000, 0.5)
 
 
-def test_the_viscosity_parameters_reach_the_solver_config_and_bad_ones_are_refused():
-    cfg = build_config(defaults())
-    assert (cfg.viscosity, cfg.viscous_tol) == ('explicit', 1e-3)
-    cfg = build_config(defaults(viscosity='implicit', viscous_tol=1e-5))
-    assert (cfg.viscosity, cfg.viscous_tol) == ('implicit', 1e-5)
-    assert 'must be one of' in check_value('viscosity', 'semi')
-    with pytest.raises(ConfigError, match='viscous_tol'):
-        build_config(defaults(viscous_tol=0.0))
-    with pytest.raises(ConfigError, match='viscosity'):
-        build_config(defaults(viscosity='implicit', scheme='paper'))
+def test_the_contact_parameters_reach_the_solver_config_and_bad_ones_are_refused():
     assert build_config(defaults(contact_integration='implicit')).contact_integration == 'implicit'
     assert (build_config(defaults()).friction, build_config(defaults(friction=0.3)).friction) == (0.0, 0.3)
     with pytest.raises(ConfigError, match='friction'):
@@ -275,13 +264,6 @@ def test_the_integrator_reaches_the_solver_config_and_bad_values_are_refused():
         with pytest.raises(ConfigError, match=match):
             build_config(defaults(**bad))
 
-
-def test_gradient_order_reaches_the_solver_config_and_bad_values_are_refused():
-    assert build_config(defaults()).gradient_order == 1
-    assert build_config(defaults(gradient_order=2)).gradient_order == 2
-    for bad in (dict(gradient_order=3), dict(gradient_order=2, scheme='mass_spring')):
-        with pytest.raises(ConfigError, match='gradient_order'):
-            build_config(defaults(**bad))
 
 def test_check_value_catches_bad_choices_and_vectors():
     assert check_value('mode', 'local') is None
@@ -359,30 +341,6 @@ def test_bringup_launch_sets_only_parameters_its_nodes_declare():
     assert defaults == {'omni_driver': {}, 'sim_node': {'timing_mode': 'live'}, 'viz_node': {}}
     with pytest.raises(ValueError, match='needs backend:=replay'):
         mod.node_overrides({'backend': 'scripted', 'timing': 'lockstep'})
-
-
-def test_the_ready_line_reports_what_second_order_or_extrapolated_gradients_cost():
-    """With ``gradient_order: 2`` the node's ready line says how many particles kept first order,
-    with ``surface_extrapolation`` how many are extrapolated; both the measured stiffness gain
-    and the sub-step it leads to; with the default, nothing."""
-    from types import SimpleNamespace
-
-    from sph_tissue_sim.core.material import liver_default
-    from sph_tissue_sim.core.solver import Solver, SolverConfig
-    from sph_tissue_sim.sim_node import SimNode
-    model = block_of((0.04, 0.04, 0.02), 400)
-    for order in (1, 2):
-        s = Solver(model, liver_default(), SolverConfig(gradient_order=order))
-        text = SimNode._describe_gradients(SimpleNamespace(solver=s))
-        if order == 1:
-            assert text == ''
-        else:
-            assert f'{s.scheme.fallen} particles keep first order' in text
-            assert f'{s.stiffness_gain:.2f}x stiffer' in text and s.stiffness_gain > 2.0
-    s = Solver(model, liver_default(), SolverConfig(surface_extrapolation=True))
-    text = SimNode._describe_gradients(SimpleNamespace(solver=s))
-    assert f'surface extrapolation at {len(s.scheme.ext)} particles' in text and len(s.scheme.ext) > 0
-    assert f'{s.stiffness_gain:.2f}x stiffer' in text and s.stiffness_gain > 1.0
 
 
 def test_shutdown_interrupts_the_step_and_reports_a_thread_that_outlives_its_wait(monkeypatch):

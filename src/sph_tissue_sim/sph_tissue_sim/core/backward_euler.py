@@ -1,6 +1,7 @@
-"""Backward Euler for the Kelvin-Voigt dashpots of ``tlsph`` (``SolverConfig.viscosity =
-'implicit'``) and for the pushing contacts (``contact_integration = 'implicit'``, the terms of
-:mod:`.implicit_contact`), one conjugate-gradient solve per sub-step (:class:`BackwardEuler`).
+"""Backward Euler for the implicit integrator of ``tlsph`` (``SolverConfig.integrator =
+'implicit'``: the Kelvin-Voigt dashpots and the elastic forces) and for the pushing contacts
+(``contact_integration = 'implicit'``, the terms of :mod:`.implicit_contact`), one
+conjugate-gradient solve per sub-step (:class:`BackwardEuler`). The dashpots' part first:
 
 An explicit sub-step must resolve the dashpots' fastest mode, ``dt <= C rho h^2 / eta``, which
 shrinks with the square of the spacing while the CFL bound shrinks with the spacing: on the 100k

@@ -27,10 +27,9 @@ Every sub-step works in the CURRENT configuration ``x`` (displacement ``u = x - 
    ``E``/``eta`` form is :meth:`~.material.Material.paper_preset`, nu = 0.)
 5. momentum (eqs. 11-14), the symmetric form, so internal forces conserve linear momentum::
 
-       dv_i/dt = sum_j m_j (sigma_i / rho_i^2 + sigma_j / rho_j^2) . DWIJ        (eq. 14, default)
-       dv_i/dt = sum_j m_j (sigma_i + sigma_j) / (rho_i rho_j) . DWIJ          (eq. 12, option)
+       dv_i/dt = sum_j m_j (sigma_i / rho_i^2 + sigma_j / rho_j^2) . DWIJ        (eq. 14)
 
-   ``SolverConfig.paper_momentum`` selects 14 or 12 (:func:`momentum_one` explains the difference).
+   (eq. 12 lost: docs/decisions/retired-paper_momentum.md).
 
 6. symplectic Euler (eq. 22): ``v <- v + dt a``, ``x <- x + dt v`` (the frame loop, :mod:`.frame`).
 
@@ -242,35 +241,19 @@ def strain_stress(p, X, x, v, mass):
         sig[i, 5] = 2.0 * G * eyz + 2.0 * eta_s * ryz
 
 
-MOMENTUM_EQ14 = 14
-MOMENTUM_EQ12 = 12
-
-
 @njit(cache=True, fastmath=True)
 def momentum_one(r, p, x, mass):
-    """Internal acceleration ``(a0, a1, a2)`` of ``i = p.rows[r]`` (``p`` a :class:`Paper`).
-
-    ``form == 14`` (eq. 14, the paper's final form)::
+    """Internal acceleration ``(a0, a1, a2)`` of ``i = p.rows[r]`` (``p`` a :class:`Paper`), eq. 14::
 
         dv_i/dt = sum_j m_j (sigma_i / rho_i^2 + sigma_j / rho_j^2) . DWIJ
 
-    ``form == 12`` (eq. 12)::
-
-        dv_i/dt = sum_j m_j (sigma_i + sigma_j) / (rho_i rho_j) . DWIJ
-
-    Both are antisymmetric in i, j (momentum conserving). With the volumes ``V = m / rho`` held
-    fixed, eq. 12 is the negative gradient of the strain energy ``sum_i V_i eps_i : C : eps_i / 2``
-    of the difference-form strain, so its linear stiffness is symmetric; eq. 14 is not. They agree
-    where the density is uniform and differ where summation density drops (free surfaces): there
-    eq. 14 has a non-symmetric stiffness, whose growing modes make a free block at rest with a
+    antisymmetric in i, j (momentum conserving). Where summation density drops (free surfaces)
+    its linear stiffness is not symmetric, whose growing modes make a free block at rest with a
     tiny perturbation fly apart at any time step (see the tests).
     """
-    rows, nb_off, nb_idx, nb_dw, rho, sig, form = p.rows, p.nb_off, p.nb_idx, p.nb_dw, p.rho, p.sig, p.form
+    rows, nb_off, nb_idx, nb_dw, rho, sig = p.rows, p.nb_off, p.nb_idx, p.nb_dw, p.rho, p.sig
     i = rows[r]
-    if form == MOMENTUM_EQ12:
-        ri2 = 1.0 / rho[i]
-    else:
-        ri2 = 1.0 / (rho[i] * rho[i])
+    ci = 1.0 / (rho[i] * rho[i])
     si0 = sig[i, 0]; si1 = sig[i, 1]; si2 = sig[i, 2]
     si3 = sig[i, 3]; si4 = sig[i, 4]; si5 = sig[i, 5]
     xi0 = x[i, 0]; xi1 = x[i, 1]; xi2 = x[i, 2]
@@ -279,12 +262,7 @@ def momentum_one(r, p, x, mass):
         j = nb_idx[k]
         f = mass * nb_dw[k]
         g0 = f * (xi0 - x[j, 0]); g1 = f * (xi1 - x[j, 1]); g2 = f * (xi2 - x[j, 2])
-        if form == MOMENTUM_EQ12:
-            ci = ri2 / rho[j]
-            cj = ci
-        else:
-            ci = ri2
-            cj = 1.0 / (rho[j] * rho[j])
+        cj = 1.0 / (rho[j] * rho[j])
         t0 = si0 * ci + sig[j, 0] * cj; t1 = si1 * ci + sig[j, 1] * cj; t2 = si2 * ci + sig[j, 2] * cj
         t3 = si3 * ci + sig[j, 3] * cj; t4 = si4 * ci + sig[j, 4] * cj; t5 = si5 * ci + sig[j, 5] * cj
         a0 += t0 * g0 + t3 * g1 + t4 * g2
@@ -302,7 +280,6 @@ class Paper(NamedTuple):
     K: float               # [Pa] bulk modulus
     eta_s: float           # [Pa s] shear viscosity
     eta_v: float           # [Pa s] bulk viscosity
-    form: int              # momentum equation, 14 or 12 (:func:`momentum_one`)
     rows: np.ndarray       # rows[:n_sph] are sets.sph; rows[:n_rows] get density, strain, stress
     n_rows: int
     search: np.ndarray     # search[:n_search] (a superset of rows) are binned for the search
@@ -378,7 +355,7 @@ def von_mises_rows(sig, rows, n_rows, out):
 
 # ---------------------------------------------------------------------------- whole-body evaluation
 def paper_fields(X: np.ndarray, x: np.ndarray, v: np.ndarray, fixed: np.ndarray, h: float,
-                 volume: float, material, form: int = MOMENTUM_EQ14) -> dict:
+                 volume: float, material) -> dict:
     """Density, strain, strain rate, stress and internal acceleration of every particle (global).
 
     For analysis and tests: one call of the same kernels the frame loop uses, with all particles
@@ -401,7 +378,7 @@ def paper_fields(X: np.ndarray, x: np.ndarray, v: np.ndarray, fixed: np.ndarray,
                                                  np.empty(64 * n))
     if not ok:
         raise ValueError('positions are non-finite or too far apart for a cell grid')
-    p = Paper(h, material.G, material.K, material.eta_shear, material.eta_bulk, form, rows, n, rows, n,
+    p = Paper(h, material.G, material.K, material.eta_shear, material.eta_bulk, rows, n, rows, n,
               np.empty(n), np.zeros((n, 6)), np.zeros((n, 6)), np.zeros((n, 6)), np.empty((n, 3)),
               nb_off, nb_idx, nb_dw, nb_w)
     acc = np.zeros((n, 3))
@@ -420,15 +397,15 @@ class PaperScheme:
     Args:
         X: (N, 3) reference positions [m]; x: the solver's live positions; fixed: (N,) boundary mask.
         offsets, indices: reference neighbours (CSR), for the local rows and the first pair capacity.
-        h: smoothing length [m]; form: momentum equation (14 or 12).
+        h: smoothing length [m].
     """
 
     name = 'paper'
 
     def __init__(self, X: np.ndarray, x: np.ndarray, fixed: np.ndarray, offsets: np.ndarray, indices: np.ndarray,
-                 h: float, form: int) -> None:
+                 h: float) -> None:
         n = len(X)
-        self.X, self.x, self.offsets, self.indices, self.h, self.form = X, x, offsets, indices, h, form
+        self.X, self.x, self.offsets, self.indices, self.h = X, x, offsets, indices, h
         self.rho = np.empty(n)
         self.eps = np.zeros((n, 6))
         self.epsd = np.zeros((n, 6))
@@ -494,7 +471,7 @@ class PaperScheme:
             rows, search = self.rows, self.search
         self._frame = (rows, n_rows)
         m = self.material
-        return Paper(self.h, m.G, m.K, m.eta_shear, m.eta_bulk, self.form, rows, n_rows, search,
+        return Paper(self.h, m.G, m.K, m.eta_shear, m.eta_bulk, rows, n_rows, search,
                      n_search, self.rho, self.eps, self.epsd, self.sig, self.pos, self.nb_off,
                      self.nb_idx, self.nb_dw, self.nb_w)
 

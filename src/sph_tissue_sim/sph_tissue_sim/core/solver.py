@@ -39,20 +39,18 @@ from .neighbours import CellGrid, find_neighbours
 from .paper import PaperScheme
 from .protocols import STATUS_OK
 from .springs import MassSpringScheme
-from .stability import DashpotRate
+from .stability import DASHPOT_RATE_EVERY, DashpotRate
 from .state import Body, Loads, Motion, Samples, Sets, ToolPath, Topology, no_touches
 from .tlsph import TlsphScheme
 from .tools import NO_ROTATION, TOOLS, make_tool
 
 SCHEMES = ('paper', 'tlsph', 'mass_spring')
-#: conjugate-gradient iterations of one implicit dashpot solve at most
-DASHPOT_MAX_ITER = 200
+#: conjugate-gradient iterations of one implicit contact solve at most
+CONTACT_MAX_ITER = 200
 #: the implicit integrator's solve (stiffer: its condition number grows with (dt / CFL step)^2)
 IMPLICIT_MAX_ITER = 2000
 MODES = ('global', 'local')
-VISCOSITIES = ('explicit', 'implicit')
 CONTACT_INTEGRATIONS = ('explicit', 'implicit')
-SAMPLE_MODES = ('surface', 'backstop')
 #: backstop samples that push the tool grow the local area's radius by this many h (with the
 #: half-space far field)
 SAMPLE_AREA_GROWTH = 1.5
@@ -93,13 +91,11 @@ CONFIG_RANGES = {
     'hourglass': (0.0, math.inf, 'closed'), 'velocity_limit': (0.0, math.inf, 'open'),
     'max_tool_distance': (0.0, math.inf, 'open'), 'spring_radius': (0.0, math.inf, 'open'),
     'contact_particle_radius': (0.0, math.inf, 'open'), 'contact_disc': (0.0, 0.5, 'closed'),
-    'paper_momentum': (12, 14, 'int'), 'parallel_min_particles': (0, math.inf, 'int'),
+    'parallel_min_particles': (0, math.inf, 'int'),
     'far_field': (0.0, 2.0, 'closed'), 'far_field_tau': (0.0, 1.0, 'closed'),
     'max_tool_speed': (0.0, math.inf, 'open'),
     'contact_samples': (0, 5, 'int'),
-    'viscous_tol': (0.0, 1.0, 'open'), 'gradient_order': (1, 2, 'int'),
     'implicit_max_dt': (0.0, 1.0, 'open'), 'implicit_tol': (0.0, 1.0, 'open'),
-    'dashpot_rate_every': (0, 1000, 'int'),
     'friction': (0.0, 2.0, 'closed'),
 }
 
@@ -147,8 +143,6 @@ class SolverConfig:
             anywhere above it pushes it straight in instead of sideways off the tool (on the
             3671-particle liver at 10 mm: 0.85 mm instead of 8.9 mm sideways slip), but it spreads
             the load, and the local area then needs k1_min >= 3 to stay within 10 % of global.
-        paper_momentum: momentum equation of the ``paper`` scheme: 14 (the paper's eq. 14,
-            default) or 12 (eq. 12, symmetric stiffness at free surfaces); see :mod:`.paper`.
         parallel_min_particles: a ``tlsph`` sub-step runs on numba's thread pool (``prange``,
             ``NUMBA_NUM_THREADS`` threads) when at least this many particles are stressed; 0 (the
             default) never uses threads. Results are bit-identical either way. On an idle 2-core
@@ -172,41 +166,9 @@ class SolverConfig:
             area: the explicit step needs about 4x the sub-steps (local step 2.8 ms instead of
             0.64 ms on this liver); with ``contact_integration`` implicit it keeps the material's
             (0.78 ms).
-        sample_mode: what the tool meets first with ``contact_samples`` > 0. ``surface``:
-            the samples; the particles' own balls, of the tool's size, back them up. ``backstop`` (default):
-            the particles' balls of ``contact_particle_radius``, as without samples; the samples,
-            on the material's surface below the balls' reach, only hold the tool out of the gaps
-            between particles where the balls push the particles apart. Once a sample pushes the
-            tool, local mode solves every particle a touching sample reads and the area grows by
-            ``SAMPLE_AREA_GROWTH`` h (the samples spread their load) until the tool leaves the
-            tissue. Pressed straight into the 3671-particle liver, a shallow press is the balls'
-            (Hertz block and the 743 liver's apex as balls), and the force rises to 3.3 N at
-            32 mm instead of peaking at 0.39 N near 10 mm, with a dip of up to 0.28 N near 18 mm;
-            local mode is within 5 % of global at 12 of 12 presses; with the half-space far
-            field the step costs 1.3x the balls' while no sample pushes and 2.3-2.6x once they
-            carry the load (with the organ's, the default on the liver, 1.3-1.4x).
-        viscosity: ``explicit`` (default) or ``implicit``: the ``tlsph`` dashpots backward Euler
-            (:mod:`.backward_euler`), no viscous sub-step bound; slower on the bundled models.
-        viscous_tol: the implicit dashpots' solve stops at this residual relative to ``|v*|``.
         contact_integration: ``implicit`` (default) or ``explicit``: the pushing contacts backward
             along their normals (:mod:`.implicit_contact`), no contact sub-step bound; explicit,
             the samples' stiffness bounds the sub-step (about 4x as many on the liver).
-        gradient_order: ``tlsph``'s corrected gradients (:mod:`.gradients`): 1 (Bonet-Lok, exact
-            for linear fields) or 2 (also exact for quadratic fields, which bending is: a
-            cantilever 10 particles tall -1.6 % against Timoshenko instead of -5.1 %). But the fit
-            explains a pressed surface particle's displacement partly as curvature, so a point
-            contact is about half as stiff (Hertz block at 5 mm spacing: 0.041 N instead of
-            0.084 N, Hertz 0.062 N), and the stiffest surface modes are 4.5-5.6x stiffer, which
-            the sub-step bounds follow (3670 liver: 8 sub-steps per ms instead of 2).
-        surface_extrapolation: ``tlsph`` with first-order gradients: near a free surface a
-            particle's F is the gradient at its neighbours' weighted centroid, inside the body,
-            so a bent beam's outer fibres strain too little; this moves it to the particle with
-            the Hessian taken from the neighbours' F (:func:`~.tlsph.surface_extrapolation`; the
-            forces stay the gradient of the discrete energy). Cantilever 4 / 8 / 10 particles tall
-            against Timoshenko -8.3 / -3.0 / -2.2 % instead of -22 / -7 / -5 %, with most of a
-            point contact kept (Hertz block 7-12 % softer; ``gradient_order`` 2 halves it); the
-            stiffest modes are 1.6x (liver) to 2x (blocks) stiffer and the sub-step bounds follow
-            (liver: 3 sub-steps per ms instead of 2). With implicit dashpots those stay first order.
         integrator: ``explicit`` (default: symplectic Euler, sub-steps bounded by the CFL,
             viscous and contact bounds) or ``implicit`` (``tlsph`` only): linearly implicit backward
             Euler on everything, the elastic spring, the dashpots and the pushing contacts (one
@@ -214,7 +176,7 @@ class SolverConfig:
             sub-step; a frame then takes sub-steps of at most ``implicit_max_dt``. Backward Euler
             damps what it cannot resolve (motions faster than about ``1 / dt``), so it suits
             quasi-static presses and large visual frames, not a vibration at the frame rate.
-            ``viscosity`` and ``contact_integration`` are then implicit whatever they say.
+            ``contact_integration`` is then implicit whatever it says.
         implicit_max_dt: the implicit integrator's largest sub-step [s].
         implicit_tol: its solve stops at this velocity error relative to the velocities (those of
             the sub-step's start or of the solution, the larger; 0.01: the 1289-particle liver
@@ -284,12 +246,6 @@ class SolverConfig:
             stiffens the shallow press (0.37 against 0.27 N at 5 mm) and local mode is within 5 %
             of global at 11 of 12 presses (+5.6 % at 4 mm at the centre); see
             ``benchmarks/README.md``.
-        dashpot_rate_every: frames between two power iterations that follow the explicit
-            dashpots' largest rate ``c`` at the current deformation (:mod:`.stability`; every
-            frame while it rises past ``c dt = 1``); the sub-step then also keeps ``c dt <= 1.6``
-            (0: the reference bounds alone). Deformed tissue has faster dashpots: the 12k liver
-            pressed 30 mm deep reached ``c dt`` = 2.1 at the reference bounds' sub-step and its
-            force rang by up to 1 N per frame.
     """
 
     scheme: str = 'tlsph'
@@ -315,7 +271,6 @@ class SolverConfig:
     spring_radius: float = 1.5
     contact_particle_radius: float = 1.0
     contact_disc: float = 0.0
-    paper_momentum: int = 14
     parallel_min_particles: int = 0
     far_field: float = 1.0
     far_field_tau: float = 0.003
@@ -323,25 +278,18 @@ class SolverConfig:
     far_field_background: bool = False
     max_tool_speed: float = 1.0
     contact_samples: int = 3
-    sample_mode: str = 'backstop'
-    viscosity: str = 'explicit'
-    viscous_tol: float = 1e-3
     contact_integration: str = 'implicit'
-    gradient_order: int = 1
-    surface_extrapolation: bool = False
     integrator: str = 'explicit'
     implicit_max_dt: float = 0.016
     implicit_tol: float = 0.01
-    dashpot_rate_every: int = 8
     friction: float = 0.0
 
     def validate(self) -> 'SolverConfig':
         """Check ranges (:data:`CONFIG_RANGES`); raises :class:`ConfigError` naming the bad field.
         Returns self, with the integer fields as ``int``."""
         for name, choices in (('scheme', SCHEMES), ('mode', MODES), ('tool_shape', tuple(TOOLS)),
-                              ('viscosity', VISCOSITIES), ('contact_integration', CONTACT_INTEGRATIONS),
-                              ('sample_mode', SAMPLE_MODES), ('far_field_model', FAR_FIELD_MODELS),
-                              ('integrator', INTEGRATORS)):
+                              ('contact_integration', CONTACT_INTEGRATIONS),
+                              ('far_field_model', FAR_FIELD_MODELS), ('integrator', INTEGRATORS)):
             if getattr(self, name) not in choices:
                 raise ConfigError(f'{name} must be one of {choices}, got {getattr(self, name)!r}')
         for name, (lo, hi, kind) in CONFIG_RANGES.items():
@@ -363,20 +311,10 @@ class SolverConfig:
             raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
         if self.far_field_model == 'organ' and self.scheme != 'tlsph':
             raise ConfigError(f'far_field_model organ needs scheme tlsph, got {self.scheme!r}')
-        for name in ('surface_extrapolation', 'far_field_background'):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ConfigError(f'{name} must be true or false, got {getattr(self, name)!r}')
-        if self.surface_extrapolation and (self.scheme != 'tlsph' or self.gradient_order != 1):
-            raise ConfigError(f'surface_extrapolation needs scheme tlsph with gradient_order 1, got '
-                              f'{self.scheme!r} with {self.gradient_order}')
-        if self.gradient_order > 1 and self.scheme != 'tlsph':
-            raise ConfigError(f'gradient_order {self.gradient_order} needs scheme tlsph, got {self.scheme!r}')
-        if self.viscosity == 'implicit' and self.scheme != 'tlsph':
-            raise ConfigError(f'viscosity implicit needs scheme tlsph, got {self.scheme!r}')
+        if not isinstance(self.far_field_background, (bool, np.bool_)):
+            raise ConfigError(f'far_field_background must be true or false, got {self.far_field_background!r}')
         if self.integrator == 'implicit' and self.scheme != 'tlsph':
             raise ConfigError(f'integrator implicit needs scheme tlsph, got {self.scheme!r}')
-        if self.paper_momentum not in (12, 14):
-            raise ConfigError(f'paper_momentum must be 12 or 14 (paper eq. 12 or 14), got {self.paper_momentum}')
         return self
 
     @property
@@ -462,15 +400,13 @@ class Solver:
         pm = cfg.parallel_min_particles
         self.par_min = pm if pm > 0 and numba.get_num_threads() > 1 else self.n + 1
         self.scheme = self._make_scheme()
-        # backward Euler for the dashpots and/or the pushing contacts (one solve), or None
+        # backward Euler for everything or for the pushing contacts alone (one solve), or None
         stiffness = cfg.integrator == 'implicit'
-        dashpots = stiffness or cfg.viscosity == 'implicit'
         contacts = stiffness or cfg.contact_integration == 'implicit'
-        self.backward = (BackwardSolve(self.scheme if dashpots else None, self.n,
-                                       cfg.implicit_tol if stiffness else
-                                       cfg.viscous_tol if dashpots else CONTACT_TOL,
-                                       IMPLICIT_MAX_ITER if stiffness else DASHPOT_MAX_ITER, stiffness)
-                         if dashpots or contacts else None)
+        self.backward = (BackwardSolve(self.scheme if stiffness else None, self.n,
+                                       cfg.implicit_tol if stiffness else CONTACT_TOL,
+                                       IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER, stiffness)
+                         if contacts else None)
         n_samples = len(self.sample_arrays[4]) if self.sample_arrays is not None else 0
         self.touches = make_touches(self.n + n_samples) if contacts else no_touches()
         #: friction's anchors (contact.stick_slip)
@@ -496,10 +432,7 @@ class Solver:
         # centres, and the particles' own balls: of the tool's size behind the samples, or of
         # contact_particle_radius in front of them (the samples then a backstop)
         surface_reach = self.tool.radius + SURFACE_OFFSET * spacing
-        if cfg.sample_mode == 'backstop':
-            self.ball_reach = self.tool.radius + cfg.contact_particle_radius * spacing
-        else:
-            self.ball_reach = self.tool.radius
+        self.ball_reach = self.tool.radius + cfg.contact_particle_radius * spacing
         self.contact_reach = max(surface_reach, self.ball_reach)
         *self.sample_arrays, reach, support = surface_samples(self.X, self.offsets, self.indices, self.h,
                                                               self.volume, spacing, per)
@@ -511,22 +444,19 @@ class Solver:
         # and local mode solves every particle a touching sample reads
         self.detect_reach = max(self.tool.radius + reach, self.ball_reach)
         self.cand_reach = self.samples_reach = max(self.tool.radius + reach + support, self.ball_reach)
-        if cfg.sample_mode == 'backstop':
-            # a sample lies within `reach` of its owner, inside the owner's ball: until a sample
-            # pushes the tool (Solver.samples_push), the balls' candidates and area suffice
-            self.cand_reach = self.ball_reach
+        # a sample lies within `reach` of its owner, inside the owner's ball: until a sample
+        # pushes the tool (Solver.samples_push), the balls' candidates and area suffice
+        self.cand_reach = self.ball_reach
 
     def _make_scheme(self):
         cfg = self.config
         if cfg.scheme == 'paper':
-            return PaperScheme(self.X, self.x, self.fixed, self.offsets, self.indices, self.h,
-                               cfg.paper_momentum)
+            return PaperScheme(self.X, self.x, self.fixed, self.offsets, self.indices, self.h)
         if cfg.scheme == 'mass_spring':
             return MassSpringScheme(self.X, self.model.spacing, cfg.spring_radius)
         return TlsphScheme(self.X, self.offsets, self.indices, self.h, self.volume, cfg.hourglass,
                            self.par_min,
-                           explicit_dashpots=cfg.viscosity == 'explicit' and cfg.integrator == 'explicit',
-                           gradient_order=cfg.gradient_order, extrapolate=cfg.surface_extrapolation)
+                           explicit_dashpots=cfg.integrator == 'explicit')
 
     def interrupt(self) -> None:
         """Make the step running in another thread stop before its next sub-step or organ response
@@ -606,21 +536,8 @@ class Solver:
         if self.backward is not None:
             self.backward.set_material(material)
         c = self.scheme.wave_speed(material, self.mass)
-        # implicit dashpots are stable at any sub-step: no viscous bound
-        implicit_dashpots = cfg.viscosity == 'implicit'
-        eta_long = 0.0 if implicit_dashpots else material.eta_longitudinal
-        #: how much stiffer the stiffest mode is than with first-order gradients (1: those)
-        self.stiffness_gain = 1.0
-        if isinstance(self.scheme, TlsphScheme) and (cfg.gradient_order > 1 or cfg.surface_extrapolation):
-            # second-order or extrapolated gradients stiffen the surface modes (TlsphScheme.stiffness_gain)
-            self.stiffness_gain = self.scheme.stiffness_gain(self.body, self.area.global_sets(-1))
-            c *= math.sqrt(self.stiffness_gain)
-            eta_long *= self.stiffness_gain
-        self.dt_bounds = substep_bounds(self.h, c, material.rho, eta_long, self.mass,
+        self.dt_bounds = substep_bounds(self.h, c, material.rho, material.eta_longitudinal, self.mass,
                                         cfg.contact_stiffness * self.sample_factor, cfg.cfl)
-        if implicit_dashpots:
-            # the hourglass dashpot stays explicit (its bonds' damping is not symmetric)
-            self.dt_bounds['hourglass_damping'] = self.scheme.hourglass_damping_bound(self.mass, cfg.cfl)
         if cfg.contact_damping_ratio > 0.0:
             # explicit dashpot: dt < 2 m / c; keep a factor 2 margin (implicit contact: none)
             self.dt_bounds['contact_damping'] = self.mass / (self.samples.damping * self.sample_factor
@@ -633,9 +550,8 @@ class Solver:
             # stable at any sub-step: only the accuracy the caller asks for bounds it
             self.dt_bounds = {'implicit': cfg.implicit_max_dt}
         dashpots = self.scheme.dashpots_only() if isinstance(self.scheme, TlsphScheme) else None
-        every = cfg.dashpot_rate_every
         #: follows the explicit dashpots' rate as the tissue deforms (None: no explicit dashpots)
-        self.dashpot_rate = DashpotRate(dashpots, self.n, every) if dashpots is not None and every else None
+        self.dashpot_rate = DashpotRate(dashpots, self.n, DASHPOT_RATE_EVERY) if dashpots is not None else None
         self.dt_max = min(self.dt_bounds.values())
         # without a tool no contact spring or dashpot acts, so only the material bounds apply
         self.dt_max_free = min(v for k, v in self.dt_bounds.items() if not k.startswith('contact'))
@@ -936,12 +852,11 @@ class Solver:
         area.far_field(self.body, self.x, sets, self.react, cfg.far_field, self.material.G, self.material.nu,
                        -math.expm1(-dt / cfg.far_field_tau) if cfg.far_field_tau > 0.0 else 1.0, self.organ)
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
-        if cfg.sample_mode == 'backstop':
-            push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
-                                                  self.samples, 0.0) < 0.0
-            # and while the tool still touches: shrinking the area as the samples slide past a
-            # deep tool (the tissue giving way) made the 30k liver's step blow up at 28.5 mm
-            self.samples_push = push or (self.samples_push and overlap > 0.0)
+        push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
+                                              self.samples, 0.0) < 0.0
+        # and while the tool still touches: shrinking the area as the samples slide past a
+        # deep tool (the tissue giving way) made the 30k liver's step blow up at 28.5 mm
+        self.samples_push = push or (self.samples_push and overlap > 0.0)
         n_active_frame = area.n_active
         md, ke = area.stats(self.x, self.v, self.mass)
         area.release(self.x, self.v, cfg.relax_disp_tol, cfg.relax_vel_tol)
@@ -951,11 +866,11 @@ class Solver:
                     k1=float(k1), n_active=int(n_active_frame))
 
 
-def warmup(scheme: str | None = None, viscosity: str = 'explicit',
-           contact_integration: str = 'explicit', integrator: str = 'explicit') -> float:
+def warmup(scheme: str | None = None, contact_integration: str = 'explicit',
+           integrator: str = 'explicit') -> float:
     """Compile every numba kernel on a tiny block (numba caches to disk); returns seconds taken.
-    ``viscosity``, ``contact_integration`` and ``integrator`` pick the integrator's specialisation
-    of the frame loop."""
+    ``contact_integration`` and ``integrator`` pick the integrator's specialisation of the frame
+    loop."""
     from .models import make_block
 
     t0 = time.perf_counter()
@@ -965,9 +880,8 @@ def warmup(scheme: str | None = None, viscosity: str = 'explicit',
     for sch in schemes:
         for mode in MODES:
             try:
-                visc = viscosity if sch == 'tlsph' else 'explicit'
                 integ = integrator if sch == 'tlsph' else 'explicit'
-                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode, viscosity=visc,
+                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode,
                                                          contact_integration=contact_integration,
                                                          integrator=integ))
             except ConfigError:
@@ -981,7 +895,7 @@ def warmup(scheme: str | None = None, viscosity: str = 'explicit',
             solver.von_mises()
     if 'tlsph' in schemes:
         # the backstop samples' nearness test runs outside the frame kernel
-        solver = Solver(model, mat, SolverConfig(contact_samples=1, sample_mode='backstop',
+        solver = Solver(model, mat, SolverConfig(contact_samples=1,
                                                  contact_integration=contact_integration))
         solver.step(np.array([0.01, 0.01, model.positions[:, 2].max() + 0.005]), 1e-3)
     return time.perf_counter() - t0

@@ -35,6 +35,11 @@ from .tlsph import Tlsph, tlsph_pass, tlsph_pass_parallel
 #: room for the springs acting in the same modes (at rest the bounds give 1.24-1.56 on the liver)
 DASHPOT_LIMIT = 1.6
 
+#: frames between two power iterations that follow the dashpots' rate (the 12k liver pressed 30 mm
+#: deep reached ``c dt`` = 2.1 at the reference bounds' sub-step and its force rang by up to 1 N per
+#: frame without it)
+DASHPOT_RATE_EVERY = 8
+
 #: from this ``c dt`` on a rate that rose at its last iteration is followed every frame (a deep
 #: press raised it by up to 10 % per 0.5 mm); otherwise every ``every`` frames
 CLOSE = 1.0

@@ -1,7 +1,7 @@
 """Total-Lagrangian SPH (the default scheme) with Kelvin-Voigt stress and hourglass control.
 
 Reference neighbours and corrected gradients are fixed (no per-step search). With the reference
-pair gradients ``g_ij`` of :mod:`.gradients` (Bonet-Lok, ``V_j L_i^-1 DWIJ0``, or second order)
+pair gradients ``g_ij`` of :mod:`.gradients` (Bonet-Lok, ``V_j L_i^-1 DWIJ0``)
 the deformation gradient and its rate are (exact for linear fields, also at free surfaces)
 
     F_i = sum_j (x_j - x_i) (x) g_ij,   dF_i/dt = sum_j (v_j - v_i) (x) g_ij.
@@ -44,12 +44,6 @@ from .gradients import corrected_gradients, reverse_pairs
 from .kernel import ZERO3X3, add_outer, strain_rate
 from .material import Material
 from .protocols import STATUS_OK, FixedStateScheme, internal_forces, is_state
-from .state import Motion
-
-#: surface_extrapolation: particles whose third moment |T_i| is at most this many h keep first order
-#: (it is 0 in a symmetric neighbourhood)
-EXTRAPOLATION_MIN = 0.02
-
 
 class Tlsph(NamedTuple):
     """The scheme's state for the frame loop: reference pairs, per-particle tensors, material."""
@@ -72,13 +66,6 @@ class Tlsph(NamedTuple):
     hg_k: float            # hourglass stiffness
     hg_c: float            # hourglass damping
     par_min: int           # stressed particles from which a sub-step runs on the thread pool
-    ext: np.ndarray        # (E,) particles whose F is extrapolated to themselves (surface_extrapolation)
-    ext_row: np.ndarray    # (N,) a particle's row in ext, -1 if none
-    m_start: np.ndarray    # (E + 1,) row r's pair maps are M[m_start[r] + k - offsets[ext[r]]]
-    M: np.ndarray          # (sum of the ext particles' pairs, 3, 3) the pairs' extrapolation maps
-    S: np.ndarray          # (E, 3, 3) sum of a row's M
-    Astar: np.ndarray      # (E, 3, 3) scratch: V P(F*)
-    ext_now: np.ndarray    # (E,) scratch: the rows extrapolated this sub-step
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -207,100 +194,12 @@ def tlsph_force_one(i, s, X, x, v):
 
 
 @njit(cache=True, fastmath=True)
-def surface_extrapolate(s, sets):
-    """Second pass of ``surface_extrapolation``: the stress of each particle of ``s.ext`` at
-
-        F*_i = F_i - sum_k (F_k - F_i) M_ik = F_i (I + S_i) - sum_k F_k M_ik,
-
-    its first-order F moved from the neighbours' weighted centroid to the particle (the Hessian
-    from the neighbours' F, see :func:`surface_extrapolation`), and the same for dF/dt; then
-    ``A`` becomes the adjoint ``dE/dF`` of the energy ``sum_i V W(F*_i)``,
-
-        A_m = V P*_m (I + S_m)^T - sum_i V P*_i M_im^T,
-
-    which the force pass turns into forces as it does the first-order ``A``. In local mode only
-    the solved particles are extrapolated (their neighbours all have an F this sub-step).
-    """
-    offsets, indices, F, Fd, A, M, S, Astar, volume = (s.offsets, s.indices, s.F, s.Fd, s.A, s.M, s.S,
-                                                      s.Astar, s.volume)
-    G, K, eta_s, eta_v = s.G, s.K, s.eta_s, s.eta_v
-    rows = s.ext_now
-    n_rows = 0
-    if sets.n_stress == F.shape[0]:
-        for r in range(s.ext.shape[0]):
-            rows[n_rows] = r
-            n_rows += 1
-    else:
-        for t in range(sets.n_sph):
-            r = s.ext_row[sets.sph[t]]
-            if r >= 0:
-                rows[n_rows] = r
-                n_rows += 1
-    Fs = np.empty((3, 3))
-    Fds = np.empty((3, 3))
-    for t in range(n_rows):
-        r = rows[t]
-        i = s.ext[r]
-        for c in range(3):
-            for e in range(3):
-                acc = F[i, c, e]
-                accd = Fd[i, c, e]
-                for a in range(3):
-                    acc += F[i, c, a] * S[r, a, e]
-                    accd += Fd[i, c, a] * S[r, a, e]
-                Fs[c, e] = acc
-                Fds[c, e] = accd
-        base = s.m_start[r] - offsets[i]
-        for k in range(offsets[i], offsets[i + 1]):
-            j = indices[k]
-            for c in range(3):
-                for e in range(3):
-                    acc = 0.0
-                    accd = 0.0
-                    for a in range(3):
-                        acc += F[j, c, a] * M[base + k, a, e]
-                        accd += Fd[j, c, a] * M[base + k, a, e]
-                    Fs[c, e] -= acc
-                    Fds[c, e] -= accd
-        p = _piola((Fs[0, 0], Fs[0, 1], Fs[0, 2], Fs[1, 0], Fs[1, 1], Fs[1, 2], Fs[2, 0], Fs[2, 1], Fs[2, 2]),
-                   (Fds[0, 0], Fds[0, 1], Fds[0, 2], Fds[1, 0], Fds[1, 1], Fds[1, 2], Fds[2, 0], Fds[2, 1],
-                    Fds[2, 2]), G, K, eta_s, eta_v)
-        for c in range(3):
-            for e in range(3):
-                Astar[r, c, e] = volume * p[3 * c + e]
-    # the particles' own terms first: the scatter below adds to them
-    for t in range(n_rows):
-        r = rows[t]
-        i = s.ext[r]
-        for c in range(3):
-            for e in range(3):
-                acc = Astar[r, c, e]
-                for a in range(3):
-                    acc += Astar[r, c, a] * S[r, e, a]
-                A[i, c, e] = acc
-    for t in range(n_rows):
-        r = rows[t]
-        i = s.ext[r]
-        base = s.m_start[r] - offsets[i]
-        for k in range(offsets[i], offsets[i + 1]):
-            j = indices[k]
-            for c in range(3):
-                for e in range(3):
-                    acc = 0.0
-                    for a in range(3):
-                        acc += Astar[r, c, a] * M[base + k, e, a]
-                    A[j, c, e] -= acc
-
-
-@njit(cache=True, fastmath=True)
 def tlsph_pass(s, body, motion, sets):
     """One sub-step of TLSPH internal forces (``s`` a :class:`Tlsph`): stresses of
     ``sets.stress``, then ``acc = f / m`` of ``sets.sph`` (serial: no thread-pool wake-up on small sets)."""
     X, x, v, acc, inv_mass = body.X, motion.x, motion.v, motion.acc, body.inv_mass
     for t in range(sets.n_stress):
         tlsph_stress_one(sets.stress[t], s, x, v)
-    if s.ext.shape[0] > 0:
-        surface_extrapolate(s, sets)
     for t in range(sets.n_sph):
         i = sets.sph[t]
         f0, f1, f2 = tlsph_force_one(i, s, X, x, v)
@@ -322,8 +221,6 @@ def tlsph_pass_parallel(s, body, motion, sets):
     stress, sph = sets.stress, sets.sph
     for t in prange(sets.n_stress):
         tlsph_stress_one(stress[t], s, x, v)
-    if s.ext.shape[0] > 0:
-        surface_extrapolate(s, sets)
     for t in prange(sets.n_sph):
         i = sph[t]
         f0, f1, f2 = tlsph_force_one(i, s, X, x, v)
@@ -389,86 +286,17 @@ def tlsph_von_mises(F, Fd, G, K, eta_s, eta_v, idx, n, out):
                                   + 2.0 * (sig[0, 1] ** 2 + sig[0, 2] ** 2 + sig[1, 2] ** 2)))
 
 
-def surface_extrapolation(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, g: np.ndarray,
-                          h: float) -> tuple:
-    """The maps of :func:`surface_extrapolate`: ``(ext, ext_row, m_start, M, S)``.
-
-    For a quadratic displacement the first-order corrected gradient (``sum_j d_j (x) g_ij = I``,
-    ``d_j = X_j - X_i``) is off by the Hessian ``H`` contracted with the third moment
-
-        F_i[c, e] = du_c/dX_e + sum_ab H_c[a, b] T_i[a, b, e],   T_i = 1/2 sum_j d_j d_j g_ij,
-
-    which vanishes in a symmetric neighbourhood and at a free surface places the gradient inside
-    the body: the outer fibres of a bent beam strain too little. With ``H_c[a, b] = dF[c, a]/dX_b ~
-    sum_k (F_k - F_i)[c, a] g_ik[b]`` the correction is ``sum_k (F_k - F_i) M_ik``,
-    ``M_ik[a, e] = sum_b g_ik[b] T_i[a, b, e]``. Particles with ``|T_i| <= EXTRAPOLATION_MIN h``
-    keep first order.
-    """
-    n = len(X)
-    rows = np.repeat(np.arange(n), np.diff(offsets))
-    d = X[indices] - X[rows]
-    # the third moment one component at a time (an (nnz, 3, 3, 3) temporary is 1.3 GB at 100k)
-    T = np.zeros((n, 3, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            for e in range(3):
-                T[:, a, b, e] = T[:, b, a, e] = np.bincount(rows, weights=0.5 * d[:, a] * d[:, b] * g[:, e],
-                                                            minlength=n)
-    del d
-    norm = np.sqrt((T ** 2).sum(axis=(1, 2, 3)))
-    ext = np.flatnonzero(norm > EXTRAPOLATION_MIN * h)
-    ext_row = np.full(n, -1, dtype=np.int64)
-    ext_row[ext] = np.arange(len(ext))
-    counts = offsets[ext + 1] - offsets[ext]
-    m_start = np.zeros(len(ext) + 1, dtype=np.int64)
-    np.cumsum(counts, out=m_start[1:])
-    pairs = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in ext]) if len(ext) else np.zeros(0, int)
-    M = np.einsum('kb,kabe->kae', g[pairs], T[rows[pairs]])
-    S = np.zeros((len(ext), 3, 3))
-    np.add.at(S, np.repeat(np.arange(len(ext)), counts), M)
-    return ext.astype(np.int64), ext_row, m_start, np.ascontiguousarray(M), S
-
-
-def _pair_arrays(X, offsets, indices, h, volume, order):
-    """``g``, its reverse pairs' ``gr``, the per-particle sums ``gsum``, the hourglass weights and
-    the particles that fell back to a lower order (:func:`~.gradients.corrected_gradients`)."""
-    g, w0, fallen = corrected_gradients(X, offsets, indices, h, volume, order)
+def _pair_arrays(X, offsets, indices, h, volume):
+    """``g``, its reverse pairs' ``gr``, the per-particle sums ``gsum`` and the hourglass weights
+    (:func:`~.gradients.corrected_gradients`)."""
+    g, w0 = corrected_gradients(X, offsets, indices, h, volume)
     rev = reverse_pairs(offsets, indices)
     if len(rev) and rev.min() < 0:
         raise ValueError('the reference neighbour lists are not symmetric')
     gsum = np.zeros((len(X), 3))
     rows = np.repeat(np.arange(len(X)), np.diff(offsets))
     np.add.at(gsum, rows, g)
-    return g, np.ascontiguousarray(g[rev]), gsum, w0, fallen
-
-
-def max_stiffness_eigenvalue(s: Tlsph, body, sets, iterations: int = 80, rtol: float = 1e-3) -> float:
-    """Largest eigenvalue [1/s^2] of ``M^-1 K``, ``K`` the internal forces (``s``) linearised at the
-    reference configuration, by power iteration over the free particles of ``sets`` (the rest held).
-
-    Writes the scheme's F, Fd, A, H (the caller restores them)."""
-    X = body.X
-    free = sets.sph[:sets.n_sph]
-    if len(free) == 0:
-        return 0.0
-    u = np.zeros_like(X)
-    u[free] = np.random.default_rng(0).standard_normal((len(free), 3))
-    x = X.copy()
-    motion = Motion(x, np.zeros_like(X), np.zeros_like(X))
-    eps = 1e-9 * float(np.ptp(X, axis=0).max() or 1.0)   # a strain of about 1e-9: linear
-    lam = 0.0
-    for _ in range(iterations):
-        u /= np.linalg.norm(u)
-        x[:] = X + eps * u
-        tlsph_pass(s, body, motion, sets)
-        w = np.zeros_like(X)
-        w[free] = -motion.acc[free] / eps
-        new = float(np.sum(u * w))
-        u = w
-        if abs(new - lam) <= rtol * abs(new):
-            return new
-        lam = new
-    return lam
+    return g, np.ascontiguousarray(g[rev]), gsum, w0
 
 
 @overload(internal_forces)
@@ -495,37 +323,18 @@ class TlsphScheme(FixedStateScheme):
         par_min: stressed particles from which a sub-step uses the thread pool.
         explicit_dashpots: False leaves the material's dashpots out of the forces (an implicit
             integrator applies them, :mod:`.backward_euler`); the hourglass dashpot stays.
-        gradient_order: 1 (Bonet-Lok) or 2 (exact for quadratic fields), see :mod:`.gradients`.
-        extrapolate: with first-order gradients, move each surface particle's F from its
-            neighbours' centroid to the particle (:func:`surface_extrapolation`).
     """
 
     name = 'tlsph'
 
     def __init__(self, X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float,
-                 volume: float, hourglass: float, par_min: int, explicit_dashpots: bool = True,
-                 gradient_order: int = 1, extrapolate: bool = False) -> None:
+                 volume: float, hourglass: float, par_min: int, explicit_dashpots: bool = True) -> None:
         n = len(X)
         self.explicit_dashpots = explicit_dashpots
         self.offsets, self.indices, self.volume = offsets, indices, volume
         self.hourglass = hourglass
         self.par_min = par_min
-        self.gradient_order = gradient_order
-        self.g, self.gr, self.gsum, self.w0, self.fallen = _pair_arrays(X, offsets, indices, h, volume,
-                                                                        gradient_order)
-        # the first-order arrays, against which stiffness_gain measures these
-        self._first = (_pair_arrays(X, offsets, indices, h, volume, 1)[:3] if gradient_order > 1
-                       else (self.g, self.gr, self.gsum))
-        self._gains: dict = {}
-        if extrapolate:
-            self.ext, self.ext_row, self.m_start, self.M, self.S = surface_extrapolation(
-                X, offsets, indices, self.g, h)
-        else:
-            self.ext, self.ext_row, self.m_start = (np.zeros(0, dtype=np.int64), np.full(n, -1, dtype=np.int64),
-                                                    np.zeros(1, dtype=np.int64))
-            self.M, self.S = np.zeros((0, 3, 3)), np.zeros((0, 3, 3))
-        self.Astar = np.zeros((len(self.ext), 3, 3))
-        self.ext_now = np.zeros(len(self.ext), dtype=np.int64)
+        self.g, self.gr, self.gsum, self.w0 = _pair_arrays(X, offsets, indices, h, volume)
         self.F = np.zeros((n, 3, 3))
         self.Fd = np.zeros((n, 3, 3))
         self.A = np.zeros((n, 3, 3))
@@ -546,34 +355,10 @@ class TlsphScheme(FixedStateScheme):
         on = 1.0 if self.explicit_dashpots else 0.0
         self._state = Tlsph(self.offsets, self.indices, self.g, self.gr, self.gsum, self.w0,
                             self.F, self.Fd, self.A, self.H, self.volume, material.G, material.K,
-                            on * eta_s, on * eta_b, hg_k, hg_c, self.par_min, self.ext, self.ext_row,
-                            self.m_start, self.M, self.S, self.Astar, self.ext_now)
+                            on * eta_s, on * eta_b, hg_k, hg_c, self.par_min)
 
     def wave_speed(self, material: Material, mass: float) -> float:
         return material.wave_speed
-
-    def stiffness_gain(self, body, sets) -> float:
-        """How much stiffer the stiffest mode is with these gradients than with first-order ones:
-        ``lambda_max(K) / lambda_max(K_1)`` of the linearised internal forces (power iteration
-        over ``sets``, the material of the last :meth:`set_material`; 1 for ``gradient_order`` 1).
-
-        The CFL and viscous sub-step bounds were set for first-order gradients; second-order ones
-        extrapolate at free surfaces, which raises the stiffest surface modes (about 4.5x on a
-        10 x 6 x 5 bar), so the bounds shrink by ``sqrt(gain)`` and ``gain``."""
-        if self.gradient_order == 1 and len(self.ext) == 0:
-            return 1.0
-        # against plain first-order gradients (with surface_extrapolation: the same g, no ext)
-        st = self._state
-        key = (st.G, st.K, st.eta_s, st.eta_v, st.hg_k, st.hg_c)
-        if key not in self._gains:
-            saved = [a.copy() for a in (self.F, self.Fd, self.A, self.H)]
-            first = st._replace(g=self._first[0], gr=self._first[1], gsum=self._first[2],
-                                ext=np.zeros(0, dtype=np.int64))
-            self._gains[key] = (max_stiffness_eigenvalue(st, body, sets)
-                                / max_stiffness_eigenvalue(first, body, sets))
-            for a, b in zip((self.F, self.Fd, self.A, self.H), saved):
-                a[:] = b
-        return self._gains[key]
 
     def dashpots_only(self) -> Tlsph | None:
         """The state of the last :meth:`set_material` with the elastic and hourglass springs off and

@@ -86,7 +86,7 @@ def creep(nx: int = 8, ny: int = 4, nz: int = 4, nu: float = 0.45,
     (elastic-wave) transients decay. Strain 1e-3 keeps the neo-Hookean spring linear to 0.1 %.
 
     Returns ``(t / tau, measured strain, exact strain)`` at each of ``times`` (in units of tau).
-    ``config``: further :class:`SolverConfig` fields (e.g. ``viscosity``); ``end_clearance`` see
+    ``config``: further :class:`SolverConfig` fields (e.g. ``integrator``); ``end_clearance`` see
     :func:`free_bar_under_end_tractions`.
     """
     omega = math.pi * math.sqrt(E_TEST / RHO) / (nx * SPACING)
@@ -133,7 +133,7 @@ def cantilever_frequency(n_across: int, slenderness: float, n_wide: int | None =
     The beam is clamped by two fixed particle layers, set swinging in its first mode shape with a
     tip amplitude of 1 % of L; the period is the mean spacing of the tip displacement's zero
     crossings. No tool, so the sub-steps follow the material's CFL bound only. ``config``: further
-    :class:`SolverConfig` fields (e.g. ``gradient_order``).
+    :class:`SolverConfig` fields (e.g. ``integrator``).
     """
     length = slenderness * n_across * BEAM_SPACING
     model = make_beam(length, (n_wide or n_across) * BEAM_SPACING, n_across * BEAM_SPACING,
