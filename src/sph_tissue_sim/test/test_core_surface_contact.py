@@ -162,24 +162,18 @@ def test_through_the_renderer_the_tool_rests_where_the_tissue_holds_the_device_l
 
 @pytest.mark.slow
 def test_the_far_field_does_not_ring_when_a_fine_liver_is_pressed_deep():
-    """The far field places the shell at the half-space response to the force, and the force
-    follows the shell. On the 30k liver the area (k1 h = 7.7 mm) is small next to an 11-13 mm
-    press with surface samples, and with the previous frame's force as it is (``far_field_tau``
-    0) the loop rang and grew (the force changed by up to 1 N from one frame to the next, period
-    about 7 ms); the same press in global mode changes by at most 3.6 mN per frame. With the
-    default low pass (3 ms) the local force is as smooth."""
+    """The far field places the shell at its response to the force, and the force follows the
+    shell. On the 30k liver (the half-space far field) the area (k1 h = 7.7 mm) is small next to a
+    13 mm press; with the samples as the surface and the previous frame's force as it was, that
+    loop rang (up to 1 N from one frame to the next). With the default contact it stays smooth:
+    the largest frame-to-frame change 1.2 % of the final force (0.6 % without the far field's
+    3 ms low pass, ``far_field_tau``)."""
     model = make_model('liver', n_particles=30000)
-    jumps = {}
-    for tau in (0.0, SolverConfig().far_field_tau):
-        c = press_curve(model, LIVER_DEFAULT, SolverConfig(mode='local', **{**SURFACE, 'far_field_tau': tau,
-                                                                                 'contact_integration': 'implicit'}),
-                        0.013, xy=(-0.034, 0.0))
-        assert c['unstable_at'] is None
-        fz = c['normal']
-        jumps[tau] = float(np.abs(np.diff(fz)).max()) / float(fz[-1])
-    print(f'largest frame-to-frame change / final Fz: {jumps}')
-    assert jumps[0.0] > 0.2                                  # the ring this guards against
-    assert jumps[SolverConfig().far_field_tau] < 0.03
+    c = press_curve(model, LIVER_DEFAULT, SolverConfig(mode='local'), 0.013, xy=(-0.034, 0.0))
+    assert c['unstable_at'] is None
+    fz = c['normal']
+    assert fz[-1] > 0.5
+    assert float(np.abs(np.diff(fz)).max()) < 0.03 * float(fz[-1])
 
 
 # ----------------------------------------------------------------------------- samples as a backstop
