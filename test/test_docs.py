@@ -58,3 +58,15 @@ def test_the_benchmarks_targets_table_was_timed_with_todays_defaults():
     assert set(named) == {bench.defaults_fingerprint()}, (
         f'benchmarks/README.md names {named}, the defaults are {bench.defaults_fingerprint()}: run '
         f'python benchmarks/bench_core.py --tables targets and put its table there')
+
+
+def test_the_sim_node_parameter_table_is_the_one_params_py_writes():
+    """The README's table is written from the one source (params.py and SolverConfig's field
+    metadata): `python -m sph_tissue_sim.params` prints it after any change there."""
+    from sph_tissue_sim.params import parameter_table
+
+    text = (harness.REPO_ROOT / 'src' / 'sph_tissue_sim' / 'README.md').read_text()
+    start = text.index('-->\n', text.index('<!-- parameters:')) + len('-->\n')
+    end = text.index('<!-- end of parameters -->')
+    assert text[start:end] == parameter_table(), (
+        'src/sph_tissue_sim/README.md: replace the parameter table with `python -m sph_tissue_sim.params`')

@@ -14,6 +14,7 @@ The builders import no rclpy, so they are tested without ROS.
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -25,13 +26,19 @@ from .core.errors import ConfigError, ModelError
 from .core.material import Material, load_material
 from .core.factory import MODELS, make_model
 from .core.models import TissueModel
-from .core.solver import (CONTACT_INTEGRATIONS, FAR_FIELD_MODELS, INTEGRATORS, MODES, SCHEMES, SolverConfig)
-from .core.tools import TOOLS
+from .core.solver import SolverConfig
 from .haptics.renderer import RENDERER_RANGES, RendererConfig
 from .mapping import ANCHORS, DEFAULT_ROTATION
 
 TIMING_MODES = ('live', 'lockstep')
 HAPTIC_MODES = ('multirate', 'direct')
+
+def solver_params() -> dict[str, tuple[Any, str, Any, bool, str | None]]:
+    """The :class:`SolverConfig` fields sim_node declares, as table entries written from the fields'
+    own default, doc, limits and rebuild (:func:`~.core.solver.setting`): one source."""
+    return {f.name: (f.default, f.metadata['doc'], f.metadata['limits'], False, f.metadata['rebuild'])
+            for f in fields(SolverConfig) if f.metadata['node']}
+
 
 # name: (default, description, range/choices, read_only, rebuild)
 SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
@@ -55,90 +62,9 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'eta_bulk': (-1.0, '[Pa s] custom material: bulk viscosity (-1 = same retardation time as the '
                        'shear part)', (-1.0, 1e6), False, 'material'),
     'rho': (1060.0, '[kg/m^3] custom material: density', (1.0, 1e5), False, 'material'),
-    # -- solver -----------------------------------------------------------------------------------
-    'scheme': ('tlsph', 'paper | tlsph | mass_spring', SCHEMES, False, 'solver'),
-    'mode': ('local', 'global (every particle) | local (dynamic local interaction area)', MODES,
-             False, 'solver'),
-    'h_ratio': (1.3, 'smoothing length h / particle spacing (support 2h)', (0.2, 4.0), False,
-                'solver'),
-    'k1_gain': (0.5, '[1/N] k1 = k1_gain * f_ext (paper eq. 18: 0.5); Dr = k1 h', (0.0, 100.0),
-                False, 'solver'),
-    'k1_min': (1.75, 'lower clamp of k1 (keeps the area non-empty without force)', (0.01, 100.0),
-               False, 'solver'),
-    'k1_max': (6.0, 'upper clamp of k1', (0.01, 100.0), False, 'solver'),
-    'n_layers': (1, 'transmission layers N (paper eqs. 20-21)', (0, 8), False, 'solver'),
-    'tool_shape': ('sphere', 'sphere (a probe tip at the stylus tip) | capsule (a shaft of tool_length '
-                             'from the stylus tip along the stylus axis, rounded at both ends)',
-                   tuple(TOOLS), False, 'solver'),
-    'tool_radius': (0.005, '[m] radius of the sphere, or of the capsule shaft', (1e-4, 0.05), False,
-                    'solver'),
-    'tool_length': (0.05, '[m] capsule shaft length (tool_shape capsule)', (0.0, 0.3), False,
-                    'solver'),
-    'contact_stiffness': (300.0, '[N/m] penalty stiffness per contacted particle (per surface sample '
-                                 'with contact_samples)', (1.0, 1e5), False, 'solver'),
-    'contact_damping_ratio': (1.0, '[-] contact dashpot as a fraction of critical', (0.0, 10.0),
-                              False, 'solver'),
-    'cfl': (0.3, '[-] Courant number of the sub-step bounds', (0.01, 1.0), False, 'solver'),
-    'max_substeps': (64, 'sub-step cap per frame (beyond it simulated time lags; reported)',
-                     (1, 100000), False, 'solver'),
-    'contact_disc': (0.0, 'surface-disc contact radius in spacings: 0 = particles are balls; 0.5 keeps '
-                          'a pressed surface particle under a small tool (no sideways slip) but '
-                          'spreads the load (local mode then needs k1_min >= 3)', (0.0, 0.5), False,
-                     'solver'),
-    'contact_samples': (3, 'contact with the material surface: this many samples per side of a '
-                           'surface particle\'s patch (0 = the tool touches particle balls alone and '
-                           'slips between them: the liver gives way near 10 mm); 3 stops the tool '
-                           'slipping between particles (the tool meets the balls first; the samples '
-                           'hold it out of the gaps: the force rises to the 3.3 N limit near 30 mm on '
-                           'the 3670 liver) at about 4x the sub-steps '
-                           'unless contact_integration is implicit', (0, 5), False, 'solver'),
-    'contact_integration': ('implicit', 'contact springs and dashpots: explicit (sub-step bounded by '
-                                        'the penalty) | implicit (backward along the normals: no contact '
-                                        'bound; contact_samples 3 then costs 2 sub-steps, not 8)',
-                            CONTACT_INTEGRATIONS, False, 'solver'),
-    'integrator': ('explicit', 'explicit (symplectic Euler, sub-steps bounded by the CFL, viscous and '
-                               'contact bounds) | implicit (tlsph: backward Euler on the spring, dashpots '
-                               'and contacts, one solve per sub-step, stable at any sub-step: for large '
-                               'frames, e.g. 16 ms visual ones)', INTEGRATORS, False, 'solver'),
-    'implicit_max_dt': (0.016, '[s] implicit integrator: largest sub-step', (1e-5, 1.0), False, 'solver'),
-    'implicit_tol': (0.01, 'implicit integrator: the solve stops at this velocity error relative to the '
-                           'velocities', (1e-9, 0.1), False, 'solver'),
-    'far_field': (1.0, 'local mode: still particles next to the solved ones follow this times the '
-                       'far field model\'s response to the contact force (1, the default: the organ\'s '
-                       'own response; with the half-space 0.9 suits the balls on the liver, an organ '
-                       'on a fixed base being stiffer than a half-space); 0 = held still as in the '
-                       'paper (stiffer than the whole organ, up to +24 %)',
-                  (0.0, 2.0), False,
-                  'solver'),
-    'far_field_model': ('auto', 'local mode: what moves the still particles next to the solved ones: '
-                                      'auto (organ for tlsph models of up to 5000 free particles, else '
-                                      'half_space) | half_space (Boussinesq, far_field times it) | organ (the organ\'s own '
-                                      'linear response, factored at start: 3670 liver about 5 s and 0.8 GB at '
-                                      'its peak, then about 45 ms per response solved; with far_field 1 and the '
-                                      'backstop samples no wider area: local within 5 % of global at 12 of 12 '
-                                      'presses)', FAR_FIELD_MODELS, False, 'solver'),
-    'far_field_background': (True, 'far_field_model organ: solve a touched particle\'s response on a worker '
-                                   'thread instead of in the frame that first needs it (about 45 ms each on '
-                                   'the 3670 liver, a few per touch on new ground); meanwhile the load is '
-                                   'shared by the touched particles whose responses are ready. Not repeatable '
-                                   'bit for bit, so timing_mode lockstep always waits', None, False, 'solver'),
-    'parallel_min_particles': (0, 'tlsph: use numba threads (NUMBA_NUM_THREADS) when at least this '
-                                  'many particles are stressed; 0 = never. Only on cores the sim '
-                                  'has to itself: a busy core stalls every parallel sub-step',
-                               (0, 10_000_000), False, 'solver'),
-    'max_tool_speed': (1.0, '[m/s] the simulated tool (its tip, and a shaft\'s far end) follows the '
-                            'device at most this fast (a pose jump of centimetres in one frame would '
-                            'tear the tissue apart); a hand on the stylus stays well below 1 m/s',
-                       (0.01, 10.0), False, None),
-    'friction': (0.0, 'Coulomb coefficient of stick-slip friction between the tool and the touched '
-                      'particles (0 = frictionless): the tool carries the tissue it presses instead of '
-                      'letting it slide round it (0.3 on the liver: the pressed surface moves 0.1 mm '
-                      'sideways instead of 3.3 mm at 10 mm, no dip near 18 mm; the shallow press '
-                      'stiffer)', (0.0, 2.0), False, None),
+    # -- solver: every SolverConfig field sim_node declares, from its metadata ----------------------
+    **solver_params(),
     # -- force ------------------------------------------------------------------------------------
-    'force_limit': (HARD_FORCE_LIMIT, f'[N] norm clamp of the force sent to the device (Omni peak '
-                                      f'{HARD_FORCE_LIMIT} N, continuous 0.88 N)',
-                    (0.001, HARD_FORCE_LIMIT), False, None),
     'force_scale': (1.0, 'device force = force_scale * tissue force (use workspace_scale for an '
                          'energy-consistent scaled workspace)', (0.001, 100.0), False, None),
     # -- haptic rendering (sph_tissue_sim.haptics) ------------------------------------------------
@@ -215,6 +141,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
 }
 
 
+#: the solver settings a run-time change applies at the next step, without a new solver
+NEXT_STEP_SETTINGS = tuple(name for name, spec in solver_params().items() if spec[4] is None)
+
+
 def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
     """Error text if ``value`` is not one of the string choices of ``name`` or a bad vector."""
     choice = check_choice(table, name, value)
@@ -283,25 +213,10 @@ def build_material(p: dict) -> Material:
 
 
 def build_config(p: dict) -> SolverConfig:
-    """Validated solver settings from the parameters (raises ConfigError)."""
-    cfg = SolverConfig(scheme=p['scheme'], mode=p['mode'], h_ratio=float(p['h_ratio']),
-                       k1_gain=float(p['k1_gain']), k1_min=float(p['k1_min']),
-                       k1_max=float(p['k1_max']), n_layers=int(p['n_layers']),
-                       tool_shape=p['tool_shape'], tool_radius=float(p['tool_radius']),
-                       tool_length=float(p['tool_length']),
-                       contact_stiffness=float(p['contact_stiffness']),
-                       contact_damping_ratio=float(p['contact_damping_ratio']),
-                       force_limit=float(p['force_limit']), cfl=float(p['cfl']),
-                       max_substeps=int(p['max_substeps']),
-                       parallel_min_particles=int(p['parallel_min_particles']),
-                       contact_disc=float(p['contact_disc']),
-                       contact_samples=int(p['contact_samples']),
-                       far_field=float(p['far_field']), far_field_model=p['far_field_model'],
-                       far_field_background=bool(p['far_field_background']) and p['timing_mode'] != 'lockstep',
-                       max_tool_speed=float(p['max_tool_speed']), friction=float(p['friction']),
-                       contact_integration=p['contact_integration'],
-                       integrator=p['integrator'], implicit_max_dt=float(p['implicit_max_dt']),
-                       implicit_tol=float(p['implicit_tol']))
+    """Validated solver settings from the parameters (raises ConfigError). The organ's far field
+    solves its responses in the background unless the timing is lockstep (bit-identical replays)."""
+    cfg = SolverConfig(**{name: p[name] for name in solver_params()},
+                       far_field_background=p['timing_mode'] != 'lockstep')
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')
@@ -322,3 +237,33 @@ def build_renderer(p: dict) -> RendererConfig:
                               force_limit=float(p['force_limit']) / float(p['force_scale'])).validate()
     except ValueError as exc:
         raise ConfigError(f'haptic renderer: {exc}') from exc
+
+
+# -- the README's parameter table ------------------------------------------------------------------
+_ON_CHANGE = {'solver': 'new solver', 'material': 'material', 'mapping': 'map', 'renderer': 'renderer reset',
+              None: 'next step'}
+
+
+def _limits_text(limits) -> str:
+    if limits is None:
+        return ''
+    if isinstance(limits[0], str):
+        return ', '.join(limits)
+    return f'{limits[0]:g} … {limits[1]:g}'
+
+
+def parameter_table(table: dict = SIM_PARAMS) -> str:
+    """The package README's parameter table, written from ``table`` (``python -m
+    sph_tissue_sim.params`` prints it; a test keeps the README equal to it)."""
+    rows = ['| parameter | default | range | what it is | a change |', '|---|---|---|---|---|']
+    for name, (default, text, limits, read_only, rebuild) in table.items():
+        shown = ('true' if default else 'false') if isinstance(default, bool) else (
+            repr(default) if default == '' else f'{default:g}' if isinstance(default, float) else default)
+        doc = text.replace('|', '\\|')
+        change = 'read-only' if read_only else _ON_CHANGE[rebuild]
+        rows.append(f'| `{name}` | {shown} | {_limits_text(limits)} | {doc} | {change} |')
+    return '\n'.join(rows) + '\n'
+
+
+if __name__ == '__main__':
+    print(parameter_table(), end='')

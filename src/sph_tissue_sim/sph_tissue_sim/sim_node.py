@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import os
 import sys
 import threading
@@ -76,8 +77,8 @@ from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, St
 from .mapping import DeviceMapping, anchor_point, check_position
 from .haptics.multirate import MultiRate, SolverJob
 from .haptics.renderer import HapticRenderer
-from .params import (SIM_PARAMS, build_config, build_material, build_model, build_renderer,
-                     check_value)
+from .params import (NEXT_STEP_SETTINGS, SIM_PARAMS, build_config, build_material, build_model,
+                     build_renderer, check_value)
 from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 
 EXIT_OK, EXIT_INPUT = 0, 1
@@ -777,9 +778,9 @@ class SimNode(Node):
                 self._rest()
             elif material is not None:
                 self.solver.set_material(material)
-            self.solver.config.force_limit = float(new['force_limit'])
-            self.solver.config.max_tool_speed = float(new['max_tool_speed'])
-            self.solver.config.friction = float(new['friction'])
+            # the next-step settings, validated with the rest by build_config
+            self.solver.config = dataclasses.replace(
+                self.solver.config, **{n: getattr(config, n) for n in NEXT_STEP_SETTINGS})
             if mapping is not None:
                 self.mapping = mapping
             self.clock.nominal_dt = float(new['nominal_dt'])

@@ -225,7 +225,31 @@ def test_the_far_field_solves_in_the_background_unless_the_timing_is_lockstep():
     replays must repeat bit for bit, which a worker thread's timing would not let them."""
     assert build_config(defaults(timing_mode='live')).far_field_background is True
     assert build_config(defaults(timing_mode='lockstep')).far_field_background is False
-    assert build_config(defaults(timing_mode='live', far_field_background=False)).far_field_background is False
+    assert 'far_field_background' not in SIM_PARAMS
+
+
+def test_every_solver_parameter_is_its_solver_config_field_with_the_same_default_doc_and_limits():
+    """One source: the node's solver parameters are written from SolverConfig's fields, the
+    node's defaults build exactly the core's default config, and a run-time change goes through
+    SolverConfig.validate like a start-up value (limits included)."""
+    import dataclasses
+
+    from sph_tissue_sim.core.solver import SolverConfig
+    from sph_tissue_sim.params import NEXT_STEP_SETTINGS, solver_params
+
+    for f in dataclasses.fields(SolverConfig):
+        if f.metadata['node']:
+            assert SIM_PARAMS[f.name][:3] == (f.default, f.metadata['doc'], f.metadata['limits']), f.name
+        else:
+            assert f.name not in SIM_PARAMS, f.name
+    live = dataclasses.replace(SolverConfig(), far_field_background=True)
+    assert build_config(defaults()) == live
+    assert set(NEXT_STEP_SETTINGS) == {'friction', 'max_tool_speed', 'force_limit'}
+    for name, spec in solver_params().items():
+        limits = spec[2]
+        if isinstance(limits, tuple) and not isinstance(limits[0], str):
+            with pytest.raises(ConfigError, match=name):
+                build_config(defaults(**{name: limits[1] * 2 + 1}))
 
 
 def test_one_blas_thread_leaves_every_blas_library_with_one_thread():
@@ -286,6 +310,7 @@ def test_config_files_name_only_declared_parameters_with_valid_values():
     for name, value in base.items():
         default = SIM_PARAMS[name][0]
         assert type(value) is type(default), name            # a ROS params file is typed
+        assert value == default, name                         # the file is the defaults, not a copy that drifts
         assert check_value(name, value) is None
     paper = yaml.safe_load((PKG_DIR / 'config' / 'sim_node_paper.yaml').read_text())
     paper = paper['sim_node']['ros__parameters']

@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 
 import numba
 import numpy as np
-from tissue_common.force import clamp_norm
+from tissue_common.force import HARD_FORCE_LIMIT, clamp_norm
 
 from . import frame
 from .contact import contact_vector_py, deepest_contact, surface_discs
@@ -78,241 +78,118 @@ class StepInterrupted(SimError):
     """:meth:`Solver.interrupt` stopped the step; the state is as before it."""
 
 
-#: (lowest, highest, kind) of every numeric :class:`SolverConfig` field; kind ``open``: lowest
-#: excluded, ``int``: an integer, ``closed``: both included
-CONFIG_RANGES = {
-    'h_ratio': (0.2, 4.0, 'closed'), 'k1_gain': (0.0, math.inf, 'closed'),
-    'k1_min': (0.0, math.inf, 'open'), 'k1_max': (0.0, math.inf, 'open'),
-    'n_layers': (0, 8, 'int'), 'tool_radius': (0.0, math.inf, 'open'),
-    'tool_length': (0.0, math.inf, 'closed'), 'contact_stiffness': (0.0, math.inf, 'open'),
-    'contact_damping_ratio': (0.0, math.inf, 'closed'), 'force_limit': (0.0, math.inf, 'open'),
-    'cfl': (0.0, 1.0, 'open'), 'max_substeps': (1, 100000, 'int'),
-    'relax_disp_tol': (0.0, math.inf, 'open'), 'relax_vel_tol': (0.0, math.inf, 'open'),
-    'hourglass': (0.0, math.inf, 'closed'), 'velocity_limit': (0.0, math.inf, 'open'),
-    'max_tool_distance': (0.0, math.inf, 'open'), 'spring_radius': (0.0, math.inf, 'open'),
-    'contact_particle_radius': (0.0, math.inf, 'open'), 'contact_disc': (0.0, 0.5, 'closed'),
-    'parallel_min_particles': (0, math.inf, 'int'),
-    'far_field': (0.0, 2.0, 'closed'), 'far_field_tau': (0.0, 1.0, 'closed'),
-    'max_tool_speed': (0.0, math.inf, 'open'),
-    'contact_samples': (0, 5, 'int'),
-    'implicit_max_dt': (0.0, 1.0, 'open'), 'implicit_tol': (0.0, 1.0, 'open'),
-    'friction': (0.0, 2.0, 'closed'),
-}
+def setting(default, doc: str, limits=None, node: bool = True, rebuild: str | None = 'solver'):
+    """A :class:`SolverConfig` field with its one source of truth: ``doc`` (one line, unit first in
+    brackets), ``limits`` (``(low, high)`` both included for a number, a tuple of strings for a
+    choice, None for a flag), ``node`` (sim_node declares it as a parameter) and ``rebuild`` (what a
+    run-time change needs: ``'solver'`` a new solver, None the next step)."""
+    return field(default=default, metadata={'doc': doc, 'limits': limits, 'node': node, 'rebuild': rebuild})
 
 
 @dataclass
 class SolverConfig:
-    """Solver settings (SI units).
+    """Solver settings (SI units); each field's doc, limits and role are in its metadata
+    (:func:`setting`). Why each default is what it is: ``docs/decisions/``."""
 
-    Attributes:
-        scheme: ``tlsph`` (default), ``paper`` or ``mass_spring``.
-        mode: ``global`` or ``local``.
-        h_ratio: smoothing length h / particle spacing (support 2h).
-        k1_gain: k1 = k1_gain * f_ext [1/N] (paper eq. 18: 0.5).
-        k1_min, k1_max: clamp of k1 (Dr = k1 h); k1_min keeps the area non-empty without force.
-        n_layers: transmission layers N (paper eqs. 20-21), 0..8.
-            The defaults (k1_min 1.75, one layer, with ``far_field`` 0.9) were chosen on the
-            3671-particle liver pressed 2 / 4 / 10 mm at four places (local within 5 % of global
-            at 12 of 12, worst -3.9 %; at four other places 11 of 12, worst +11 % at a 2 mm press
-            that meets 0.012 N) at 1.3x the cost of k1_min 1 with two layers and the still region
-            (up to +33 % there); see ``benchmarks/README.md``.
-        tool_shape: ``sphere`` (default: a probe tip) or ``capsule`` (a shaft of ``tool_length``
-            with a rounded tip, along the tool frame's +z), see :mod:`.tools`.
-        tool_radius: radius of the tool's sphere, or of the capsule's shaft [m].
-        tool_length: length of the capsule's shaft [m] (unused by the sphere).
-        contact_stiffness: penalty stiffness per contacted particle, or per contacted surface sample
-            with ``contact_samples`` [N/m].
-        contact_damping_ratio: contact dashpot as a fraction of critical for one particle (or for
-            a sample's share of its particle's mass) [-].
-        force_limit: clamp of the force norm sent to the device [N] (Omni peak 3.3 N).
-        cfl: Courant number C of the sub-step bounds.
-        max_substeps: cap per frame (if reached, simulated time lags the wall clock; reported).
-        relax_disp_tol: a particle outside the area is released when its displacement is below this [m]
-        relax_vel_tol: ... and its speed below this [m/s].
-        hourglass: Ganzenmueller hourglass coefficient alpha [-] (tlsph).
-        velocity_limit: a speed above this [m/s] is treated as a blow-up (state restored, SimError).
-        max_tool_distance: tool positions farther than this from the model centre are rejected [m].
-        spring_radius: mass-spring neighbour radius in particle spacings.
-        contact_particle_radius: contact radius of a particle in spacings; the tool touches a particle
-            when their centres are closer than tool_radius + this * spacing. 0.5 is the geometric
-            surface; larger values spread the tool load over more particles so that a tool smaller
-            than the spacing cannot slip between surface particles (default 1.0).
-        contact_disc: radius of a surface particle's contact disc in spacings (0..0.5). 0 (default)
-            treats particles as balls of contact_particle_radius; 0.5 makes a surface particle a flat
-            patch normal to the current surface (rounded by contact_particle_radius), so pressing
-            anywhere above it pushes it straight in instead of sideways off the tool (on the
-            3671-particle liver at 10 mm: 0.85 mm instead of 8.9 mm sideways slip), but it spreads
-            the load, and the local area then needs k1_min >= 3 to stay within 10 % of global.
-        parallel_min_particles: a ``tlsph`` sub-step runs on numba's thread pool (``prange``,
-            ``NUMBA_NUM_THREADS`` threads) when at least this many particles are stressed; 0 (the
-            default) never uses threads. Results are bit-identical either way. On an idle 2-core
-            machine threads halve the step (3671-particle liver: global 10.1 -> 4.3 ms, local
-            0.40 -> 0.23 ms), but when other processes keep the cores busy a parallel region waits
-            for a descheduled thread: local p99 went from 0.5 to 4.4 ms with one busy process
-            and the median to 32 ms with two. Enable it only where the simulator has cores of its
-            own.
-        contact_samples: 0: the tool touches particles alone (balls of
-            ``contact_particle_radius``). 1..5 (3, the default): it touches ``contact_samples**2`` samples per surface
-            particle on the material's surface, half a spacing outside the particle centres, which
-            move with the particles around them and spread the force back to them by kernel
-            weights (:mod:`.surface_contact`): the tool cannot slip between particles. On the
-            3671-particle liver (3, pressed straight down at the top of the dome) the force rises
-            monotonically to 3.7 N at 31 mm (particles: 0.39 N at 10 mm, then falling to nothing),
-            the pressed surface slips 1.3-1.4 mm instead of 6.2 mm at 10 mm, and local mode is
-            within 5 % of global at 10 of 12 presses (as balls 12 of 12). But the surface,
-            interpolated over a kernel width, makes the tool a blunter indenter (Hertz block: +36 %
-            at 2.5 mm spacing); on coarse models (the 743 liver, tool radius 0.43 spacings) the
-            tool sinks through the surface layer by 6 mm; and the samples are 9 times stiffer per
-            area: the explicit step needs about 4x the sub-steps (local step 2.8 ms instead of
-            0.64 ms on this liver); with ``contact_integration`` implicit it keeps the material's
-            (0.78 ms).
-        contact_integration: ``implicit`` (default) or ``explicit``: the pushing contacts backward
-            along their normals (:mod:`.implicit_contact`), no contact sub-step bound; explicit,
-            the samples' stiffness bounds the sub-step (about 4x as many on the liver).
-        integrator: ``explicit`` (default: symplectic Euler, sub-steps bounded by the CFL,
-            viscous and contact bounds) or ``implicit`` (``tlsph`` only): linearly implicit backward
-            Euler on everything, the elastic spring, the dashpots and the pushing contacts (one
-            conjugate-gradient solve per sub-step, :mod:`.backward_euler`), stable at any
-            sub-step; a frame then takes sub-steps of at most ``implicit_max_dt``. Backward Euler
-            damps what it cannot resolve (motions faster than about ``1 / dt``), so it suits
-            quasi-static presses and large visual frames, not a vibration at the frame rate.
-            ``contact_integration`` is then implicit whatever it says.
-        implicit_max_dt: the implicit integrator's largest sub-step [s].
-        implicit_tol: its solve stops at this velocity error relative to the velocities (those of
-            the sub-step's start or of the solution, the larger; 0.01: the 1289-particle liver
-            pressed 8 mm and palpated at 16 ms frames within 6e-6 N of a 1e-6 solve, 29
-            conjugate-gradient iterations per sub-step against 41 at 1e-3 and 82 at 1e-6).
-        max_tool_speed: the simulated tool follows the requested tool pose at most this fast
-            [m/s]: a frame moves its tip, and the far end of a shaft, by at most about
-            ``max_tool_speed * dt`` towards the request (a
-            tracking glitch or a pose jump of centimetres in one frame would otherwise drive the
-            tool through the tissue in one frame and tear the particle lattice apart). A hand on a
-            haptic stylus moves well below 1 m/s (the bundled sessions: up to 0.18 m/s).
-        far_field: local mode: the still particles next to the solved ones move by this times the
-            far field model's response to the contact force instead of staying at rest (0: the
-            paper's still region). The default, 1, is the organ's own response
-            (``far_field_model``). With the half-space (Boussinesq) response and the balls alone,
-            0.9 suited the liver better, because an organ
-            bonded to a fixed base is stiffer than a half-space (the thin lobe: -5.1 % with 1,
-            -3.9 % with 0.9; 0.85 ... 0.925 meet every local-global and drag target, 0.95
-            misses the drag's by 0.04 %). Holding them still makes the area stiffer than the
-            whole organ: on the 3671-particle liver pressed 2/4/10 mm at four places, with k1_min 1
-            and two layers, the local force is within 5 % of global at 7 of 12 presses with 1
-            (-13.7 ... +6.2 %, the worst at 2 mm on the thinnest lobe, where the half-space is too
-            soft), at 2 of 12 with 0 (-6.7 ... +23.7 %), at the same cost per frame; with the
-            default area (see ``n_layers``) at 11 of 12 with 1 and 12 of 12 with 0.9. Dragging over
-            a coarse block (7.5 mm spacing), the tool's passage between particles changed the force
-            by 8 % of Fz with 1 (global 4 %).
-        far_field_tau: time constant [s] of the low pass on the far field's load (0: the previous
-            frame's force as it is). The shell follows the force and the force the shell; on a
-            fine model, where the area (``k1 h``) is small, that loop rang and grew: the 30k liver
-            pressed 11-16 mm with surface samples changed its force by up to 1 N from one frame to
-            the next with 0, by 14 mN with 3 ms (global 3.6 mN).
-        far_field_model: local mode: what moves the still particles next to the solved ones.
-            ``auto`` (default): ``organ`` for a ``tlsph`` model of at most ``ORGAN_MAX_FREE``
-            free particles (the bundled liver), else ``half_space``.
-            ``half_space``: the Boussinesq response (``far_field``'s docs).
-            ``organ``: the organ's own linear response to the contact force, shared by the
-            touched particles (:mod:`.compliance`: the material's stiffness at rest, factored
-            once in single precision when the solver is made or its material changes; a
-            particle's response is solved the first time it carries the tool, unless one within
-            ``ORGAN_SHARE`` spacings has one), placed on the stress shell and on the shell's
-            neighbours; then ``far_field`` 1 is the organ itself, and the backstop samples need
-            no wider area. On the 3670 liver with the backstop samples, no area growth and
-            ``far_field`` 1: local within 5 % of global at 12 of 12 presses (-3.3 ... +3.2 %;
-            the half-space with the growth: -3.5 ... +3.8 %, without it 10 of 12) at 1.3-1.4x
-            the balls' step instead of 2.3-2.5x. The price: a start-up factorisation (3670
-            liver: about 5 s idle, 41 M factor entries, about 0.8 GB at its peak; it grows
-            faster than the particle count: the 12k liver 66 s, 4.6 GB and 0.3 s per response,
-            so models with more than ``ORGAN_MAX_FREE`` free particles are refused) and about
-            45 ms for each response solved.
-        far_field_background: solve the organ's responses on a worker thread of the lowest
-            priority (:mod:`.compliance`) instead of in the frame that first needs them: a touch
-            on new ground then never stalls its frame (3670 liver pressed at 20 mm/s at four
-            places, 1 ms frames paced at 1 kHz, idle: longest frame 1.0-1.6 ms instead of
-            53-54 ms); until a response is ready the load is shared by the touched particles
-            whose responses are (none: the shell at rest, stiffer, and the first ready response
-            comes in over 50 ms): idle, Fz within 4-13 mN of waiting; beside a busy process the
-            responses came too late for a 10 mm press and Fz was up to 0.37 N (50 %) higher.
-            Not repeatable bit for bit (it depends on the thread's timing), so False by default;
-            sim_node turns it on unless its timing is lockstep.
-        friction: Coulomb coefficient of stick-slip friction between the tool and the particles'
-            balls (0, the default: frictionless; the samples stay frictionless), see
-            :mod:`.contact`: a touched particle is carried with the tool until the tangential
-            force reaches ``friction`` times the normal one. On the 3670 liver with the default
-            contact, pressed straight down at the dome, 0.3 moves the first-touched particle
-            0.08 / 0.10 mm sideways by 10 mm (local / global; frictionless 3.3 mm) and the force
-            rises to the 3.3 N limit without the dip near 18 mm (peak 3.95 N at 29 mm); but it
-            stiffens the shallow press (0.37 against 0.27 N at 5 mm) and local mode is within 5 %
-            of global at 11 of 12 presses (+5.6 % at 4 mm at the centre); see
-            ``benchmarks/README.md``.
-    """
-
-    scheme: str = 'tlsph'
-    mode: str = 'local'
-    h_ratio: float = 1.3
-    k1_gain: float = 0.5
-    k1_min: float = 1.75
-    k1_max: float = 6.0
-    n_layers: int = 1
-    tool_shape: str = 'sphere'
-    tool_radius: float = 0.005
-    tool_length: float = 0.0
-    contact_stiffness: float = 300.0
-    contact_damping_ratio: float = 1.0
-    force_limit: float = 3.3
-    cfl: float = 0.3
-    max_substeps: int = 64
-    relax_disp_tol: float = 2e-4
-    relax_vel_tol: float = 2e-3
-    hourglass: float = 1.0
-    velocity_limit: float = 50.0
-    max_tool_distance: float = 10.0
-    spring_radius: float = 1.5
-    contact_particle_radius: float = 1.0
-    contact_disc: float = 0.0
-    parallel_min_particles: int = 0
-    far_field: float = 1.0
-    far_field_tau: float = 0.003
-    far_field_model: str = 'auto'
-    far_field_background: bool = False
-    max_tool_speed: float = 1.0
-    contact_samples: int = 3
-    contact_integration: str = 'implicit'
-    integrator: str = 'explicit'
-    implicit_max_dt: float = 0.016
-    implicit_tol: float = 0.01
-    friction: float = 0.0
+    # -- scheme and area --------------------------------------------------------------------------
+    scheme: str = setting('tlsph', 'tlsph (total-Lagrangian SPH) | paper (updated-Lagrangian, eqs. 11-16) '
+                          '| mass_spring (the paper\'s Table 1 baseline)', SCHEMES)
+    mode: str = setting('local', 'local (the dynamic local interaction area) | global (every free particle)',
+                        MODES)
+    h_ratio: float = setting(1.3, '[-] smoothing length h / particle spacing (support 2h)', (0.2, 4.0))
+    k1_gain: float = setting(0.5, '[1/N] k1 = k1_gain * f_ext (paper eq. 18); the area radius Dr = k1 h',
+                             (0.0, 100.0))
+    k1_min: float = setting(1.75, '[-] lower clamp of k1: keeps the area non-empty without force', (0.01, 100.0))
+    k1_max: float = setting(6.0, '[-] upper clamp of k1', (0.01, 100.0))
+    n_layers: int = setting(1, 'transmission layers N (paper eqs. 20-21)', (0, 8))
+    relax_disp_tol: float = setting(2e-4, '[m] a particle outside the area is released below this '
+                                    'displacement', (1e-9, 1.0), node=False)
+    relax_vel_tol: float = setting(2e-3, '[m/s] ... and below this speed', (1e-9, 10.0), node=False)
+    hourglass: float = setting(1.0, '[-] tlsph: Ganzenmueller hourglass coefficient alpha', (0.0, 100.0),
+                               node=False)
+    spring_radius: float = setting(1.5, '[spacings] mass_spring: neighbour radius', (1.0, 4.0), node=False)
+    # -- tool and contact -------------------------------------------------------------------------
+    tool_shape: str = setting('sphere', 'sphere (a probe tip) | capsule (a shaft of tool_length along '
+                              'the tool\'s +z, rounded)', tuple(TOOLS))
+    tool_radius: float = setting(0.005, '[m] radius of the sphere, or of the capsule\'s shaft', (1e-4, 0.05))
+    tool_length: float = setting(0.05, '[m] length of the capsule\'s shaft (unused by the sphere)', (0.0, 0.3))
+    contact_stiffness: float = setting(300.0, '[N/m] penalty stiffness per touched particle or surface '
+                                       'sample', (1.0, 1e5))
+    contact_damping_ratio: float = setting(1.0, '[-] contact dashpot as a fraction of critical for one '
+                                           'particle', (0.0, 10.0))
+    contact_particle_radius: float = setting(1.0, '[spacings] a particle\'s contact ball', (1e-3, 2.0),
+                                             node=False)
+    contact_disc: float = setting(0.0, '[spacings] surface particles as discs normal to the surface (lost '
+                                  'to the samples, to be removed)', (0.0, 0.5))
+    contact_samples: int = setting(3, 'samples per side of a surface particle behind the balls, which hold '
+                                   'the tool out of the gaps between particles (0: the balls alone, the '
+                                   'tool slips between them; 3 costs 1.3-1.4x the balls\' step)', (0, 5))
+    contact_integration: str = setting('implicit', 'implicit (the pushing contacts backward along their '
+                                       'normals: no contact sub-step bound) | explicit (4x the sub-steps '
+                                       'with the samples)', CONTACT_INTEGRATIONS)
+    friction: float = setting(0.0, '[-] Coulomb coefficient of stick-slip friction between the tool and '
+                              'the balls (0: frictionless)', (0.0, 2.0), rebuild=None)
+    max_tool_speed: float = setting(1.0, '[m/s] the simulated tool follows the request at most this fast '
+                                    '(a hand stays below 1 m/s; 1000: no limit)', (0.01, 1000.0), rebuild=None)
+    max_tool_distance: float = setting(10.0, '[m] tool positions farther than this from the model centre are '
+                                       'refused', (1e-3, 1e3), node=False)
+    force_limit: float = setting(HARD_FORCE_LIMIT, '[N] norm clamp of the force sent to the device (Omni '
+                                 'peak 3.3 N, continuous 0.88 N)', (0.001, HARD_FORCE_LIMIT), rebuild=None)
+    # -- integration ------------------------------------------------------------------------------
+    integrator: str = setting('explicit', 'explicit (symplectic Euler, the CFL, viscous and contact bounds) '
+                              '| implicit (tlsph: backward Euler on everything, for large visual frames)',
+                              INTEGRATORS)
+    cfl: float = setting(0.3, '[-] Courant number of the sub-step bounds', (0.01, 1.0))
+    max_substeps: int = setting(64, 'sub-steps per frame at most (beyond it simulated time lags; reported)',
+                                (1, 100000))
+    implicit_max_dt: float = setting(0.016, '[s] the implicit integrator\'s largest sub-step', (1e-5, 1.0))
+    implicit_tol: float = setting(0.01, '[-] the implicit solve stops at this velocity error relative to the '
+                                  'velocities', (1e-9, 0.1))
+    velocity_limit: float = setting(50.0, '[m/s] a faster particle is a blow-up (state restored, SimError)',
+                                    (1e-3, 1e6), node=False)
+    parallel_min_particles: int = setting(0, 'tlsph: numba\'s threads from this many stressed particles (0: '
+                                          'never; only on cores of its own: a busy core stalls each sub-step)',
+                                          (0, 10_000_000))
+    # -- far field --------------------------------------------------------------------------------
+    far_field: float = setting(1.0, '[-] local mode: the still particles next to the solved ones follow this '
+                               'times the far field\'s response to the contact force (0: held still, the '
+                               'paper)', (0.0, 2.0))
+    far_field_model: str = setting('auto', 'auto (organ for tlsph up to ORGAN_MAX_FREE free particles, else '
+                                   'half_space) | organ (the organ\'s own linear response, factored at start) '
+                                   '| half_space (Boussinesq)', FAR_FIELD_MODELS)
+    far_field_tau: float = setting(0.003, '[s] low pass on the far field\'s load (0: the previous frame\'s '
+                                   'force as it was)', (0.0, 1.0), node=False)
+    far_field_background: bool = setting(False, 'organ: solve responses on a worker thread, so a touch never '
+                                         'waits (not repeatable bit for bit; sim_node: unless lockstep)',
+                                         node=False)
 
     def validate(self) -> 'SolverConfig':
-        """Check ranges (:data:`CONFIG_RANGES`); raises :class:`ConfigError` naming the bad field.
+        """Check every field against its limits; raises :class:`ConfigError` naming the bad field.
         Returns self, with the integer fields as ``int``."""
-        for name, choices in (('scheme', SCHEMES), ('mode', MODES), ('tool_shape', tuple(TOOLS)),
-                              ('contact_integration', CONTACT_INTEGRATIONS),
-                              ('far_field_model', FAR_FIELD_MODELS), ('integrator', INTEGRATORS)):
-            if getattr(self, name) not in choices:
-                raise ConfigError(f'{name} must be one of {choices}, got {getattr(self, name)!r}')
-        for name, (lo, hi, kind) in CONFIG_RANGES.items():
-            val = getattr(self, name)
-            if not isinstance(val, (int, float)) or isinstance(val, bool) or not math.isfinite(val):
-                raise ConfigError(f'{name} must be a finite number, got {val!r}')
-            if kind == 'int' and int(val) != val:
-                raise ConfigError(f'{name} must be an integer, got {val}')
-            if val < lo or (kind == 'open' and val == lo) or val > hi:
-                sign = '>' if kind == 'open' else '>='
-                span = (f'{sign} {lo:g}' if hi == math.inf else
-                        f'in {"(" if kind == "open" else "["}{lo:g}, {hi:g}]')
-                raise ConfigError(f'{name} must be {span}, got {val}')
-            if kind == 'int':
-                setattr(self, name, int(val))
+        for f in fields(self):
+            val, limits = getattr(self, f.name), f.metadata['limits']
+            if isinstance(f.default, bool):
+                if not isinstance(val, (bool, np.bool_)):
+                    raise ConfigError(f'{f.name} must be true or false, got {val!r}')
+            elif isinstance(f.default, str):
+                if val not in limits:
+                    raise ConfigError(f'{f.name} must be one of {limits}, got {val!r}')
+            else:
+                if not isinstance(val, (int, float)) or isinstance(val, bool) or not math.isfinite(val):
+                    raise ConfigError(f'{f.name} must be a finite number, got {val!r}')
+                if isinstance(f.default, int) and int(val) != val:
+                    raise ConfigError(f'{f.name} must be an integer, got {val}')
+                lo, hi = limits
+                if not lo <= val <= hi:
+                    raise ConfigError(f'{f.name} must be in [{lo:g}, {hi:g}], got {val}')
+                if isinstance(f.default, int):
+                    setattr(self, f.name, int(val))
         if self.k1_min > self.k1_max:
             raise ConfigError(f'k1_min ({self.k1_min}) must be <= k1_max ({self.k1_max})')
         if self.contact_samples > 0 and self.contact_disc > 0.0:
             raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
         if self.far_field_model == 'organ' and self.scheme != 'tlsph':
             raise ConfigError(f'far_field_model organ needs scheme tlsph, got {self.scheme!r}')
-        if not isinstance(self.far_field_background, (bool, np.bool_)):
-            raise ConfigError(f'far_field_background must be true or false, got {self.far_field_background!r}')
         if self.integrator == 'implicit' and self.scheme != 'tlsph':
             raise ConfigError(f'integrator implicit needs scheme tlsph, got {self.scheme!r}')
         return self
