@@ -167,7 +167,7 @@ def test_the_far_field_does_not_ring_when_a_fine_liver_is_pressed_deep():
     13 mm press; with the samples as the surface and the previous frame's force as it was, that
     loop rang (up to 1 N from one frame to the next). With the default contact it stays smooth:
     the largest frame-to-frame change 1.2 % of the final force (0.6 % without the far field's
-    3 ms low pass, ``far_field_tau``)."""
+    3 ms low pass, ``FAR_FIELD_TAU``)."""
     model = make_model('liver', n_particles=30000)
     c = press_curve(model, LIVER_DEFAULT, SolverConfig(mode='local'), 0.013, xy=(-0.034, 0.0))
     assert c['unstable_at'] is None

@@ -68,6 +68,15 @@ BALL_CONTACT = {'contact_samples': 0, 'contact_integration': 'explicit', 'far_fi
                 'far_field': 0.9}
 #: relative residual of the implicit contact's solve (cheap: it spans the particles under the tool)
 CONTACT_TOL = 1e-8
+#: [m], [m/s] a particle outside the local area is released below this displacement and speed
+RELAX_DISP_TOL, RELAX_VEL_TOL = 2e-4, 2e-3
+#: [m/s] a faster particle is a blow-up (state restored, SimError)
+VELOCITY_LIMIT = 50.0
+#: [m] tool positions farther than this from the model centre are refused
+MAX_TOOL_DISTANCE = 10.0
+#: [s] low pass on the far field's load: with the samples as the surface the 30k liver's shell and
+#: force rang (1 N per frame) without it; the default contact stays smooth either way
+FAR_FIELD_TAU = 0.003
 
 
 class InvalidInput(SimError, ValueError):
@@ -102,12 +111,8 @@ class SolverConfig:
     k1_min: float = setting(1.75, '[-] lower clamp of k1: keeps the area non-empty without force', (0.01, 100.0))
     k1_max: float = setting(6.0, '[-] upper clamp of k1', (0.01, 100.0))
     n_layers: int = setting(1, 'transmission layers N (paper eqs. 20-21)', (0, 8))
-    relax_disp_tol: float = setting(2e-4, '[m] a particle outside the area is released below this '
-                                    'displacement', (1e-9, 1.0), node=False)
-    relax_vel_tol: float = setting(2e-3, '[m/s] ... and below this speed', (1e-9, 10.0), node=False)
     hourglass: float = setting(1.0, '[-] tlsph: Ganzenmueller hourglass coefficient alpha', (0.0, 100.0),
                                node=False)
-    spring_radius: float = setting(1.5, '[spacings] mass_spring: neighbour radius', (1.0, 4.0), node=False)
     # -- tool and contact -------------------------------------------------------------------------
     tool_shape: str = setting('sphere', 'sphere (a probe tip) | capsule (a shaft of tool_length along '
                               'the tool\'s +z, rounded)', tuple(TOOLS))
@@ -131,8 +136,6 @@ class SolverConfig:
                               'the balls (0: frictionless)', (0.0, 2.0), rebuild=None)
     max_tool_speed: float = setting(1.0, '[m/s] the simulated tool follows the request at most this fast '
                                     '(a hand stays below 1 m/s; 1000: no limit)', (0.01, 1000.0), rebuild=None)
-    max_tool_distance: float = setting(10.0, '[m] tool positions farther than this from the model centre are '
-                                       'refused', (1e-3, 1e3), node=False)
     force_limit: float = setting(HARD_FORCE_LIMIT, '[N] norm clamp of the force sent to the device (Omni '
                                  'peak 3.3 N, continuous 0.88 N)', (0.001, HARD_FORCE_LIMIT), rebuild=None)
     # -- integration ------------------------------------------------------------------------------
@@ -145,8 +148,6 @@ class SolverConfig:
     implicit_max_dt: float = setting(0.016, '[s] the implicit integrator\'s largest sub-step', (1e-5, 1.0))
     implicit_tol: float = setting(0.01, '[-] the implicit solve stops at this velocity error relative to the '
                                   'velocities', (1e-9, 0.1))
-    velocity_limit: float = setting(50.0, '[m/s] a faster particle is a blow-up (state restored, SimError)',
-                                    (1e-3, 1e6), node=False)
     parallel_min_particles: int = setting(0, 'tlsph: numba\'s threads from this many stressed particles (0: '
                                           'never; only on cores of its own: a busy core stalls each sub-step)',
                                           (0, 10_000_000))
@@ -157,8 +158,6 @@ class SolverConfig:
     far_field_model: str = setting('auto', 'auto (organ for tlsph up to ORGAN_MAX_FREE free particles, else '
                                    'half_space) | organ (the organ\'s own linear response, factored at start) '
                                    '| half_space (Boussinesq)', FAR_FIELD_MODELS)
-    far_field_tau: float = setting(0.003, '[s] low pass on the far field\'s load (0: the previous frame\'s '
-                                   'force as it was)', (0.0, 1.0), node=False)
     far_field_background: bool = setting(False, 'organ: solve responses on a worker thread, so a touch never '
                                          'waits (not repeatable bit for bit; sim_node: unless lockstep)',
                                          node=False)
@@ -330,7 +329,7 @@ class Solver:
         if cfg.scheme == 'paper':
             return PaperScheme(self.X, self.x, self.fixed, self.offsets, self.indices, self.h)
         if cfg.scheme == 'mass_spring':
-            return MassSpringScheme(self.X, self.model.spacing, cfg.spring_radius)
+            return MassSpringScheme(self.X, self.model.spacing)
         return TlsphScheme(self.X, self.offsets, self.indices, self.h, self.volume, cfg.hourglass,
                            self.par_min,
                            explicit_dashpots=cfg.integrator == 'explicit')
@@ -536,8 +535,8 @@ class Solver:
         if not (math.isfinite(t0) and math.isfinite(t1) and math.isfinite(t2)):
             raise InvalidInput(f'tool position is not finite: {tool}')
         c0, c1, c2 = self.centre.tolist()
-        if math.sqrt((t0 - c0) ** 2 + (t1 - c1) ** 2 + (t2 - c2) ** 2) > self.config.max_tool_distance:
-            raise InvalidInput(f'tool position {tool} is more than {self.config.max_tool_distance} m '
+        if math.sqrt((t0 - c0) ** 2 + (t1 - c1) ** 2 + (t2 - c2) ** 2) > MAX_TOOL_DISTANCE:
+            raise InvalidInput(f'tool position {tool} is more than {MAX_TOOL_DISTANCE} m '
                                f'from the tissue')
         return tool.copy()
 
@@ -675,7 +674,7 @@ class Solver:
                                     self.area.active, self.area.n_active)
         ok = (status == STATUS_OK and self.abort[0] == 0
               and frame_state_ok(self.x, self.v, sets.sph, sets.n_sph, sets.layer, sets.n_layer,
-                                 self.config.velocity_limit, self.react))
+                                 VELOCITY_LIMIT, self.react))
         self.scheme.frame_done(ok)
         if not ok:
             self.area.restore(self.x, self.v, sets)
@@ -684,7 +683,7 @@ class Solver:
             if self.abort[0] != 0:
                 raise StepInterrupted(f'{self.config.scheme} {mode} step interrupted; state restored')
             raise SimError(f'{self.config.scheme} {mode} step went unstable (non-finite, torn apart or '
-                           f'speed > {self.config.velocity_limit} m/s); state restored')
+                           f'speed > {VELOCITY_LIMIT} m/s); state restored')
         self._last_sets = sets
         return overlap
 
@@ -706,7 +705,7 @@ class Solver:
     def _local_step(self, path: ToolPath, n_sub: int, sub_dt: float, dt: float) -> dict:
         cfg = self.config
         area = self.area
-        margin = cfg.relax_disp_tol
+        margin = RELAX_DISP_TOL
         area.n_touch = 0
         contact = -1
         if path.on:
@@ -727,7 +726,7 @@ class Solver:
         sets, n_inter, n_relax = area.prepare(self.body, path.seg0 if path.on else None, path.seg1,
                                               reach, margin, contact, Dr, cfg.scheme == 'paper')
         area.far_field(self.body, self.x, sets, self.react, cfg.far_field, self.material.G, self.material.nu,
-                       -math.expm1(-dt / cfg.far_field_tau) if cfg.far_field_tau > 0.0 else 1.0, self.organ)
+                       -math.expm1(-dt / FAR_FIELD_TAU), self.organ)
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
         push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
                                               self.samples, 0.0) < 0.0
@@ -736,7 +735,7 @@ class Solver:
         self.samples_push = push or (self.samples_push and overlap > 0.0)
         n_active_frame = area.n_active
         md, ke = area.stats(self.x, self.v, self.mass)
-        area.release(self.x, self.v, cfg.relax_disp_tol, cfg.relax_vel_tol)
+        area.release(self.x, self.v, RELAX_DISP_TOL, RELAX_VEL_TOL)
         return dict(contact_index=int(contact), penetration=float(max(overlap, 0.0)),
                     n_interaction=int(n_inter), n_layer=area.layer_counts[:cfg.n_layers].copy(),
                     n_relaxing=int(n_relax), max_displacement=float(md), kinetic_energy=float(ke),

@@ -1,7 +1,7 @@
 """The ``mass_spring`` scheme: Kelvin-Voigt springs between reference neighbours (the paper's Table 1
 baseline, the classic surgical-simulator model).
 
-A particle ``i`` feels, from every neighbour ``j`` within ``spring_radius`` spacings of it in the
+A particle ``i`` feels, from every neighbour ``j`` within ``SPRING_RADIUS`` spacings of it in the
 reference configuration, with ``e = (x_j - x_i) / |x_j - x_i|``::
 
     f_i = sum_j k_ij [(|x_j - x_i| - l0_ij) + tau (v_j - v_i) . e] e
@@ -23,6 +23,10 @@ from numba.extending import overload
 from .material import Material
 from .neighbours import find_neighbours
 from .protocols import STATUS_OK, FixedStateScheme, internal_forces, is_state
+
+#: [spacings] a particle's springs reach its reference neighbours within this distance (face, edge
+#: and corner neighbours of a cubic lattice: 1, 1.41, 1.73; 1.5 takes faces and edges)
+SPRING_RADIUS = 1.5
 
 
 class MassSpring(NamedTuple):
@@ -80,7 +84,7 @@ class MassSpringScheme(FixedStateScheme):
 
     name = 'mass_spring'
 
-    def __init__(self, X: np.ndarray, spacing: float, spring_radius: float) -> None:
+    def __init__(self, X: np.ndarray, spacing: float, spring_radius: float = SPRING_RADIUS) -> None:
         self.X = X
         self.spacing = spacing
         self.offsets, self.indices = find_neighbours(X, spring_radius * spacing * 1.0001)
