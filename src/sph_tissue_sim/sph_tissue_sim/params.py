@@ -13,13 +13,11 @@ The builders import no rclpy, so they are tested without ROS.
 
 from __future__ import annotations
 
-import math
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tissue_common.force import HARD_FORCE_LIMIT
 from tissue_common.params import check_choice
 
 from .core.errors import ConfigError, ModelError
@@ -32,6 +30,7 @@ from .mapping import ANCHORS, DEFAULT_ROTATION
 
 TIMING_MODES = ('live', 'lockstep')
 HAPTIC_MODES = ('multirate', 'direct')
+
 
 def solver_params() -> dict[str, tuple[Any, str, Any, bool, str | None]]:
     """The :class:`SolverConfig` fields sim_node declares, as table entries written from the fields'
@@ -220,8 +219,6 @@ def build_config(p: dict) -> SolverConfig:
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')
-    if not math.isfinite(p['force_limit']) or p['force_limit'] > HARD_FORCE_LIMIT:
-        raise ConfigError(f'force_limit must be <= {HARD_FORCE_LIMIT} N, got {p["force_limit"]}')
     return cfg
 
 
