@@ -40,7 +40,7 @@ REPORT_DEPTHS = (0.002, 0.004, 0.010)
 
 def press(model, background: bool, xy, depth: float, speed: float, dt: float = 1e-3) -> dict:
     """One paced press from first touch; per frame: depth [m], wall time [s], Fz [N]."""
-    solver = Solver(model, liver_default(), SolverConfig(mode='local', parallel_min_particles=10 ** 9,
+    solver = Solver(model, liver_default(), SolverConfig(mode='local', parallel_min_particles=0,
                                                          far_field_background=background))
     start = first_touch(model, solver.contact_reach, xy, NUDGE)
     frames = int(np.ceil(depth / (speed * dt)))

@@ -65,7 +65,7 @@ def press(n: int, contact: str, tool: str, depth: float, mode: str) -> tuple[dic
     """One press; returns its curve (:func:`~sph_tissue_sim.validation.cases.press_curve`) and the
     start of its summary row."""
     model = make_model('liver', n_particles=n)
-    config = SolverConfig(mode=mode, parallel_min_particles=10 ** 9, **CONTACTS[contact], **TOOLS[tool])
+    config = SolverConfig(mode=mode, parallel_min_particles=0, **CONTACTS[contact], **TOOLS[tool])
     t0 = time.perf_counter()
     c = cases.press_curve(model, liver_default(), config, depth, xy=LIVER_TOP)
     wall = time.perf_counter() - t0

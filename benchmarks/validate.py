@@ -247,7 +247,7 @@ def check_drag(quick: bool, out: Path) -> list[dict]:
     material = liver_default()
     got = {}
     for mode in ('global', 'local'):
-        config = solver_config(mode=mode, parallel_min_particles=1 if mode == 'global' else 10 ** 9)
+        config = solver_config(mode=mode, parallel_min_particles=1 if mode == 'global' else 0)
         got[mode] = cases.drag(model, material, config, 0.004, travel, (1e-3, -7e-3), direction=(0.0, 1.0))
     (jump_g, fz_g, f_g), (jump_l, fz_l, f_l) = got['global'], got['local']
     case = f'liver {n}, 4 mm deep, {travel * 1e3:.0f} mm drag'
@@ -281,7 +281,7 @@ def check_press(quick: bool, out: Path) -> list[dict]:
     modes = ('local',) if quick else ('global', 'local')
     rows, curves = [], {}
     for mode in modes:
-        config = solver_config(mode=mode, parallel_min_particles=1 if mode == 'global' else 10 ** 9)
+        config = solver_config(mode=mode, parallel_min_particles=1 if mode == 'global' else 0)
         c = cases.press_curve(model, material, config, depth, xy=LIVER_TOP)
         curves[mode] = c
         d, fz = c['depth'], c['normal']
@@ -319,7 +319,7 @@ def check_press(quick: bool, out: Path) -> list[dict]:
                                 c['slip'][k] * 1e3, None, 'mm', '<= 1 mm', c['slip'][k] <= 1e-3))
     # the running loop: the device pressed through the haptic renderer, which pulls the simulated
     # tool with at most the device's limit (the driver's continuous 0.88 N)
-    config = solver_config(mode='local', parallel_min_particles=10 ** 9)
+    config = solver_config(mode='local', parallel_min_particles=0)
     c = cases.press_curve(model, material, config, depth, xy=LIVER_TOP,
                           renderer=HapticRenderer(RendererConfig(force_limit=DEVICE_LIMIT)))
     held = float(np.interp(DEVICE_LIMIT, np.maximum.accumulate(curves['local']['normal']),
