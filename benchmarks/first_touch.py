@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
 import sys
 import time
 from pathlib import Path
@@ -28,6 +29,7 @@ import numpy as np
 
 from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import liver_default
+from sph_tissue_sim.core.response_store import CACHE_ENV
 from sph_tissue_sim.core.solver import Solver, SolverConfig
 from sph_tissue_sim.sim_node import SWITCH_INTERVAL, one_blas_thread
 from sph_tissue_sim.validation.cases import NUDGE, first_touch
@@ -67,6 +69,7 @@ def main(argv=None) -> int:
     ap.add_argument('--out', type=Path, default=ROOT / 'benchmarks' / 'results' / 'first_touch')
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    os.environ[CACHE_ENV] = ''   # new ground every press: no response from disk
     # as sim_node (which also keeps BLAS to one thread): a thread that wants the interpreter gets it within 0.2 ms, not Python's 5 ms
     sys.setswitchinterval(SWITCH_INTERVAL)
     one_blas_thread()

@@ -290,8 +290,8 @@ class SimNode(Node):
                 f'contact particle balls, {c.contact_integration}')
         ff = s.far_field_in_use
         if ff == 'organ':
-            how = ('the factor of the solver before' if s.organ.reused
-                   else f'factored in {s.organ_factor_s:.1f} s')
+            how = (f'{len(s.organ.disk)} responses on disk, '
+                   + ('the factor of the solver before' if s.organ.reused else 'factored when first needed'))
             return f'{what}, far field organ x{c.far_field:g} ({how})'
         if ff == 'half_space':
             return f'{what}, far field half_space x{c.far_field:g}'

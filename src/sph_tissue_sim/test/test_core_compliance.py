@@ -1,15 +1,18 @@
 """The organ's linear compliance as local mode's far field (``far_field_model: organ``, :mod:`.core.compliance`)."""
 
 import dataclasses
+import os
+import subprocess
+import sys
 import threading
 import time
 
 import numpy as np
 import pytest
 
-from sph_tissue_sim.core import compliance
+from sph_tissue_sim.core import compliance, response_store
 from sph_tissue_sim.core.compliance import linear_stiffness, shell_and_ring
-from sph_tissue_sim.core.errors import ConfigError
+from sph_tissue_sim.core.errors import ConfigError, OrganFactorError
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core import solver as solver_module
@@ -19,6 +22,17 @@ from sph_tissue_sim.core.tlsph import tlsph_pass
 from sph_tissue_sim.validation.cases import press_and_hold
 
 SOFT = Material.from_shear(1800.0, 0.45, 3.0)
+
+
+@pytest.fixture(autouse=True)
+def empty_response_store(tmp_path, monkeypatch):
+    """Each test solves its responses (and may stand in for the factor): an empty store of its own,
+    and no factoring process kept from another test."""
+    monkeypatch.setenv(response_store.CACHE_ENV, str(tmp_path / 'responses'))
+    monkeypatch.setattr(compliance, '_last_factor', None)
+    yield tmp_path / 'responses'
+    if compliance._last_factor is not None:
+        compliance._last_factor.close()
 
 
 def _block(nx: int = 7, nz: int = 4):
@@ -103,21 +117,32 @@ def test_an_interrupt_stops_placing_between_two_response_solves_and_moves_nothin
     top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
     at = top[[0, len(top) // 2, -1]].astype(np.int32)
     idx = np.flatnonzero(~solver.fixed).astype(np.int32)
-    lu = organ.lu
+    solve = organ._solve
 
-    class InterruptedDuringTheFirstSolve:
-        def solve(self, rhs):
-            solver.interrupt()
-            return lu.solve(rhs)
+    def interrupted_during_the_first_solve(c, abort=None):
+        u = solve(c, abort)
+        solver.interrupt()
+        return u
 
-    organ.lu = InterruptedDuringTheFirstSolve()
+    organ._solve = interrupted_during_the_first_solve
     x = X.copy()
     assert organ.place(x, X, idx, at, np.ones(3), np.array([0.0, 0.0, -0.3])) is False
     assert organ.n_columns == 1 and np.array_equal(x, X)   # the solved response is kept
     solver.clear_interrupt()
-    organ.lu = lu
+    organ._solve = solve
     assert organ.place(x, X, idx, at, np.ones(3), np.array([0.0, 0.0, -0.3])) is True
     assert organ.n_columns == 3 and not np.array_equal(x, X)
+
+
+def test_an_interrupt_ends_the_wait_for_the_factor_and_its_answer_is_kept_for_the_next_ask():
+    """The factor takes seconds on the liver: a reset or a shutdown must not wait for it."""
+    organ = _organ()
+    c = _top(organ)
+    assert not organ.factor.started
+    assert organ.column(c, np.ones(1, dtype=np.int8)) is None and organ.n_columns == 0
+    assert organ.factor.started   # asked, and factoring
+    col = organ.column(c)
+    assert col is not None and organ.n_columns == 1 and np.isfinite(col).all()
 
 
 def _place_without_waiting(organ, x, X, idx, at, weights, load) -> int:
@@ -129,7 +154,7 @@ def _place_without_waiting(organ, x, X, idx, at, weights, load) -> int:
         organ.place(x, X, idx, at, weights, load)
         done.set()
 
-    with compliance._solve_lock:   # the worker cannot solve while the test holds this
+    with organ.factor._lock:   # the worker cannot ask the factoring process while the test holds this
         threading.Thread(target=run, daemon=True).start()
         assert done.wait(60.0), 'place() waited for a response'
         return organ.pending
@@ -172,24 +197,36 @@ def test_in_the_background_a_touch_never_waits_for_a_response_and_shares_the_loa
 
 
 def test_a_failed_background_solve_is_kept_and_the_worker_goes_on():
-    organ = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0,
-                                                far_field_background=True)).organ
+    organ = _organ(background=True)
     X = organ.X
     top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
     idx, at = top.astype(np.int32), top[:1].astype(np.int32)
-    lu = organ.lu
+    solve = organ.factor.solve
 
-    class FailsOnce:
-        def solve(self, rhs):
-            organ.lu = lu
-            raise MemoryError('no room for the right-hand sides')
+    def fails_once(c, abort=None):
+        organ.factor.solve = solve
+        raise OrganFactorError('the organ factoring process ended (exit code -9) before it answered')
 
-    organ.lu = FailsOnce()
+    organ.factor.solve = fails_once
     organ.place(X.copy(), X, idx, at, np.ones(1), np.zeros(3))
-    assert organ.wait(60.0) and isinstance(organ.failure, MemoryError) and organ.n_columns == 0
+    assert organ.wait(60.0) and isinstance(organ.failure, OrganFactorError) and organ.n_columns == 0
     organ.place(X.copy(), X, idx, at, np.ones(1), np.zeros(3))   # asked again at the next touch
     assert organ.wait(60.0) and organ.n_columns == 1 and organ._worker.is_alive()
     assert organ.close(30.0)
+
+
+def test_a_killed_factoring_process_is_a_clear_error_and_the_next_ask_starts_another(monkeypatch):
+    organ = _organ()
+    c, other = _top(organ), int(np.flatnonzero(~_block().fixed)[0])
+    col = organ.column(c).copy()
+    organ.factor._proc.kill()
+    with pytest.raises(OrganFactorError, match='ended|cannot be reached'):
+        organ.column(other)
+    assert not organ.factor.started
+    monkeypatch.setattr(compliance, '_last_factor', None)
+    again = _organ()
+    np.testing.assert_array_equal(again.column(c), col)   # from disk
+    assert again.column(other) is not None and again.factor.started
 
 
 def test_closing_a_solver_stops_its_far_fields_worker():
@@ -215,7 +252,7 @@ def test_a_solver_rebuilt_on_the_same_organ_reuses_its_factor_and_another_materi
     first = Solver(_block(), SOFT, cfg)
     c = int(np.argmax(first.X[:, 2]))
     again = Solver(_block(), SOFT, cfg)
-    assert again.organ.reused and again.organ.lu is first.organ.lu
+    assert again.organ.reused and again.organ.factor is first.organ.factor
     assert np.array_equal(again.organ.column(c), first.organ.column(c))
     stiffer = Solver(_block(), Material.from_shear(3600.0, 0.45, 3.0), cfg)
     assert not stiffer.organ.reused
@@ -284,7 +321,7 @@ def test_the_organ_far_field_needs_tlsph_and_is_built_only_for_local_mode():
 def test_the_default_far_field_is_the_organs_for_tlsph_and_the_half_space_otherwise(monkeypatch):
     assert SolverConfig().far_field_model == 'auto'
     default = Solver(_block(5, 3), SOFT, SolverConfig(mode='local'))
-    assert default.organ is not None and default.far_field_in_use == 'organ' and default.organ_factor_s > 0.0
+    assert default.organ is not None and default.far_field_in_use == 'organ'
     assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', scheme='mass_spring')).far_field_in_use == 'half_space'
     assert Solver(_block(5, 3), SOFT, SolverConfig(mode='global')).far_field_in_use == 'none'
     # beyond the size guard auto falls back to the half-space instead of refusing the model
@@ -292,3 +329,137 @@ def test_the_default_far_field_is_the_organs_for_tlsph_and_the_half_space_otherw
     assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local')).far_field_in_use == 'half_space'
     with pytest.raises(ConfigError, match='half_space'):
         Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='organ'))
+
+
+def _organ(background: bool = False, material: Material = SOFT):
+    return Solver(_block(), material, SolverConfig(mode='local', far_field_model='organ', far_field=1.0,
+                                                   far_field_background=background)).organ
+
+
+def _top(organ) -> int:
+    return int(np.argmax(organ.X[:, 2]))
+
+
+def test_a_response_solved_once_is_read_back_from_disk_bit_identical_without_a_factor(monkeypatch):
+    """A restart of sim_node on the same organ feels where it was touched before at once: the
+    response is on disk, and nothing is factored for it."""
+    first = _organ()
+    c = _top(first)
+    solved = first.column(c).copy()
+    assert first.factor.factor_seconds > 0.0 and first.factor.factor_nnz > 0
+    monkeypatch.setattr(compliance, '_last_factor', None)   # a new process: no factor in memory
+    again = _organ(background=True)
+    assert not again.factor.started and len(again.disk) == 1
+    assert np.array_equal(again.column(c), solved)
+    assert not again.factor.started and again.disk.hits == 1
+    # another material is another stiffness: its own folder, solved afresh
+    stiffer = _organ(material=Material.from_shear(3600.0, 0.45, 3.0))
+    assert stiffer.disk.folder != first.disk.folder and len(stiffer.disk) == 0
+
+
+#: sim_node's factor and solve before they moved to a process of their own, in a process that
+#: pins the BLAS kernels as a node does (this one may have loaded them first)
+IN_PROCESS = """
+import sys
+import sph_tissue_sim
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+from sph_tissue_sim.sim_node import one_blas_thread
+one_blas_thread()
+k = sp.load_npz(sys.argv[1])
+rhs = np.load(sys.argv[2])
+np.save(sys.argv[3], sla.splu(k.astype(np.float32).tocsc(), permc_spec='MMD_AT_PLUS_A').solve(rhs))
+"""
+
+
+def test_the_factoring_process_solves_what_sim_node_solved_in_process_bit_for_bit(tmp_path):
+    import scipy.sparse as sp
+
+    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
+    organ = solver.organ
+    c = _top(organ)
+    free = organ.free_dofs
+    sp.save_npz(tmp_path / 'k.npz', _stiffness(solver)[free][:, free])
+    rhs = np.zeros((3 * organ.n, 3), dtype=np.float32)
+    rhs[3 * c:3 * c + 3] = np.eye(3)
+    np.save(tmp_path / 'rhs.npy', rhs[free])
+    subprocess.run([sys.executable, '-c', IN_PROCESS, str(tmp_path / 'k.npz'), str(tmp_path / 'rhs.npy'),
+                    str(tmp_path / 'u.npy')], check=True, timeout=120)
+    u = np.zeros_like(rhs)
+    u[free] = np.load(tmp_path / 'u.npy')
+    assert np.array_equal(organ.column(c), u.reshape(organ.n, 3, 3))
+
+
+def test_an_unreadable_or_foreign_response_file_is_solved_again_and_replaced():
+    first = _organ()
+    c = _top(first)
+    solved = first.column(c).copy()
+    path = first.disk.folder / f'{c}.npy'
+    for bad in (b'not a response', None):
+        if bad is None:   # a well-formed array of the wrong shape
+            np.save(path, np.zeros((3, 3), dtype=np.float32))
+        else:
+            path.write_bytes(bad)
+        organ = _organ()
+        assert np.array_equal(organ.column(c), solved) and organ.disk.errors == 1 and organ.disk.hits == 0
+        assert np.array_equal(np.load(path), solved)   # rewritten whole
+
+
+def test_a_store_that_cannot_be_written_costs_a_solve_and_nothing_else(monkeypatch, tmp_path):
+    blocker = tmp_path / 'a_file'
+    blocker.write_text('')
+    monkeypatch.setenv(response_store.CACHE_ENV, str(blocker))   # a folder cannot be made under a file
+    monkeypatch.setattr(compliance, '_last_factor', None)
+    organ = _organ()
+    c = _top(organ)
+    assert np.isfinite(organ.column(c)).all() and len(organ.disk) == 0
+    monkeypatch.setenv(response_store.CACHE_ENV, '')
+    assert _organ().disk.folder is None
+
+
+def test_in_the_background_an_organ_never_touched_starts_its_factor_before_its_first_touch():
+    """A live sim_node on an organ with nothing on disk: the factor (seconds on the liver) starts
+    with the node, not at the first touch; with responses on disk it waits for a miss."""
+    organ = _organ(background=True)
+    deadline = time.monotonic() + 30.0
+    while not organ.factor.started and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert organ.factor.started and organ.n_columns == 0
+    c = _top(organ)
+    assert np.isfinite(organ.column(c)).all() and organ.factor.factor_seconds > 0.0
+
+
+#: a process that starts an organ's factoring process, prints the child's pid and waits to be killed
+PARENT = """
+import time
+import numpy as np
+from sph_tissue_sim.core.material import Material
+from sph_tissue_sim.core.models import make_block
+from sph_tissue_sim.core.solver import Solver, SolverConfig
+organ = Solver(make_block(7, 7, 4, spacing=0.0075, fix='bottom'), Material.from_shear(1800.0, 0.45, 3.0),
+               SolverConfig(mode='local', far_field_model='organ', far_field=1.0)).organ
+organ.factor.start_soon()
+while not organ.factor.started:
+    time.sleep(0.01)
+print(organ.factor._proc.pid, flush=True)
+time.sleep(600)
+"""
+
+
+def test_the_factoring_process_ends_when_its_parent_is_killed():
+    parent = subprocess.Popen([sys.executable, '-c', PARENT], stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(parent.stdout.readline())
+        parent.kill()
+        parent.wait(30)
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            try:
+                os.kill(child, 0)
+            except ProcessLookupError:
+                return
+            time.sleep(0.05)
+        pytest.fail(f'the factoring process {child} outlived its killed parent')
+    finally:
+        parent.kill()

@@ -10,6 +10,20 @@ import pytest
 from . import harness
 
 
+@pytest.fixture(scope='session', autouse=True)
+def response_store(tmp_path_factory):
+    """The organ's responses on disk (sph_tissue_sim's response_store) in a folder of this session,
+    shared by its tests and the node processes they start, never the user's cache."""
+    saved = os.environ.get('SPH_TISSUE_CACHE')
+    folder = tmp_path_factory.mktemp('responses')
+    os.environ['SPH_TISSUE_CACHE'] = str(folder)
+    yield folder
+    if saved is None:
+        os.environ.pop('SPH_TISSUE_CACHE', None)
+    else:
+        os.environ['SPH_TISSUE_CACHE'] = saved
+
+
 @pytest.fixture(scope='module')
 def ros_domain():
     """Isolate this test module on its own ROS_DOMAIN_ID with localhost-only discovery."""

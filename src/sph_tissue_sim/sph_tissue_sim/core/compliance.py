@@ -14,12 +14,16 @@ gradient's change), ``D`` the neo-Hookean tangent at ``F = I`` (``dP = G (H + H^
 and ``K_hg`` the hourglass bonds' (bond error ``(H_i + H_j)/2 X' - u'`` projected on the bond,
 weighted ``w0 hg_k``), the fixed particles held. ``K`` is factored once (SuperLU, scipy's); the
 response to a unit force at particle ``c`` (three right-hand sides) is solved the first time ``c``
-carries the tool's load and kept.
+carries the tool's load and kept, in memory and on disk (:mod:`.response_store`). Building and
+factoring ``K`` takes seconds (3671 liver: about 15 s), so it runs in a process of its own
+(:mod:`.organ_factor`) when the first response not on disk is asked for: a restart on the same
+organ needs no factor for the places touched before, and the factor never holds this process.
 
 A response takes tens of milliseconds to solve (3670 liver: about 45 ms idle), and a first touch
 needs a few. Solved where they are asked for, they stall the frame that touches new ground, so the
 force starts that much later. With ``background`` they are solved by a worker thread instead, and
-until a particle's response is ready the load is shared by the touched particles whose responses
+until a particle's response is ready (on a first touch of an organ never factored, the factor's
+seconds) the load is shared by the touched particles whose responses
 are (none ready: the shell stays at rest, the paper's still region, whose force is up to about
 +50 % on the liver; the first response ready then comes in over ``READY_RAMP``). A touch starts with
 a small load on a particle just reached, so on an idle machine that costs little (3670 liver
@@ -32,7 +36,6 @@ from __future__ import annotations
 
 import atexit
 import hashlib
-import os
 import queue
 import threading
 import time
@@ -40,6 +43,9 @@ import weakref
 
 import numpy as np
 from numba import njit
+
+from .organ_factor import FactorProcess, organ_arrays
+from .response_store import ResponseStore
 
 #: the elasticity tangent acts on row-major 3x3 tensors: index of H[a, b] in a 9-vector
 _AB = np.arange(9).reshape(3, 3)
@@ -105,26 +111,25 @@ _working: 'weakref.WeakSet[OrganCompliance]' = weakref.WeakSet()
 
 @atexit.register
 def _close_workers() -> None:
+    global _last_factor
+    if _last_factor is not None:
+        _last_factor.close()   # a worker waiting on the child then sees the pipe closed
+        _last_factor = None
     for organ in list(_working):
         organ.close(EXIT_JOIN)
 
 
-#: [s] how long the process's exit waits for a worker to finish its solve
-EXIT_JOIN = 10.0
+#: [s] how long the process's exit waits for a worker to finish
+EXIT_JOIN = 2.0
 
 #: [s] in the background, the shell's displacement grows from rest to the organ's response over
 #: this long once a touch has a response ready
 READY_RAMP = 0.05
 
-#: the worker's Linux nice value (19, the lowest priority)
-WORKER_NICE = 19
-
-#: the last factorisation, ``(key, SuperLU, nnz)``: a solver rebuilt on the same organ and material
-#: (a parameter change in sim_node, every press of the validation) reuses it instead of paying the
-#: seconds again; one kept, so a process holds at most one factor no solver uses
-_last_factor: tuple | None = None
-#: SuperLU's solve is not documented thread-safe, and a kept factor may serve two solvers
-_solve_lock = threading.Lock()
+#: the last factoring process: a solver rebuilt on the same organ and material (a parameter change
+#: in sim_node, every press of the validation) asks it instead of paying the factor again; one
+#: kept, so at most one factor no solver uses is held
+_last_factor: FactorProcess | None = None
 
 
 def stiffness_key(X: np.ndarray, fixed: np.ndarray, state) -> bytes:
@@ -155,27 +160,24 @@ class OrganCompliance:
     def __init__(self, X: np.ndarray, fixed: np.ndarray, state, share: float = 0.0,
                  abort: np.ndarray | None = None, background: bool = False) -> None:
         global _last_factor
-        t0 = time.perf_counter()
         self.X, self.n, self.share = X, len(X), share
         self.abort = np.zeros(1, dtype=np.int8) if abort is None else abort
         self.background = background
         self.free_dofs = np.flatnonzero(np.repeat(~np.asarray(fixed, dtype=bool), 3))
         key = stiffness_key(X, fixed, state)
-        #: the factorisation was the previous organ's (same stiffness), not computed here
-        self.reused = _last_factor is not None and _last_factor[0] == key
-        if self.reused:
-            self.lu, self.factor_nnz = _last_factor[1:]
-        else:
-            _last_factor = None   # its memory back before the new factor's peak
-            import scipy.sparse.linalg as sla
-            k = linear_stiffness(X, state.offsets, state.indices, state.g, state.gsum, state.w0, state.volume,
-                                 state.G, state.K, state.hg_k)
-            # single precision: half the factor's memory and solve time, responses within 2e-6 of double's
-            self.lu = sla.splu(k[self.free_dofs][:, self.free_dofs].astype(np.float32).tocsc(),
-                               permc_spec='MMD_AT_PLUS_A')
-            self.factor_nnz = int(self.lu.L.nnz + self.lu.U.nnz)
-            _last_factor = (key, self.lu, self.factor_nnz)
-        self.factor_seconds = time.perf_counter() - t0
+        #: the responses solved before, on disk
+        self.disk = ResponseStore(key, self.n)
+        #: the factoring process is the previous organ's (same stiffness), not started for this one
+        self.reused = _last_factor is not None and _last_factor.key == key
+        if not self.reused:
+            if _last_factor is not None:
+                _last_factor.close()   # its memory back before the new factor's peak
+            _last_factor = FactorProcess(key, organ_arrays(X, fixed, state, self.free_dofs, self.disk.folder))
+        #: builds, factors and solves in a process of its own at the first response not on disk
+        self.factor = _last_factor
+        if background and not self.factor.started and len(self.disk) == 0:
+            # never touched before: its first touch will need the factor, so it starts now
+            self.factor.start_soon()
         #: row of ``store`` holding particle i's response (-1: none yet); a particle within
         #: ``share`` of a solved one points at that one's row
         self.slot = np.full(self.n, -1, dtype=np.int32)
@@ -192,13 +194,10 @@ class OrganCompliance:
         #: the last exception a background solve raised (None: none did)
         self.failure: Exception | None = None
 
-    def _solve(self, c: int) -> np.ndarray:
-        rhs = np.zeros((3 * self.n, 3), dtype=np.float32)
-        rhs[3 * c:3 * c + 3] = np.eye(3)
-        u = np.zeros((3 * self.n, 3), dtype=np.float32)
-        with _solve_lock:
-            u[self.free_dofs] = self.lu.solve(rhs[self.free_dofs])
-        return u.reshape(self.n, 3, 3)
+    def _solve(self, c: int, abort: np.ndarray | None = None) -> np.ndarray | None:
+        """``c``'s response from disk, else from the factoring process (None: ``abort`` was set)."""
+        u = self.disk.load(c)
+        return u if u is not None else self.factor.solve(c, abort)
 
     def _share(self, c: int) -> bool:
         """Point ``c`` at a solved response within ``share`` of it, if there is one."""
@@ -220,22 +219,25 @@ class OrganCompliance:
         self.solved = np.append(self.solved, c)
         self.n_columns += 1
 
-    def column(self, c: int) -> np.ndarray:
+    def column(self, c: int, abort: np.ndarray | None = None) -> np.ndarray | None:
         """(N, 3, 3) displacement [m/N] of every particle (axis 1) under a unit force along each
         axis (axis 2) on particle ``c`` (or on a particle within ``share`` of it whose response
-        was solved before); zero if ``c`` is held. Solves it here if need be, in either mode."""
+        was solved before); zero if ``c`` is held. Waits for it if need be, in either mode, until
+        ``abort[0]`` is set (then None)."""
         with self._publish:
             if self.slot[c] >= 0 or self._share(c):
                 return self.store[self.slot[c]]
-        u = self._solve(c)
+        u = self._solve(c, abort)
+        if u is None:
+            return None
         with self._publish:
             if self.slot[c] < 0:   # the worker may have solved it meanwhile
                 self._keep(c, u)
             return self.store[self.slot[c]]
 
     def _request(self, c: int) -> None:
-        """Queue ``c``'s response for the worker, started by the first request: from the stepping
-        thread, whose priority it inherits (sim_node's runs nicer than the one answering poses)."""
+        """Queue ``c``'s response for the worker, started by the first request (it waits on the
+        disk and the factoring process, holding the interpreter only to read a response)."""
         if c not in self._pending:
             self._pending.add(c)
             self._queue.put(c)
@@ -245,10 +247,6 @@ class OrganCompliance:
                 _working.add(self)
 
     def _work(self) -> None:
-        try:   # below the stepping thread: it may hold the interpreter while this one solves
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WORKER_NICE)
-        except (AttributeError, OSError):
-            pass
         while True:
             c = self._queue.get()
             if c < 0:
@@ -276,9 +274,9 @@ class OrganCompliance:
         return True
 
     def close(self, timeout: float = 0.0) -> bool:
-        """Stop the worker after the response it is solving, waiting up to ``timeout`` [s] for it;
-        no worker starts after this. False if it is still solving: a process must not finalise
-        its interpreter under a thread in a native solve (stdout's flush then failed, exit 120)."""
+        """Stop the worker after the response it is waiting for, waiting up to ``timeout`` [s] for
+        it; no worker starts after this. False if it is still waiting. The factoring process is
+        kept for a solver on the same organ (closed with the next organ's or at exit)."""
         with self._publish:
             self._closed = True
             worker = self._worker
@@ -298,9 +296,8 @@ class OrganCompliance:
         growing over ``READY_RAMP`` from the first one ready."""
         if not self.background:
             for c in at.tolist():
-                if self.abort[0] != 0:
+                if self.abort[0] != 0 or self.column(c, self.abort) is None:
                     return False
-                self.column(c)
             organ_place(x, X, idx, at, weights / float(np.sum(weights)), self.slot, self.store, load)
             return True
         with self._publish:

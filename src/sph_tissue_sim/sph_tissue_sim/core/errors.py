@@ -11,3 +11,7 @@ class ConfigError(SimError, ValueError):
 
 class ModelError(SimError):
     """A tissue model cannot be built or loaded (empty model, unreadable mesh, bad particle count)."""
+
+
+class OrganFactorError(SimError):
+    """The process that factors the organ's stiffness failed or ended before it answered."""

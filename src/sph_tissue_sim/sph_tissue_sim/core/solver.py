@@ -156,7 +156,7 @@ class SolverConfig:
                                'times the far field\'s response to the contact force (0: held still, the '
                                'paper)', (0.0, 2.0))
     far_field_model: str = setting('auto', 'auto (organ for tlsph up to ORGAN_MAX_FREE free particles, else '
-                                   'half_space) | organ (the organ\'s own linear response, factored at start) '
+                                   'half_space) | organ (the organ\'s own linear response, factored when first needed) '
                                    '| half_space (Boussinesq)', FAR_FIELD_MODELS)
     far_field_background: bool = setting(False, 'organ: solve responses on a worker thread, so a touch never '
                                          'waits (not repeatable bit for bit; sim_node: unless lockstep)',
@@ -393,8 +393,6 @@ class Solver:
         #: the organ's compliance for local mode's far field (None: the half-space's)
         self.close()
         self.organ = None
-        #: how long its factorisation took [s]
-        self.organ_factor_s = 0.0
         n_free = int(np.count_nonzero(~self.fixed))
         organ = cfg.far_field_model == 'organ' or (cfg.far_field_model == 'auto' and cfg.scheme == 'tlsph'
                                                     and n_free <= ORGAN_MAX_FREE)
@@ -404,11 +402,9 @@ class Solver:
                     f'far_field_model organ factors the whole model\'s stiffness; {n_free} free particles '
                     f'are more than {ORGAN_MAX_FREE} (3276 free: 5 s, 0.8 GB, 45 ms per response; 11149: '
                     f'66 s, 4.6 GB, 0.3 s per response): use far_field_model half_space')
-            t0 = time.perf_counter()
             self.organ = OrganCompliance(self.X, self.fixed, self.scheme.state(None, None, 0),
                                          ORGAN_SHARE * self.model.spacing, self.abort,
                                          background=cfg.far_field_background)
-            self.organ_factor_s = time.perf_counter() - t0
         if self.backward is not None:
             self.backward.set_material(material)
         c = self.scheme.wave_speed(material, self.mass)
