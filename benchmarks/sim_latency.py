@@ -99,37 +99,40 @@ def run(args) -> dict:
         src = Path(args.node_src).resolve() / 'src'
         env['PYTHONPATH'] = os.pathsep.join([str(src / 'sph_tissue_sim'), str(src / 'tissue_common'),
                                              env.get('PYTHONPATH', '')])
+    # the probe is up before the node starts: discovery runs while it loads
+    rclpy.init()
+    node = rclpy.create_node('sim_latency_probe')
+    executor = EventsExecutor()
+    executor.add_node(node)
+    pub = node.create_publisher(PoseStamped, 'omni/pose', io_qos)
+
+    def on_wrench(msg: WrenchStamped) -> None:
+        now = time.monotonic_ns()
+        st = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        k = (st - stamp0) // period_ns
+        if 0 <= k < n_total and recv_ns[k] == 0:
+            recv_ns[k] = now
+            f = msg.wrench.force
+            force[k] = (f.x, f.y, f.z)
+
+    def on_metrics(msg: SimMetrics) -> None:
+        step_wall.append(msg.step_wall_time)
+
+    sub = node.create_subscription(WrenchStamped, 'omni/force_feedback', on_wrench,
+                                   QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+                                              reliability=io_qos.reliability))
+    msub = None
+    if args.metrics:  # another 1 kHz stream into this process: it delays the wrench callbacks
+        msub = node.create_subscription(SimMetrics, 'tissue/metrics', on_metrics,
+                                        QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+                                                   reliability=ReliabilityPolicy.RELIABLE))
+    launched_ns = time.monotonic_ns()
     with harness.NodeProcess('sph_tissue_sim', 'sim_node', params=params, command=peer,
                              env=env) as sim:
         m = None if args.peer else sim.wait_for_output(r'numba warm-up .*: ([0-9.]+) s', 600)
         sim.wait_for_output(r'ready:', 60)
+        ready_s = (time.monotonic_ns() - launched_ns) * 1e-9
         ready_line = [ln for ln in sim.output().splitlines() if 'ready:' in ln][-1]
-        rclpy.init()
-        node = rclpy.create_node('sim_latency_probe')
-        executor = EventsExecutor()
-        executor.add_node(node)
-        pub = node.create_publisher(PoseStamped, 'omni/pose', io_qos)
-
-        def on_wrench(msg: WrenchStamped) -> None:
-            now = time.monotonic_ns()
-            st = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-            k = (st - stamp0) // period_ns
-            if 0 <= k < n_total and recv_ns[k] == 0:
-                recv_ns[k] = now
-                f = msg.wrench.force
-                force[k] = (f.x, f.y, f.z)
-
-        def on_metrics(msg: SimMetrics) -> None:
-            step_wall.append(msg.step_wall_time)
-
-        sub = node.create_subscription(WrenchStamped, 'omni/force_feedback', on_wrench,
-                                       QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
-                                                  reliability=io_qos.reliability))
-        msub = None
-        if args.metrics:  # another 1 kHz stream into this process: it delays the wrench callbacks
-            msub = node.create_subscription(SimMetrics, 'tissue/metrics', on_metrics,
-                                            QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
-                                                       reliability=ReliabilityPolicy.RELIABLE))
         deadline = time.monotonic() + 30
         while (pub.get_subscription_count() < 1 or sub.get_publisher_count() < 1
                or (msub is not None and msub.get_publisher_count() < 1)):
@@ -188,6 +191,9 @@ def run(args) -> dict:
         'particles': _particles(ready_line), 'scheme': args.scheme, 'mode': args.mode,
         'timing': args.timing, 'haptic_mode': args.haptic_mode, 'rate_hz': args.rate, 'duration_s': args.duration,
         'compile_s': float(m.group(1)) if m else math.nan,
+        'launch_to_ready_s': ready_s,
+        'launch_to_first_reply_s': ((recv_ns[recv_ns > 0].min() - launched_ns) * 1e-9 if np.any(recv_ns > 0)
+                                    else math.nan),
         'poses_sent': int(n_total - skip),
         'send_rate_hz': (n_total - skip - 1) / span if span > 0 else math.nan,
         'replies': int(got.sum()),
@@ -285,6 +291,7 @@ def main(argv=None) -> int:
                           f"{s['timing']}, haptic {s['haptic_mode']}, cloud {args.particles_rate:g} Hz, step thread "
                           f"{args.step_thread}"),
         ('numba warm-up + first step', f"{s['compile_s']:.2f} s"),
+        ('launch -> ready / first reply', f"{s['launch_to_ready_s']:.2f} / {s['launch_to_first_reply_s']:.2f} s"),
         ('poses sent / replies', f"{s['poses_sent']} / {s['replies']}"),
         ('pose rate sent', f"{s['send_rate_hz']:.1f} Hz (target {args.rate:g})"),
         ('reply rate', f"{s['reply_rate_hz']:.1f} Hz"),
