@@ -10,6 +10,7 @@ from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import TissueModel, make_block
 from sph_tissue_sim.core.solver import (BALL_CONTACT, MODES, RELAX_DISP_TOL, SCHEMES, InvalidInput, Solver,
                                         SolverConfig, StepResult, warmup)
+from sph_tissue_sim.core.tlsph import TlsphPool
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 
@@ -168,6 +169,8 @@ def test_threaded_tlsph_step_is_bit_identical_to_the_serial_step(mode):
     for par in (0, 1):
         solver = Solver(_block(), LIVER, SolverConfig(mode=mode, parallel_min_particles=par))
         assert (solver.par_min == 1) == (par == 1)
+        # threads off: a state type whose frame compiles no parallel pass
+        assert isinstance(solver.scheme.state(None, None, 0), TlsphPool) == (par == 1)
         res = press(solver, 0.004, frames=120)
         runs.append((res.force.copy(), solver.positions.copy(), solver.velocities.copy()))
     for a, b in zip(*runs):

@@ -91,20 +91,28 @@ class Operator(NamedTuple):
     par_min: int
 
 
-class BackwardEuler(NamedTuple):
-    """Symplectic Euler with the dashpots (if ``dashpots``) and the recorded contacts (``contact``)
-    backward in time, and with ``stiffness`` the elastic forces too; sub-step ``dt`` [s].
+class NoOperator(NamedTuple):
+    """The matrix of a solve of the pushing contacts alone: nothing besides the identity and the
+    contacts. Its own type, so that the frame compiled for it holds no dashpot or elastic pass
+    (they took about 25 s of the first start's compile)."""
 
-    ``op`` the matrix (:class:`Operator`); ``u, r, p, q, w, v0`` (N, 3) scratch vectors of the
+    dt: float
+
+
+class BackwardEuler(NamedTuple):
+    """Symplectic Euler with the dashpots (an :class:`Operator`) and the recorded contacts
+    (``contact``) backward in time, and with ``stiffness`` the elastic forces too; sub-step ``dt`` [s].
+
+    ``op`` the matrix (:class:`Operator`, or :class:`NoOperator` for the contacts alone);
+    ``u, r, p, q, w, v0`` (N, 3) scratch vectors of the
     solve (``w`` stays zero off the solved set); ``stats`` (2,) accumulates CG iterations and
     solves; ``contact`` the pushing contacts solved with the dashpots
     (:class:`~.implicit_contact.ContactTerms`; none recorded with explicit contact).
     """
 
     dt: float
-    dashpots: bool
     stiffness: bool
-    op: Operator
+    op: tuple
     tol: float
     max_iter: int
     u: np.ndarray
@@ -382,6 +390,43 @@ def _bonds_at(s, x, vel, sets, scale, out):
         out[i, 2] += scale * f2
 
 
+def apply_operator(op, x, vel, sets, scale, base, out):
+    """:func:`_operator` for an :class:`Operator`; nothing for a :class:`NoOperator`."""
+
+
+@overload(apply_operator)
+def _apply_operator(op, x, vel, sets, scale, base, out):
+    if is_state(op, Operator):
+        def impl(op, x, vel, sets, scale, base, out):
+            _operator(op, x, vel, sets, scale, base, out)
+        return impl
+    if is_state(op, NoOperator):
+        def nothing(op, x, vel, sets, scale, base, out):
+            pass
+        return nothing
+    return None
+
+
+def stiff_start(op, x, vel, sets, scale, r):
+    """With the elastic forces (``op.stiffness``): the spring's tangents (:func:`spring_tangents`)
+    and the bonds' dashpots at ``vel`` into ``r`` (:func:`_bonds_at`); nothing for a :class:`NoOperator`."""
+
+
+@overload(stiff_start)
+def _stiff_start(op, x, vel, sets, scale, r):
+    if is_state(op, Operator):
+        def impl(op, x, vel, sets, scale, r):
+            if op.stiffness:
+                spring_tangents(op, sets)
+                _bonds_at(op, x, vel, sets, scale, r)
+        return impl
+    if is_state(op, NoOperator):
+        def nothing(op, x, vel, sets, scale, r):
+            pass
+        return nothing
+    return None
+
+
 @njit(cache=True, fastmath=True)
 def _dot(a, b, sph, n):
     t = 0.0
@@ -394,7 +439,7 @@ def _dot(a, b, sph, n):
 @njit(cache=True)
 def backward_euler_step(s, body, motion, sets):
     """One sub-step: ``v* = v + dt a``, then ``(I + dt/m C + contacts) v' = v* + ...`` (the
-    dashpots if ``s.dashpots``, the contact terms of :mod:`.implicit_contact` for what the contact
+    dashpots with an :class:`Operator`, the contact terms of :mod:`.implicit_contact` for what the contact
     kernels recorded) by conjugate gradients from ``v*`` until the residual is ``s.tol`` times
     ``|v*|`` (or the first residual; at most ``s.max_iter`` iterations), the reaction corrected,
     ``x += dt v'``. With ``s.stiffness`` the matrix also holds ``dt^2/m K`` (the spring's projected
@@ -430,11 +475,9 @@ def backward_euler_step(s, body, motion, sets):
                 u[i, a] = v[i, a]
     if touched:
         contact_residual(c, body.inv_mass, dt, v, w, r)
-    if s.stiffness:
-        spring_tangents(s.op, sets)
-        # the bonds' dashpots are in a (at the velocities v of the sub-step's start); the solve's
-        # stand-in for their Jacobian acts on v' - v
-        _bonds_at(s.op, x, v, sets, -scale, r)
+    # stiff: the bonds' dashpots are in a (at the velocities v of the sub-step's start); the
+    # solve's stand-in for their Jacobian acts on v' - v
+    stiff_start(s.op, x, v, sets, -scale, r)
     # from the guess u (v*, or v when stiff): the operator's share of r = b - (I + dt/m C) u with
     # b = v* - dt/m C_B v_B is, by linearity, dt/m f(u on the solved particles, the held
     # velocities elsewhere)
@@ -444,8 +487,7 @@ def backward_euler_step(s, body, motion, sets):
             w[i, a] = 0.0
             v0[i, a] = v[i, a]
             v[i, a] = u[i, a]
-    if s.dashpots:
-        _operator(s.op, x, v, sets, -scale, r, r)
+    apply_operator(s.op, x, v, sets, -scale, r, r)
     unorm = math.sqrt(_dot(u, u, sph, n))
     for k in range(n):
         i = sph[k]
@@ -464,8 +506,7 @@ def backward_euler_step(s, body, motion, sets):
             for a in range(3):
                 w[i, a] = p[i, a]
                 q[i, a] = p[i, a]
-        if s.dashpots:
-            _operator(s.op, x, w, sets, scale, p, q)     # q = (I + dt/m C) p
+        apply_operator(s.op, x, w, sets, scale, p, q)     # q = (I + dt/m C) p
         if touched:
             contact_apply(c, body.inv_mass, dt, w, q)
         pq = _dot(p, q, sph, n)
@@ -517,27 +558,21 @@ def _advance_backward_euler(integrator, body, motion, sets):
 class BackwardSolve:
     """The solve's buffers for one solver (built once; :meth:`integrator` per frame).
 
-    ``scheme``: the ``tlsph`` scheme whose dashpots are solved, or None (the contacts alone; the
-    dashpot arrays are then placeholders the step never reads). ``stiffness``: its elastic forces
-    too (the implicit integrator; needs ``scheme``).
+    ``scheme``: the ``tlsph`` scheme whose dashpots and elastic forces are solved (the implicit
+    integrator), or None (the pushing contacts alone: a :class:`NoOperator`).
     """
 
-    def __init__(self, scheme, n: int, tol: float, max_iter: int, stiffness: bool = False) -> None:
-        if stiffness and scheme is None:
-            raise ValueError('the elastic forces need the scheme')
+    def __init__(self, scheme, n: int, tol: float, max_iter: int) -> None:
         self.scheme = scheme
-        self.stiffness = stiffness
+        self.stiffness = scheme is not None
         self.tol, self.max_iter = float(tol), int(max_iter)
-        self.A = np.zeros((n, 3, 3))
-        m = n if stiffness else 1
-        self.T = np.zeros((m, 9, 9))
-        self.projected = np.zeros(m, dtype=np.int8)
+        if self.stiffness:
+            self.A = np.zeros((n, 3, 3))
+            self.T = np.zeros((n, 9, 9))
+            self.projected = np.zeros(n, dtype=np.int8)
         self.u, self.r, self.p, self.q, self.w, self.v0 = (np.zeros((n, 3)) for _ in range(6))
         self.stats = np.zeros(2)
         self.eta_s = self.eta_v = 0.0
-        if scheme is None:
-            self._none = (np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
-                          np.zeros((0, 3)), np.zeros((n, 3)), np.zeros((n, 3, 3)))
 
     def set_material(self, material) -> None:
         self.eta_s, self.eta_v = material.eta_shear, material.eta_bulk
@@ -549,20 +584,14 @@ class BackwardSolve:
             contact = no_contact_terms()
         sc = self.scheme
         if sc is None:
-            offsets, indices, g, gr, gsum, F = self._none
-            volume = 0.0
-            G = K = hg_k = hg_c = 0.0
-            w0 = g[:, 0]
-            par_min = len(F) + 1
+            op = NoOperator(dt)
         else:
-            offsets, indices, g, gr, gsum, F, volume = sc.offsets, sc.indices, sc.g, sc.gr, sc.gsum, sc.F, sc.volume
             st = sc.state(None, None, 0)
-            G, K, w0, hg_k, hg_c = st.G, st.K, st.w0, st.hg_k, st.hg_c
-            par_min = st.par_min
-        op = Operator(dt, offsets, indices, g, gr, gsum, F, self.A, volume, self.eta_s, self.eta_v,
-                      self.stiffness, G, K, w0, hg_k, hg_c, self.T, self.projected, par_min)
-        return BackwardEuler(dt, sc is not None, self.stiffness, op, self.tol, self.max_iter, self.u, self.r,
-                             self.p, self.q, self.w, self.v0, self.stats, contact)
+            op = Operator(dt, sc.offsets, sc.indices, sc.g, sc.gr, sc.gsum, sc.F, self.A, sc.volume, self.eta_s,
+                          self.eta_v, True, st.G, st.K, st.w0, st.hg_k, st.hg_c, self.T, self.projected,
+                          st.par_min)
+        return BackwardEuler(dt, self.stiffness, op, self.tol, self.max_iter, self.u, self.r, self.p, self.q,
+                             self.w, self.v0, self.stats, contact)
 
     def mean_iterations(self) -> float:
         """CG iterations per sub-step since the last :meth:`reset_stats`."""

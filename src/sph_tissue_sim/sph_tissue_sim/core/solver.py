@@ -281,7 +281,7 @@ class Solver:
         contacts = stiffness or cfg.contact_integration == 'implicit'
         self.backward = (BackwardSolve(self.scheme if stiffness else None, self.n,
                                        cfg.implicit_tol if stiffness else CONTACT_TOL,
-                                       IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER, stiffness)
+                                       IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER)
                          if contacts else None)
         n_samples = len(self.sample_arrays[4]) if self.sample_arrays is not None else 0
         self.touches = make_touches(self.n + n_samples) if contacts else no_touches()

@@ -29,7 +29,7 @@ from numba import njit
 
 from .contact import touch_normal
 from .state import Body, Motion, Sets
-from .tlsph import Tlsph, tlsph_pass, tlsph_pass_parallel
+from .tlsph import Tlsph, TlsphPool, tlsph_pass, tlsph_pass_parallel
 
 #: the largest ``c dt`` allowed: 80 % of symplectic Euler's limit for a dashpot (2), which leaves
 #: room for the springs acting in the same modes (at rest the bounds give 1.24-1.56 on the liver)
@@ -142,7 +142,7 @@ class DashpotRate:
             idx = sets.sph[:sets.n_sph]
             self._u[idx] = self._rng.standard_normal((len(idx), 3))
             _load(self._u, self._v, sets.sph, sets.n_sph)
-        if sets.n_stress >= self.state.par_min:
+        if isinstance(self.state, TlsphPool) and sets.n_stress >= self.state.par_min:
             tlsph_pass_parallel(self.state, body, self._motion(x), sets)
         else:
             tlsph_pass(self.state, body, self._motion(x), sets)

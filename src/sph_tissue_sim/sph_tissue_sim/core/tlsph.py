@@ -299,18 +299,30 @@ def _pair_arrays(X, offsets, indices, h, volume):
     return g, np.ascontiguousarray(g[rev]), gsum, w0
 
 
+class TlsphPool(Tlsph):
+    """A :class:`Tlsph` whose passes over at least ``par_min`` stressed particles run on numba's
+    thread pool. Its own type, so that the frame of a plain :class:`Tlsph` (threads off, the
+    default) holds no parallel pass (about 7 s of a first start's compile)."""
+
+    __slots__ = ()
+
+
 @overload(internal_forces)
 def _tlsph_forces(scheme, body, motion, sets):
-    if not is_state(scheme, Tlsph):
-        return None
-
-    def impl(scheme, body, motion, sets):
-        if sets.n_stress >= scheme.par_min:
-            tlsph_pass_parallel(scheme, body, motion, sets)
-        else:
+    if is_state(scheme, TlsphPool):
+        def pooled(scheme, body, motion, sets):
+            if sets.n_stress >= scheme.par_min:
+                tlsph_pass_parallel(scheme, body, motion, sets)
+            else:
+                tlsph_pass(scheme, body, motion, sets)
+            return STATUS_OK
+        return pooled
+    if is_state(scheme, Tlsph):
+        def serial(scheme, body, motion, sets):
             tlsph_pass(scheme, body, motion, sets)
-        return STATUS_OK
-    return impl
+            return STATUS_OK
+        return serial
+    return None
 
 
 class TlsphScheme(FixedStateScheme):
@@ -353,9 +365,10 @@ class TlsphScheme(FixedStateScheme):
         hg_c = self.hourglass * eta_e * vol2
         self.material = material
         on = 1.0 if self.explicit_dashpots else 0.0
-        self._state = Tlsph(self.offsets, self.indices, self.g, self.gr, self.gsum, self.w0,
-                            self.F, self.Fd, self.A, self.H, self.volume, material.G, material.K,
-                            on * eta_s, on * eta_b, hg_k, hg_c, self.par_min)
+        kind = TlsphPool if self.par_min <= len(self.F) else Tlsph
+        self._state = kind(self.offsets, self.indices, self.g, self.gr, self.gsum, self.w0,
+                           self.F, self.Fd, self.A, self.H, self.volume, material.G, material.K,
+                           on * eta_s, on * eta_b, hg_k, hg_c, self.par_min)
 
     def wave_speed(self, material: Material, mass: float) -> float:
         return material.wave_speed
