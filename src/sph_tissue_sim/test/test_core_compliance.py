@@ -2,6 +2,7 @@
 
 import dataclasses
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -463,3 +464,25 @@ def test_the_factoring_process_ends_when_its_parent_is_killed():
         pytest.fail(f'the factoring process {child} outlived its killed parent')
     finally:
         parent.kill()
+
+
+def _ignores_sigint(pid: int) -> bool:
+    with open(f'/proc/{pid}/status') as f:
+        mask = next(int(line.split()[1], 16) for line in f if line.startswith('SigIgn:'))
+    return bool(mask & (1 << (signal.SIGINT - 1)))
+
+
+def test_a_ctrl_c_to_the_process_group_leaves_the_factoring_process_to_its_parent():
+    """A terminal's Ctrl-C reaches every process of the group: the child must not die with a
+    traceback mid-factor; its parent ends it (at exit, or when the parent is gone)."""
+    organ = _organ()
+    c = _top(organ)
+    organ.factor.start_soon()
+    deadline = time.monotonic() + 30.0
+    while not organ.factor.started and time.monotonic() < deadline:
+        time.sleep(0.01)
+    pid = organ.factor._proc.pid
+    while not _ignores_sigint(pid) and time.monotonic() < deadline:   # past its imports
+        time.sleep(0.01)
+    os.kill(pid, signal.SIGINT)
+    assert np.isfinite(organ.column(c)).all()

@@ -17,6 +17,7 @@ each index, or ``('error', text)`` before it exits.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -177,6 +178,8 @@ def main() -> int:
     """The child: build, factor, then answer indices until the pipe closes."""
     out, source = Connection(os.dup(1)), Connection(0)
     os.dup2(2, 1)   # a library's print must not corrupt the pipe
+    # a Ctrl-C reaches the whole process group: the parent decides when this one ends
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with_parent()
     try:
         os.nice(CHILD_NICE)
