@@ -34,6 +34,8 @@ from tissue_testing import harness
 from tissue_testing import system_graph as graph
 
 ROOT = Path(__file__).resolve().parent.parent
+#: [s] how often the demo says what it is waiting for
+WAIT_TELL = 5.0
 
 
 def _fmt_line(mon: graph.Monitor, t_prev: tuple, step_ms: float | None) -> tuple[str, tuple]:
@@ -61,6 +63,21 @@ def feel_line(q: dict) -> str:
     return (f'force sent: {steady}; {q["reversals"]} one-frame reversals above '
             f'{feel.REVERSAL * 1e3:g} mN; E_in min {q["E_in_min_uJ"]:.2f} uJ; '
             + ('targets met' if not missed else 'missed: ' + ', '.join(missed)))
+
+
+def _wait_telling(proc, pattern: str, timeout: float, t_start: float):
+    """``proc.wait_for_output(pattern)``, printing every few seconds how long it has waited and
+    the node's last line (a first start compiles for tens of seconds)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return proc.wait_for_output(pattern, timeout=min(WAIT_TELL, max(0.0, deadline - time.monotonic())))
+        except AssertionError:
+            if not proc.alive() or time.monotonic() >= deadline:
+                raise
+        lines = proc.output().strip().splitlines()
+        last = lines[-1].strip() if lines else '(nothing yet)'
+        print(f'demo: waiting for {proc.name}, {time.monotonic() - t_start:.0f} s: {last[-160:]}', flush=True)
 
 
 def main(argv=None) -> int:
@@ -144,8 +161,8 @@ def main(argv=None) -> int:
         sim.start()
         print('demo: starting viz_node and sim_node (the first start compiles the SPH kernels)',
               flush=True)
-        viz.wait_for_output(graph.VIZ_READY, timeout=60)
-        ready = sim.wait_for_output(graph.SIM_READY + r'(model [^\n]*)', timeout=240)
+        _wait_telling(viz, graph.VIZ_READY, 60, t_start)
+        ready = _wait_telling(sim, graph.SIM_READY + r'(model [^\n]*)', 240, t_start)
         print(f'demo: sim_node {ready.group(1)}', flush=True)
         print(f'demo: nodes ready after {time.monotonic() - t_start:.1f} s; replaying', flush=True)
         with graph.Monitor(env, reliable=args.mode == 'lockstep') as mon:
@@ -204,7 +221,7 @@ def main(argv=None) -> int:
         print('demo: interrupted', file=sys.stderr)
         code = 130
     finally:
-        graph.stop_all([drv, sim, viz], timeout=60)
+        graph.stop_all(procs, timeout=60)
     import re
 
     totals = re.search(r'totals: ([^\n]*)', sim.output())

@@ -152,6 +152,8 @@ class SimNode(Node):
         config = build_config(p)
         t0 = time.perf_counter()
         if p['warmup']:
+            log.info('numba warm-up: the SPH kernels load from numba\'s cache, or compile (about 30 s '
+                     'on 2 cores) at the first start after a change of the core')
             try:
                 warmup(config.scheme, config.contact_integration, config.integrator)
             except SimError as exc:  # the probe step below still compiles what this model needs
