@@ -76,8 +76,8 @@ def _wait_telling(proc, pattern: str, timeout: float, t_start: float):
             if not proc.alive() or time.monotonic() >= deadline:
                 raise
         lines = proc.output().strip().splitlines()
-        last = lines[-1].strip() if lines else '(nothing yet)'
-        print(f'demo: waiting for {proc.name}, {time.monotonic() - t_start:.0f} s: {last[-160:]}', flush=True)
+        last = lines[-1].strip().split(']: ', 1)[-1] if lines else '(nothing yet)'   # without the log prefix
+        print(f'demo: waiting for {proc.name}, {time.monotonic() - t_start:.0f} s: {last[:160]}', flush=True)
 
 
 def main(argv=None) -> int:
