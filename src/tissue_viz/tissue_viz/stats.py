@@ -187,6 +187,10 @@ class DecimatingRecorder:
     thinned history for the report instead of its first or last minutes only.
     """
 
+    #: rows per preallocated block: a row goes straight into an array, so a report of a long run
+    #: needs no conversion of hundreds of thousands of tuples (nor an exit that frees them)
+    BLOCK = 4096
+
     def __init__(self, columns: Sequence[str], max_rows: int) -> None:
         if max_rows < 2:
             raise VizConfigError(f'max_rows must be >= 2, got {max_rows}')
@@ -194,29 +198,50 @@ class DecimatingRecorder:
         self.max_rows = int(max_rows)
         self.stride = 1
         self._seen = 0
-        self._rows: list[tuple[float, ...]] = []
+        self._blocks: list[np.ndarray] = []
+        self._n = 0
+        # the rows as one array, until the next row is kept: a report asks for it several times
+        self._array: np.ndarray | None = None
 
     def append(self, row: Iterable[float]) -> None:
-        row = tuple(float(x) for x in row)
+        row = tuple(row)
         if len(row) != len(self.columns):
             raise ValueError(f'row has {len(row)} values, table has {len(self.columns)} columns')
         keep = self._seen % self.stride == 0
         self._seen += 1
         if not keep:
             return
-        self._rows.append(row)
-        if len(self._rows) >= self.max_rows:
-            self._rows = self._rows[::2]
+        at = self._n % self.BLOCK
+        if at == 0:
+            self._blocks.append(np.empty((self.BLOCK, len(self.columns))))
+        self._blocks[-1][at] = row
+        self._n += 1
+        self._array = None
+        if self._n >= self.max_rows:
+            self._refill(self._joined()[::2])
             self.stride *= 2
 
+    def _joined(self) -> np.ndarray:
+        if not self._blocks:
+            return np.empty((0, len(self.columns)))
+        return np.concatenate(self._blocks)[:self._n]
+
+    def _refill(self, rows: np.ndarray) -> None:
+        self._n = len(rows)
+        self._blocks = [np.array(rows[a:a + self.BLOCK]) for a in range(0, self._n, self.BLOCK)]
+        if self._blocks and len(self._blocks[-1]) < self.BLOCK:
+            last = np.empty((self.BLOCK, len(self.columns)))
+            last[:len(self._blocks[-1])] = self._blocks[-1]
+            self._blocks[-1] = last
+
     def __len__(self) -> int:
-        return len(self._rows)
+        return self._n
 
     def array(self) -> np.ndarray:
-        """Rows as a (n, n_columns) float array."""
-        if not self._rows:
-            return np.empty((0, len(self.columns)))
-        return np.asarray(self._rows, dtype=float)
+        """Rows as a (n, n_columns) float array (a copy: the caller may change it)."""
+        if self._array is None:
+            self._array = self._joined()
+        return self._array.copy()
 
     def as_dict(self) -> dict[str, np.ndarray]:
         arr = self.array()
@@ -407,6 +432,7 @@ class VizStats:
         # (tissue_common.feel: frame to frame, so never thinned; the first max_report_rows)
         self.felt: list[tuple[float, ...]] = []
         self.max_felt = int(max_report_rows)
+        self._feel_rows: tuple[int, np.ndarray] | None = None
         self.latency_table = DecimatingRecorder(self.LATENCY_COLUMNS, max_report_rows)
         self.rate_table = DecimatingRecorder(self.RATE_COLUMNS, max_report_rows)
 
@@ -631,9 +657,13 @@ class VizStats:
 
     def feel_table(self) -> dict[str, np.ndarray]:
         """The answered poses (``FEEL_COLUMNS``, stamp [s] relative to the first) in stamp order."""
-        rows = np.array(sorted(self.felt)).reshape(-1, len(self.FEEL_COLUMNS))
-        if len(rows):
-            rows[:, 0] -= rows[0, 0]
+        # ``felt`` only grows: its length tells whether the sorted table is still current
+        if self._feel_rows is None or self._feel_rows[0] != len(self.felt):
+            rows = np.array(sorted(self.felt)).reshape(-1, len(self.FEEL_COLUMNS))
+            if len(rows):
+                rows[:, 0] -= rows[0, 0]
+            self._feel_rows = (len(self.felt), rows)
+        rows = self._feel_rows[1].copy()
         return {c: rows[:, i] for i, c in enumerate(self.FEEL_COLUMNS)}
 
     def feel_summary(self) -> dict[str, float]:
