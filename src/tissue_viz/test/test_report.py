@@ -182,7 +182,7 @@ def test_a_direct_run_gets_an_e_in_placeholder_and_no_haptic_summary_rows(tmp_pa
                        ReportData.from_stats(_press_run(0.5, multirate=False), 0.5))
     summary = _assert_complete_with_drawn_plots(out)
     # every other plot has its data (no clouds in this run: the tissue images say so too)
-    assert said == ['multirate haptic rendering'] + ['tissue/particles cloud'] * 2
+    assert sorted(said) == ['multirate haptic rendering'] + ['tissue/particles cloud'] * 2
     md = (out / 'summary.md').read_text()
     assert 'energy_in_min_j' not in summary and 'E_in final' not in md
     # what the hand got is measured from the forces sent, whatever rendered them
@@ -213,7 +213,8 @@ def test_an_old_report_without_the_haptic_columns_still_loads_and_renders(tmp_pa
         assert not any(summary['bad_values'].get(c) for c in haptic), (name, summary['bad_values'])
         md = (tmp_path / name / 'summary.md').read_text()
         assert 'E_in final' not in md and '## Not shown' not in md, name
-    assert said == (['multirate haptic rendering'] + ['tissue/particles cloud'] * 2) * len(runs)
+    assert sorted(said) == sorted((['multirate haptic rendering'] + ['tissue/particles cloud'] * 2)
+                                  * len(runs))
 
 
 def test_csv_series_round_trip_with_the_recorded_values(report):
@@ -266,6 +267,22 @@ def test_plot_thinning_keeps_every_peak_of_a_long_run():
     assert {12_345, 77_777, 50_000} <= set(idx.tolist())
     assert np.all(np.diff(idx) > 0)
     assert _thin(10, force[:10]).tolist() == list(range(10))
+    assert idx[0] == 0 and idx[-1] == len(force) - 1              # the whole time span drawn
+
+
+def test_a_pause_in_a_long_stream_still_breaks_the_line_after_thinning():
+    from tissue_viz.report import _break_gaps, _thin
+
+    t = np.arange(100_000) * 1e-3
+    t[60_000:] += 0.3                                     # the stream paused for 0.3 s
+    force = np.sin(t)
+    out_t, out_f = _break_gaps(t, force, sel=_thin(len(t), force))
+    (gap,) = np.flatnonzero(np.isnan(out_t))
+    assert np.isnan(out_f[gap]) and out_t[gap - 1] < 60.0 < 60.3 <= out_t[gap + 1]
+    # hiccups of a few periods stay joined
+    hiccup = np.arange(1000) * 1e-3
+    hiccup[500:] += 5e-3
+    assert not np.isnan(_break_gaps(hiccup, np.sin(hiccup))[0]).any()
 
 
 def test_csv_marks_missing_values_as_empty_cells(tmp_path):
@@ -416,12 +433,12 @@ def test_a_plot_that_fails_is_replaced_by_a_placeholder_named_in_the_summary(tmp
 
 
 def test_without_a_working_matplotlib_every_plot_is_still_a_valid_png(tmp_path, monkeypatch):
-    import tissue_viz.report as report
+    import tissue_viz.figures as figures
 
     def no_matplotlib():
         raise ImportError('matplotlib is broken')
 
-    monkeypatch.setattr(report, '_pyplot', no_matplotlib)
+    monkeypatch.setattr(figures, '_matplotlib', no_matplotlib)
     out = write_report(tmp_path / 'run', ReportData.from_stats(_press_run(0.5), 0.5))
     summary = json.loads((out / 'summary.json').read_text())
     assert set(summary['plot_failures']) == set(PNGS) and summary['failed_files'] == {}
@@ -559,3 +576,62 @@ def test_a_point_cloud_message_layout_is_read_by_its_fields():
         cloud_arrays(fields[3:], rec.tobytes(), 3, 24)
     with pytest.raises(ValueError, match='3 points need 72'):
         cloud_arrays(fields, rec.tobytes()[:50], 3, 24)
+
+
+# -- drawn by two processes ------------------------------------------------------------------------
+def test_forked_jobs_each_run_once_shared_between_the_processes():
+    import os
+    import time
+
+    from tissue_viz import forked
+
+    def job(k):
+        def run():
+            time.sleep(0.05)
+            return {str(k): os.getpid()}
+        return run
+
+    done = forked.run([job(k) for k in range(12)], processes=2)
+    assert sorted(done, key=int) == [str(k) for k in range(12)]
+    assert os.getpid() in done.values() and len(set(done.values())) == 2
+    assert forked.run([job(k) for k in range(3)], processes=1) == {str(k): os.getpid()
+                                                                    for k in range(3)}
+
+
+def test_a_job_whose_process_dies_runs_again_in_the_caller():
+    import os
+    import time
+
+    from tissue_viz import forked
+
+    parent = os.getpid()
+
+    def job(k):
+        def run():
+            time.sleep(0.05)
+            if k == 5 and os.getpid() != parent:
+                os._exit(3)                  # the child dies without a word
+            return {str(k): os.getpid()}
+        return run
+
+    done = forked.run([job(k) for k in range(12)], processes=2)
+    assert sorted(done, key=int) == [str(k) for k in range(12)]
+    assert done['5'] == parent
+
+
+def test_a_report_drawn_by_two_processes_is_the_one_drawn_by_one(tmp_path):
+    data = ReportData.from_stats(_press_run(), 2.0, title='Press test', tissue=_press_clouds())
+    one = write_report(tmp_path / 'one', data, processes=1)
+    two = write_report(tmp_path / 'two', data, processes=2)
+    summaries = [json.loads((out / 'summary.json').read_text()) for out in (one, two)]
+    for summary in summaries:
+        summary.pop('created')
+    assert summaries[0] == summaries[1] and summaries[1]['plot_failures'] == {}
+    md = [(out / 'summary.md').read_text().splitlines() for out in (one, two)]
+    assert [line for line in md[0] if 'written' not in line] == \
+        [line for line in md[1] if 'written' not in line]
+    for name in summaries[1]['files']:
+        if name.endswith(('.csv', '.npz')):
+            assert (one / name).read_bytes() == (two / name).read_bytes(), name
+        elif name.endswith('.png'):
+            assert _ink(one / name) == _ink(two / name), name
