@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import signal
 import time
 
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 from PIL import Image
 
 from tissue_testing import harness
+from tissue_viz.report import ANIMATION, PLOTS, SNAPSHOTS
 
 pytestmark = pytest.mark.ros
 
@@ -574,3 +576,124 @@ def test_an_unwritable_report_folder_is_refused_by_the_service_and_exits_3_at_sh
     assert rc == 3, output                               # the documented code
     assert 'report failed: cannot create report folder' in output, output
     assert 'Traceback' not in output, output
+
+
+# -- a demo-length session: stopped within launch's SIGINT grace -----------------------------------
+#: ``ros2 launch`` sends SIGTERM this long after SIGINT (its sigterm_timeout default)
+LAUNCH_SIGTERM_AFTER = 5.0
+#: the demo's session (bags/long): 63 s of poses, forces and metrics at 1 kHz, clouds at 30 Hz
+DEMO_FRAMES = 63_000
+
+
+def _cloud(k: int, n_clouds: int):
+    """A 3 584-particle block pressed at its top and released over ``n_clouds`` clouds (the liver
+    has 3 670): displacement a bowl under the tool, von Mises proportional to it."""
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    grid = np.stack(np.meshgrid(np.arange(16), np.arange(16), np.arange(14), indexing='ij'), -1)
+    rest = grid.reshape(-1, 3) * 0.004
+    top = np.array([0.03, 0.03, 0.052])
+    depth = 0.006 * math.sin(math.pi * k / (n_clouds - 1))
+    disp = depth * np.exp(-np.sum((rest - top) ** 2, axis=1) / 0.012 ** 2)
+    points = np.column_stack([rest - np.outer(disp, [0.0, 0.0, 1.0]), disp, 3e5 * disp])
+    msg = PointCloud2()
+    msg.header.frame_id = 'tissue'
+    msg.height, msg.width = 1, len(points)
+    msg.fields = [PointField(name=name, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+                  for i, name in enumerate(('x', 'y', 'z', 'displacement', 'von_mises'))]
+    msg.point_step, msg.row_step = 20, 20 * len(points)
+    msg.data = points.astype(np.float32).tobytes()
+    return msg
+
+
+def _stream_a_session(rclpy_node, probe, frames: int, rate: float, clouds: int,
+                      seconds: float) -> None:
+    """Up to ``frames`` poses, their force replies (same stamps) and metrics, 1 ms apart in stamp
+    time, with ``clouds`` clouds among them: published at up to ``rate`` frames per second of wall
+    time but never far ahead of what the node has counted (its queues hold 100 messages per topic),
+    for at most ``seconds``; then waits until the node has counted everything that reached it."""
+    from geometry_msgs.msg import PoseStamped, WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+    pose_pub = rclpy_node.create_publisher(PoseStamped, 'omni/pose', qos)
+    force_pub = rclpy_node.create_publisher(WrenchStamped, 'omni/force_feedback', qos)
+    cloud_pub = rclpy_node.create_publisher(PointCloud2, 'tissue/particles', qos)
+    for endpoint in (probe.pub, pose_pub, force_pub, cloud_pub, probe.diag_sub):
+        harness.wait_for_matching(rclpy_node, endpoint)
+    pose, wrench, metrics = PoseStamped(), WrenchStamped(), _metrics(0)
+    pose.header.frame_id = wrench.header.frame_id = 'omni_base'
+    pose.pose.orientation.w = 1.0
+    metrics.haptic_mode = metrics.HAPTIC_MULTIRATE
+    metrics.solver_rate, metrics.model_age = 400.0, 2.5e-3
+    cloud_every = frames // clouds
+    executor = rclpy_node.executor_for_test
+
+    def counted() -> int:
+        return int(probe.value('omni/pose rate', 'messages') or 0)
+
+    start = time.monotonic()
+    deadline = start + seconds
+    for i in range(frames):
+        if i % 50 == 0:
+            executor.spin_once(timeout_sec=0)
+            while ((time.monotonic() < start + i / rate or i - counted() > 150)
+                   and time.monotonic() < deadline):
+                executor.spin_once(timeout_sec=0.002)
+            if time.monotonic() >= deadline:
+                break
+        sec, nanosec = divmod(1_000_000_000 + i * 1_000_000, 1_000_000_000)
+        for header in (pose.header, wrench.header, metrics.header):
+            header.stamp.sec, header.stamp.nanosec = sec, nanosec
+        z = 0.002 - 0.006 * math.sin(math.pi * i / 7000.0) ** 2      # nine presses
+        force = 400.0 * max(0.0, -z) + 0.002 * math.sin(i)
+        pose.pose.position.z = z
+        wrench.wrench.force.z = metrics.contact_force.z = force
+        metrics.step_wall_time = 2e-3 if i % 50 == 0 else 1e-4 + 1e-4 * (i % 7) / 7
+        metrics.max_displacement = metrics.penetration = 0.5 * max(0.0, -z)
+        metrics.energy_in = 0.5 * force * max(0.0, -z)
+        pose_pub.publish(pose)
+        force_pub.publish(wrench)
+        probe.pub.publish(metrics)
+        if i % cloud_every == 0:
+            cloud = _cloud(i // cloud_every, clouds)
+            cloud.header.stamp = pose.header.stamp
+            cloud_pub.publish(cloud)
+    # everything that arrived is counted once the count stands still for a few diagnostics
+    last = {'count': None, 'since': time.monotonic()}
+
+    def settled():
+        count = counted()
+        if count != last['count']:
+            last.update(count=count, since=time.monotonic())
+        return count > 0 and time.monotonic() - last['since'] > 0.5
+    assert probe.run(0, settled, 30), last
+
+
+def test_sigint_after_a_demo_length_session_exits_with_the_report_before_launch_sends_sigterm(
+        rclpy_node, tmp_path):
+    report = tmp_path / 'report'
+    # the node's count of poses in /diagnostics paces the stream
+    params = dict(FAST, report_on_shutdown=True, report_dir=str(report), diagnostics_rate=20.0,
+                  summary_period=0.0, marker_rate=0.0)
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        probe = Probe(rclpy_node)
+        # up to five times real time; a busy machine sends a part of the session in the time given
+        _stream_a_session(rclpy_node, probe, DEMO_FRAMES, rate=5000.0, clouds=60, seconds=18.0)
+        sigint = time.monotonic()
+        viz.send_signal(signal.SIGINT)
+        rc = viz.wait(timeout=30)
+        elapsed = time.monotonic() - sigint
+        output = viz.output()
+    assert rc == 0, output
+    assert 'report written' in output and 'Traceback' not in output, output
+    summary = json.loads((report / 'summary.json').read_text())
+    assert summary['failed_files'] == {} and summary['plot_failures'] == {}
+    files = {p.name for p in report.iterdir()}
+    assert REPORT_FILES | {png for png, _ in PLOTS} | {ANIMATION[0], SNAPSHOTS} <= files
+    # a long session arrived (the whole of it unless the machine is busy)
+    assert summary['poses'] > 25_000 and summary['steps'] > 25_000, summary
+    assert elapsed < LAUNCH_SIGTERM_AFTER, (f'{elapsed:.2f} s from SIGINT to exit after '
+                                            f'{summary["poses"]} poses', output)

@@ -3,7 +3,8 @@
 Subscribes ``tissue/metrics``, ``tissue/particles``, ``omni/pose`` and ``omni/force_feedback``;
 publishes ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) and ``viz/markers``
 (visualization_msgs/MarkerArray); serves ``viz/write_report`` (std_srvs/Trigger). On shutdown
-(Ctrl-C) it writes the report folder (see :mod:`tissue_viz.report`).
+(Ctrl-C) it leaves the ROS graph, then writes the report folder (see :mod:`tissue_viz.report`) in
+two processes, well within the 5 s ``ros2 launch`` grants between SIGINT and SIGTERM.
 
 The callbacks only hand plain values to :class:`tissue_viz.stats.VizStats`; everything heavier runs
 in timers at a few hertz.
@@ -11,7 +12,9 @@ in timers at a few hertz.
 
 from __future__ import annotations
 
+import gc
 import math
+import os
 import threading
 import time
 from pathlib import Path
@@ -34,6 +37,7 @@ from tissue_common.stamps import stamp_to_ns
 from tissue_msgs.msg import SimMetrics
 from visualization_msgs.msg import Marker, MarkerArray
 
+from tissue_viz import figures
 from tissue_viz.diagnostics import RateTarget, Status, Targets, worst_level, evaluate
 from tissue_viz.errors import ReportError, VizConfigError
 from tissue_viz.markers import ToolShape, force_arrow
@@ -116,6 +120,9 @@ EXIT_OK = 0
 EXIT_BAD_PARAMETERS = EXIT_PARAMS   # inconsistent or out-of-range parameters at start
 EXIT_REPORT_FAILED = 3        # the shutdown report could not be written completely
 
+#: processes that draw the shutdown report: ``ros2 launch`` escalates to SIGTERM 5 s after SIGINT
+REPORT_PROCESSES = max(1, min(2, os.cpu_count() or 1))
+
 _LEVEL_BYTES = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR,
                 3: DiagnosticStatus.STALE}
 
@@ -172,6 +179,8 @@ class VizNode(Node):
         self.marker_pub = self.create_publisher(MarkerArray, 'viz/markers', 10)
         self.create_service(Trigger, 'viz/write_report', self._on_write_report)
 
+        # A report is written on the way out: matplotlib is imported now, not then.
+        figures.warm_up()
         self.create_timer(1.0 / self.p['diagnostics_rate'], guard(self._on_diagnostics_timer))
         if self.p['summary_period'] > 0:
             self.create_timer(self.p['summary_period'], guard(self._on_summary_timer))
@@ -349,15 +358,6 @@ class VizNode(Node):
                                      contact_threshold=self.p['contact_threshold'],
                                      tissue=self.tissue.copy() if self.p['tissue_images'] else None)
 
-    def write_report_now(self) -> Path:
-        """Write the report synchronously (used at shutdown); returns the folder.
-
-        Raises:
-            ReportError: the folder or some of its files could not be written (the rest were).
-        """
-        with self._report_lock:
-            return write_report(self._report_target(), self.report_data())
-
     def _on_write_report(self, request: Trigger.Request, response: Trigger.Response):
         # Plotting takes a second or two: do it off the executor so the statistics keep flowing.
         # What can be checked quickly (a report in progress, an unwritable folder) is answered now.
@@ -390,25 +390,38 @@ class VizNode(Node):
         except Exception as exc:  # noqa: BLE001 -- logged with its type; the node keeps running
             self.get_logger().error(f'report failed: {type(exc).__name__}: {exc}')
 
-    def finish(self) -> int:
-        """Wait for a report in progress, then write the shutdown report if configured.
-
-        Returns:
-            The exit code: 0, or EXIT_REPORT_FAILED when the shutdown report could not be written
-            completely (what could be written is there; the failures are printed).
-        """
+    def shutdown_report(self) -> tuple[Path, ReportData] | None:
+        """Wait for a report in progress; then the folder and the data of the shutdown report (of
+        this instant), or None when ``report_on_shutdown`` is off."""
         if self._report_thread is not None:
             self._report_thread.join(timeout=30.0)
         if not self.p['report_on_shutdown']:
-            return EXIT_OK
+            return None
+        return self._report_target(), self.report_data()
+
+    def write_shutdown_report(self, target: Path, data: ReportData) -> int:
+        """Write the shutdown report, in REPORT_PROCESSES processes: call it once the node is
+        destroyed (no DDS thread left, see :mod:`tissue_viz.forked`).
+
+        Returns:
+            The exit code: 0, or EXIT_REPORT_FAILED when the report could not be written
+            completely (what could be written is there; the failures are printed).
+        """
+        # a report on request still drawing after shutdown_report's wait: no fork beside its thread
+        busy = self._report_thread is not None and self._report_thread.is_alive()
         try:
-            out = self.write_report_now()
+            with self._report_lock:
+                out = write_report(target, data, processes=1 if busy else REPORT_PROCESSES)
         except Exception as exc:  # noqa: BLE001 -- said in one line; a traceback helps nobody here
-            reason = str(exc) if isinstance(exc, ReportError) else f'{type(exc).__name__}: {exc}'
-            print(f'[viz_node] report failed: {reason}', flush=True)
-            return EXIT_REPORT_FAILED
+            return _report_failed(exc)
         print(f'[viz_node] report written: {out / "index.html"}', flush=True)
         return EXIT_OK
+
+
+def _report_failed(exc: Exception) -> int:
+    reason = str(exc) if isinstance(exc, ReportError) else f'{type(exc).__name__}: {exc}'
+    print(f'[viz_node] report failed: {reason}', flush=True)
+    return EXIT_REPORT_FAILED
 
 
 def main(args=None) -> None:
@@ -430,10 +443,21 @@ def main(args=None) -> None:
         print(f'[viz_node] invalid parameters: {exc}', flush=True)
         code = EXIT_BAD_PARAMETERS
     finally:
+        pending = None
         if node is not None:
-            code = node.finish() or code
+            try:
+                pending = node.shutdown_report()
+            except Exception as exc:  # noqa: BLE001 -- the node still leaves the graph cleanly
+                code = _report_failed(exc)
+            # Out of the graph before drawing: the other nodes see it go at once, and the report
+            # may fork once the DDS threads are gone.
             node.destroy_node()
         rclpy.try_shutdown()
+        if pending is not None:
+            code = node.write_shutdown_report(*pending) or code
+    # The interpreter's last collection would walk every object the run left for nothing (a
+    # quarter of a second after a long run): the process ends here.
+    gc.freeze()
     if code != EXIT_OK:
         raise SystemExit(code)
 
