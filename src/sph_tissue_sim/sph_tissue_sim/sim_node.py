@@ -72,6 +72,7 @@ from tissue_msgs.srv import ResetTissue
 
 from . import blas_kernels
 from .cloud import CloudBuffer
+from .core.compliance import close_all
 from .core.errors import ConfigError, ModelError, SimError
 from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, StepResult, warmup
 from .mapping import DeviceMapping, anchor_point, check_position
@@ -850,8 +851,9 @@ def main(args=None) -> int:
         except KeyboardInterrupt:  # a second Ctrl-C while shutting down
             pass
         if not stopped:
-            # the interpreter's finalisation under a thread still in native code (a sparse solve)
-            # failed to flush stdout and exited 120: leave without it, everything said and closed
+            # the interpreter's finalisation under a thread still in native code (a step) failed
+            # to flush stdout and exited 120: leave without it, everything said and closed
+            close_all()
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(code)

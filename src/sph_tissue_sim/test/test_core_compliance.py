@@ -486,3 +486,25 @@ def test_a_ctrl_c_to_the_process_group_leaves_the_factoring_process_to_its_paren
         time.sleep(0.01)
     os.kill(pid, signal.SIGINT)
     assert np.isfinite(organ.column(c)).all()
+
+
+def test_closing_ends_the_workers_wait_for_a_busy_factoring_process():
+    """A node stopped while its organ is being factored (seconds on the liver) must not wait for
+    the factor: its worker leaves the wait, and the process exits normally."""
+    organ = _organ(background=True)
+    X = organ.X
+    deadline = time.monotonic() + 30.0
+    while not organ.factor.started and time.monotonic() < deadline:
+        time.sleep(0.01)
+    pid = organ.factor._proc.pid
+    os.kill(pid, signal.SIGSTOP)   # a factor that takes its time
+    try:
+        top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
+        organ.place(X.copy(), X, top.astype(np.int32), top[:1].astype(np.int32), np.ones(1), np.zeros(3))
+        while organ.pending == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        t0 = time.monotonic()
+        assert organ.close(10.0)
+        assert time.monotonic() - t0 < 5.0
+    finally:
+        os.kill(pid, signal.SIGCONT)

@@ -110,7 +110,9 @@ _working: 'weakref.WeakSet[OrganCompliance]' = weakref.WeakSet()
 
 
 @atexit.register
-def _close_workers() -> None:
+def close_all() -> None:
+    """End the factoring process and every worker (at exit; a process that leaves with
+    ``os._exit`` calls it first, or its factoring process outlives it)."""
     global _last_factor
     if _last_factor is not None:
         _last_factor.close()   # a worker waiting on the child then sees the pipe closed
@@ -190,6 +192,7 @@ class OrganCompliance:
         self._pending: set[int] = set()
         self._worker: threading.Thread | None = None
         self._closed = False
+        self._closing = np.zeros(1, dtype=np.int8)   # ends the worker's wait for the factor
         self._ready_since: float | None = None   # when a touch's first response was ready (monotonic s)
         #: the last exception a background solve raised (None: none did)
         self.failure: Exception | None = None
@@ -252,7 +255,7 @@ class OrganCompliance:
             if c < 0:
                 return
             try:
-                self.column(c)
+                self.column(c, self._closing)
             except Exception as exc:   # noqa: BLE001  (the worker must outlive one failed solve)
                 self.failure = exc     # the particle is asked for again at its next touch
             with self._publish:
@@ -274,14 +277,16 @@ class OrganCompliance:
         return True
 
     def close(self, timeout: float = 0.0) -> bool:
-        """Stop the worker after the response it is waiting for, waiting up to ``timeout`` [s] for
-        it; no worker starts after this. False if it is still waiting. The factoring process is
-        kept for a solver on the same organ (closed with the next organ's or at exit)."""
+        """Stop the worker (a wait for the factoring process ends within its poll), waiting up to
+        ``timeout`` [s] for it; no worker starts after this. False if it is still running. The
+        factoring process is kept for a solver on the same organ (closed with the next organ's,
+        or by :func:`close_all` at exit)."""
         with self._publish:
             self._closed = True
             worker = self._worker
         if worker is None:
             return True
+        self._closing[0] = 1
         self._queue.put(-1)
         worker.join(timeout)
         return not worker.is_alive()

@@ -75,8 +75,8 @@ class FactorProcess:
             with self._lock:
                 try:
                     self._start()
-                except (OSError, OrganFactorError):
-                    self._stop()   # the first solve tries again and raises what it finds
+                except Exception:   # noqa: BLE001  (closed meanwhile, or no process: the first
+                    self._stop()    # solve tries again and raises what it finds)
 
         threading.Thread(target=start, name='organ-factor-start', daemon=True).start()
 
@@ -116,7 +116,10 @@ class FactorProcess:
         Raises:
             OrganFactorError: the child failed (the next call starts a new one).
         """
-        with self._lock:
+        while not self._lock.acquire(timeout=POLL):   # another caller, or the start, holds the pipe
+            if abort is not None and abort[0] != 0:
+                return None
+        try:
             if c in self._early:
                 return self._early.pop(c)
             try:
@@ -143,6 +146,8 @@ class FactorProcess:
                 if isinstance(exc, OrganFactorError):
                     raise
                 raise OrganFactorError(f'the organ factoring process cannot be reached: {exc}') from exc
+        finally:
+            self._lock.release()
 
     def _stop(self) -> None:
         proc, self._proc = self._proc, None
