@@ -297,6 +297,43 @@ def test_ctrl_c_while_poses_stream_in_exits_0_every_time(rclpy_node):
         assert 'totals:' in out   # the shutdown ran to the end
 
 
+#: ``ros2 launch`` sends SIGTERM this long after SIGINT (its sigterm_timeout default)
+LAUNCH_SIGTERM_AFTER = 5.0
+
+
+def test_sigint_in_a_live_session_exits_before_launch_sends_sigterm_with_the_totals(rclpy_node):
+    """A 3 s press at the device's 1 kHz, poses still coming when SIGINT arrives (launch stops
+    every node at once): exit 0 within launch's grace, the shutdown's totals and step times said."""
+    import signal
+
+    # a namespace of its own: the module's live node must not answer this probe's handshake
+    probe = SimProbe(rclpy_node, ns='/stop/')
+    path = press_path(3000, depth=0.004)
+    with sim(ros_args=['-r', '__ns:=/stop']) as proc:
+        probe.wait_matched(proc)
+        t0, sigint = _unique_t0(40), None
+        start = time.monotonic()
+        for k, point in enumerate(path):
+            if not proc.alive():
+                break
+            probe.publish(point, t0 + k * 1_000_000)
+            if k == 2500:
+                sigint = time.monotonic()
+                proc.send_signal(signal.SIGINT)
+            if k % 10 == 0:
+                rclpy_node.spin_until(lambda: False, max(0.0, start + k * 1e-3 - time.monotonic()))
+        assert sigint is not None, proc.output()[-3000:]       # it was still running then
+        code = proc.wait(30.0)
+        elapsed = time.monotonic() - sigint
+        out = proc.output()
+    assert code == 0 and 'Traceback' not in out, (code, out[-3000:])
+    totals = re.search(r'totals: (\d+) poses, (\d+) steps', out)
+    # poses are best effort: a busy machine loses some of the 2500 sent before SIGINT
+    assert totals and int(totals[1]) >= 1000 and int(totals[2]) > 0, out[-3000:]
+    assert 'step wall time median' in out and 'still inside a step' not in out, out[-3000:]
+    assert elapsed < LAUNCH_SIGTERM_AFTER, (f'{elapsed:.2f} s from SIGINT to exit', out[-3000:])
+
+
 # -- parameters ----------------------------------------------------------------------------------------
 def test_runtime_parameters_are_applied_or_refused_with_a_reason(probe, rclpy_node):
     bad = set_parameters(rclpy_node, {'force_limit': 10.0})
