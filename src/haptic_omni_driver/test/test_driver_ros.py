@@ -357,6 +357,50 @@ def test_recorder_says_when_each_publisher_is_matched_and_when_it_leaves(ros_dom
     assert bag_topics(tmp_path / 'b')['/omni/pose'].count == 50
 
 
+#: ``ros2 launch`` sends SIGTERM this long after SIGINT (its sigterm_timeout default)
+LAUNCH_SIGTERM_AFTER = 5.0
+
+
+def test_sigint_mid_recording_stops_driver_and_recorder_before_launch_sends_sigterm(ros_domain,
+                                                                                     tmp_path):
+    """A 1 kHz replay being recorded; SIGINT to both at once, as launch sends it, while poses still
+    stream: both exit 0 within launch's grace and the bag is finalised (MCAP summary and
+    metadata.yaml), readable, holding every message the recorder counted."""
+    import signal
+
+    make_pose_bag(tmp_path / 'a', n=20_000, period_ns=1_000_000)    # 20 s: playing at SIGINT
+    rec = harness.NodeProcess(PKG, 'omni_record', params={'output': str(tmp_path / 'b'),
+                                                          'progress_period': 0.2})
+    exits = {}
+    with rec:
+        rec.wait_for_output(r'recording', 30)
+        with driver({'backend': 'replay', 'bag': str(tmp_path / 'a')}) as proc:
+            rec.wait_for_output(r'recorded .*/omni/pose: \d{4,}', 30)   # a second of it or more
+            sigint = time.monotonic()
+            for node in (proc, rec):
+                node.send_signal(signal.SIGINT)
+            while len(exits) < 2 and time.monotonic() - sigint < 30.0:
+                for name, node in (('omni_driver', proc), ('omni_record', rec)):
+                    if name not in exits and not node.alive():
+                        exits[name] = (node.returncode, time.monotonic() - sigint)
+                time.sleep(0.005)
+            out = {'omni_driver': proc.output(), 'omni_record': rec.output()}
+    for name, (code, elapsed) in exits.items():
+        assert code == 0 and 'Traceback' not in out[name], (name, code, out[name][-3000:])
+        assert elapsed < LAUNCH_SIGTERM_AFTER, (f'{name}: {elapsed:.2f} s from SIGINT to exit',
+                                                out[name][-3000:])
+    assert len(exits) == 2, (exits, out)
+    closed = re.search(r'bag closed: (\d+) messages \((.*?)\) in', out['omni_record'])
+    assert closed, out['omni_record'][-3000:]
+    counted = {topic: int(n) for topic, n in re.findall(r'(\S+): (\d+)', closed[2])}
+    assert counted['/omni/pose'] >= 1000 and sum(counted.values()) == int(closed[1])
+    assert (tmp_path / 'b' / 'metadata.yaml').is_file()
+    topics = bag_topics(tmp_path / 'b')
+    assert {t: topics[t].count for t in counted} == counted
+    poses = [d for *_, d in read_bag(tmp_path / 'b', topics=['/omni/pose'], raw=True)]
+    assert len(poses) == counted['/omni/pose']
+
+
 # -- scripted and parameters ----------------------------------------------------------------------
 def test_scripted_publishes_the_script_at_rate_then_exits(rclpy_node):
     from geometry_msgs.msg import PoseStamped
