@@ -352,8 +352,9 @@ def test_bringup_launch_sets_only_parameters_its_nodes_declare():
     assert callable(mod.generate_launch_description)
     declared = {'omni_driver': DRIVER_PARAMS, 'sim_node': SIM_PARAMS, 'viz_node': VIZ_PARAMS}
     every = mod.node_overrides({'backend': 'replay', 'bag': '/b', 'model': 'block', 'tool': 'capsule',
-                                'timing': 'lockstep', 'report_dir': '/r'})
-    assert every == {'omni_driver': {'backend': 'replay', 'bag': '/b', 'replay_mode': 'lockstep'},
+                                'timing': 'lockstep', 'report_dir': '/r', 'exit_at_end': 'true'})
+    assert every == {'omni_driver': {'backend': 'replay', 'bag': '/b', 'replay_mode': 'lockstep',
+                                     'exit_on_end': True},
                      'sim_node': {'model': 'block', 'tool_shape': 'capsule', 'timing_mode': 'lockstep'},
                      'viz_node': {'report_dir': '/r'}}
     for node, params in every.items():
@@ -366,6 +367,15 @@ def test_bringup_launch_sets_only_parameters_its_nodes_declare():
     assert defaults == {'omni_driver': {}, 'sim_node': {'timing_mode': 'live'}, 'viz_node': {}}
     with pytest.raises(ValueError, match='needs backend:=replay'):
         mod.node_overrides({'backend': 'scripted', 'timing': 'lockstep'})
+    # exit_at_end: the launch ends with the driver, which exits at the end of its replay; false
+    # (the default) or empty leaves exit_on_end to the driver's YAML
+    assert mod.ARGUMENTS['exit_at_end'][0] == 'false' and not mod.exit_at_end({})
+    assert mod.exit_at_end({'exit_at_end': 'True'}) and not mod.exit_at_end({'exit_at_end': ''})
+    for value, driver in (('true', {'exit_on_end': True}), ('false', {}), ('', {})):
+        assert mod.node_overrides({'backend': 'replay', 'exit_at_end': value})['omni_driver'] == \
+            {'backend': 'replay', **driver}, value
+    with pytest.raises(ValueError, match='exit_at_end must be true or false'):
+        mod.node_overrides({'exit_at_end': 'yes please'})
 
 
 def test_shutdown_interrupts_the_step_and_reports_a_thread_that_outlives_its_wait(monkeypatch):
