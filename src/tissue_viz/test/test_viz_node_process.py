@@ -668,14 +668,16 @@ def _stream_a_session(rclpy_node, probe, frames: int, rate: float, clouds: int,
         if count != last['count']:
             last.update(count=count, since=time.monotonic())
         return count > 0 and time.monotonic() - last['since'] > 0.5
-    assert probe.run(0, settled, 30), last
+    assert probe.run(0, settled, 30), (last, len(probe.arrays), sorted({
+        (st.name, tuple(kv.value for kv in st.values if kv.key == 'messages'))
+        for array in probe.arrays[-3:] for st in array.status}))
 
 
 def test_sigint_after_a_demo_length_session_exits_with_the_report_before_launch_sends_sigterm(
         rclpy_node, tmp_path):
     report = tmp_path / 'report'
-    # the node's count of poses in /diagnostics paces the stream
-    params = dict(FAST, report_on_shutdown=True, report_dir=str(report), diagnostics_rate=20.0,
+    # the node's count of poses in /diagnostics paces the stream: the fresher, the faster
+    params = dict(FAST, report_on_shutdown=True, report_dir=str(report), diagnostics_rate=50.0,
                   summary_period=0.0, marker_rate=0.0)
     with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
         viz.wait_for_output(r'ready:', timeout=30)
