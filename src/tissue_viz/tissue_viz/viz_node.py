@@ -179,8 +179,13 @@ class VizNode(Node):
         self.marker_pub = self.create_publisher(MarkerArray, 'viz/markers', 10)
         self.create_service(Trigger, 'viz/write_report', self._on_write_report)
 
-        # A report is written on the way out: matplotlib is imported now, not then.
-        figures.warm_up()
+        # A report is written on the way out: matplotlib is imported now, not then. Without it
+        # the statistics still run, and the report's plots are placeholders naming the failure.
+        try:
+            figures.warm_up()
+        except Exception as exc:  # noqa: BLE001 -- logged with its type; the node keeps running
+            self.get_logger().warning(f'plotting unavailable ({type(exc).__name__}: {exc}): the '
+                                      f'report will show placeholders')
         self.create_timer(1.0 / self.p['diagnostics_rate'], guard(self._on_diagnostics_timer))
         if self.p['summary_period'] > 0:
             self.create_timer(self.p['summary_period'], guard(self._on_summary_timer))
