@@ -630,19 +630,10 @@ def _stream_a_session(rclpy_node, probe, frames: int, rate: float, clouds: int,
     cloud_every = frames // clouds
     executor = rclpy_node.executor_for_test
 
-    def counted() -> int:
-        return int(probe.value('omni/pose rate', 'messages') or 0)
+    def counted(topic: str = 'omni/pose') -> int:
+        return int(probe.value(f'{topic} rate', 'messages') or 0)
 
-    start = time.monotonic()
-    deadline = start + seconds
-    for i in range(frames):
-        if i % 50 == 0:
-            executor.spin_once(timeout_sec=0)
-            while ((time.monotonic() < start + i / rate or i - counted() > 150)
-                   and time.monotonic() < deadline):
-                executor.spin_once(timeout_sec=0.002)
-            if time.monotonic() >= deadline:
-                break
+    def publish(i: int) -> None:
         sec, nanosec = divmod(1_000_000_000 + i * 1_000_000, 1_000_000_000)
         for header in (pose.header, wrench.header, metrics.header):
             header.stamp.sec, header.stamp.nanosec = sec, nanosec
@@ -660,6 +651,27 @@ def _stream_a_session(rclpy_node, probe, frames: int, rate: float, clouds: int,
             cloud = _cloud(i // cloud_every, clouds)
             cloud.header.stamp = pose.header.stamp
             cloud_pub.publish(cloud)
+
+    # The first frame until the node has counted it on every topic: a reader drops what arrives
+    # before it has matched the writer (which may have matched the reader earlier), and the pace
+    # below waits for the node's count.
+    topics = ('omni/pose', 'omni/force_feedback', 'tissue/metrics', 'tissue/particles')
+    handshake = time.monotonic() + 20.0
+    while not all(counted(t) for t in topics):
+        assert time.monotonic() < handshake, {t: counted(t) for t in topics}
+        publish(0)
+        probe.run(0, lambda: False, 0.05)
+    start = time.monotonic()
+    deadline = start + seconds
+    for i in range(1, frames):
+        if i % 50 == 0:
+            executor.spin_once(timeout_sec=0)
+            while ((time.monotonic() < start + i / rate or i - counted() > 150)
+                   and time.monotonic() < deadline):
+                executor.spin_once(timeout_sec=0.002)
+            if time.monotonic() >= deadline:
+                break
+        publish(i)
     # everything that arrived is counted once the count stands still for a few diagnostics
     last = {'count': None, 'since': time.monotonic()}
 
