@@ -285,6 +285,15 @@ def test_a_pause_in_a_long_stream_still_breaks_the_line_after_thinning():
     assert not np.isnan(_break_gaps(hiccup, np.sin(hiccup))[0]).any()
 
 
+def test_csv_lines_written_during_the_run_are_the_ones_written_at_the_end(tmp_path):
+    data = ReportData.from_stats(_press_run(seconds=9.0, rate=1000.0), 9.0)
+    assert data.csv_heads['metrics'][0] == data.csv_heads['force'][0] == 8192    # 2 full blocks
+    for name, columns in TABLES.items():
+        write_csv(tmp_path / 'during.csv', columns, data.table(name), data.csv_heads.get(name))
+        write_csv(tmp_path / 'end.csv', columns, data.table(name))
+        assert (tmp_path / 'during.csv').read_bytes() == (tmp_path / 'end.csv').read_bytes(), name
+
+
 def test_csv_marks_missing_values_as_empty_cells(tmp_path):
     from tissue_viz.report import write_csv
 
@@ -453,10 +462,10 @@ def test_a_file_that_cannot_be_written_is_named_and_the_others_are_written(tmp_p
 
     real = report.write_csv
 
-    def full_disk(path, columns, table):
+    def full_disk(path, columns, table, head=None):
         if path.name == 'force.csv':
             raise OSError(28, 'No space left on device')
-        real(path, columns, table)
+        real(path, columns, table, head)
 
     monkeypatch.setattr(report, 'write_csv', full_disk)
     with pytest.raises(ReportError, match=rf'1 of {len(ALL_FILES)} report files not written .*force\.csv '

@@ -311,6 +311,22 @@ def test_decimating_recorder_keeps_an_evenly_thinned_whole_run():
         DecimatingRecorder(('t',), max_rows=1)
 
 
+def test_decimating_recorder_writes_each_full_block_as_csv_lines_until_it_thins_them():
+    from tissue_viz.stats import csv_rows
+
+    block = DecimatingRecorder.BLOCK
+    rec = DecimatingRecorder(('t', 'v'), max_rows=3 * block, csv_text=True)
+    for i in range(2 * block + 5):
+        rec.append((i * 1e-3, math.nan if i % 7 == 0 else i / 3))
+    rows, text = rec.csv_head()
+    assert rows == 2 * block and text == csv_rows(rec.array()[:rows])
+    assert text.splitlines()[:2] == ['0,', '0.001,0.333333333333']      # NaN: an empty cell
+    for i in range(block):             # full at 3 blocks: every other row goes, and the lines
+        rec.append((i * 1e-3, 1.0))
+    assert rec.stride == 2 and rec.csv_head() == (0, '')
+    assert DecimatingRecorder(('t',), max_rows=10).csv_head() == (0, '')
+
+
 def test_press_displacement_is_measured_from_first_contact_against_the_reaction():
     # Tool goes down in z from +1 mm to -4 mm; contact at z = 0 with a 500 N/m tissue.
     z = np.linspace(0.001, -0.004, 11)                   # 0.5 mm steps

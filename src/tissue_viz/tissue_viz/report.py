@@ -29,7 +29,7 @@ from tissue_viz import figures, forked
 from tissue_viz.errors import ReportError
 from tissue_viz.tissue_images import SnapshotFigure, TissueSnapshots, draw_animation
 from tissue_viz.stats import (HAPTIC_MULTIRATE, LIMITS, MAX_RATE, MAX_SECONDS, Limit, VizStats,
-                              feel_summary_of, haptic_summary, within, percentile,
+                              csv_rows, feel_summary_of, haptic_summary, within, percentile,
                               press_displacement)
 
 TABLES = {
@@ -69,15 +69,20 @@ class ReportData:
     contact_threshold: float = 0.01      # [N] force that counts as first contact
     rate_targets: dict = field(default_factory=dict)   # topic -> (min, max) [Hz], drawn as bands
     tissue: TissueSnapshots | None = None               # the clouds to draw the organ from
+    #: table -> (rows, CSV lines of those first rows) already formatted during the run
+    csv_heads: dict = field(default_factory=dict)
     #: figures built once and drawn again by several plots of one report (not data)
     shared: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
     def from_stats(cls, stats: VizStats, now: float, **kw) -> 'ReportData':
-        tables = {'metrics': stats.metrics_table.as_dict(), 'force': stats.force_table.as_dict(),
-                  'latency': stats.latency_table.as_dict(), 'rates': stats.rate_table.as_dict(),
-                  'feel': stats.feel_table()}
-        return cls(tables=tables, summary=stats.summary(now), haptic_period=stats.period, **kw)
+        recorders = {'metrics': stats.metrics_table, 'force': stats.force_table,
+                     'latency': stats.latency_table, 'rates': stats.rate_table}
+        tables = {name: rec.as_dict() for name, rec in recorders.items()}
+        tables['feel'] = stats.feel_table()
+        heads = {name: rec.csv_head() for name, rec in recorders.items()}
+        return cls(tables=tables, summary=stats.summary(now), haptic_period=stats.period,
+                   csv_heads={name: head for name, head in heads.items() if head[0]}, **kw)
 
     def table(self, name: str) -> dict:
         cols = TABLES[name]
@@ -90,19 +95,22 @@ class ReportData:
 _CSV_BLOCK = 4096     # rows formatted per call
 
 
-def write_csv(path: Path, columns: tuple, table: dict) -> None:
-    """One header row, then 12 significant digits per value; NaN (no value) as an empty cell."""
+def write_csv(path: Path, columns: tuple, table: dict, head: tuple[int, str] | None = None) -> None:
+    """One header row, then 12 significant digits per value; NaN (no value) as an empty cell.
+
+    ``head``: (rows, their lines) of the first rows already formatted (:func:`csv_rows`).
+    """
     n = len(table[columns[0]]) if columns[0] in table else 0
     with open(path, 'w', newline='') as fh:
         fh.write(','.join(columns) + '\n')
         if n:
             arr = np.column_stack([np.asarray(table[c], dtype=float) for c in columns])
-            row = ','.join(['%.12g'] * len(columns)) + '\n'
-            # One format call per block of rows, not np.savetxt's one per row (a third faster): a
-            # long run has millions of values, and the report is written on the way out.
-            for a in range(0, n, _CSV_BLOCK):
-                block = arr[a:a + _CSV_BLOCK]
-                fh.write(((row * len(block)) % tuple(block.ravel().tolist())).replace('nan', ''))
+            done = 0
+            if head is not None and 0 < head[0] <= n:
+                fh.write(head[1])
+                done = head[0]
+            for a in range(done, n, _CSV_BLOCK):
+                fh.write(csv_rows(arr[a:a + _CSV_BLOCK]))
 
 
 def read_csv(path: Path) -> dict:
@@ -911,7 +919,8 @@ def _file_jobs(out: Path, data: ReportData) -> list:
         return run
 
     def table(name: str, columns: tuple):
-        return f'{name}.csv', lambda: write_csv(out / f'{name}.csv', columns, data.table(name))
+        return f'{name}.csv', lambda: write_csv(out / f'{name}.csv', columns, data.table(name),
+                                                data.csv_heads.get(name))
 
     def plot(png: str):
         return png, lambda: _draw(PLOTTERS[png], data, out / png, dict(PLOTS)[png])
