@@ -242,6 +242,90 @@ def test_the_stiffness_memory_is_counted_in_poses_not_refreshes():
     assert every_pose.stiffness == pytest.approx(300.0 * (1.0 - 0.95 ** 5), rel=1e-9)
 
 
+def test_a_stale_models_successor_is_blended_in_from_the_force_at_the_proxy():
+    """A model that served 20 poses: at the refresh the force at the proxy stays what it was, and
+    the change comes in 20 equal parts, after which the new model holds alone."""
+    m = ContactModel(k_max=7000.0)
+    m.refresh([0.0, 0.0, 0.0], 0.2 * Z)
+    m.refresh([0.0, 0.0, -0.001], 0.5 * Z)          # every pose: k learns 300 N/m x 0.05
+    proxy = np.array([0.0, 0.0, -0.0015])
+    before = m.at(proxy)
+    m.refresh([0.0, 0.0, -0.003], 1.4 * Z, served=20, proxy=proxy)
+    np.testing.assert_allclose(m.at(proxy), before, rtol=1e-12)
+    target = 1.4 - m.stiffness * 0.0015
+    seen = []
+    for _ in range(20):
+        m.advance()
+        seen.append(m.at(proxy)[2])
+    assert seen[-1] == pytest.approx(target, rel=1e-12)
+    np.testing.assert_allclose(np.diff(np.r_[before[2], seen]), (target - before[2]) / 20, rtol=1e-9)
+    m.advance()
+    assert m.at(proxy)[2] == pytest.approx(target, rel=1e-12)
+
+
+def test_a_model_refreshed_every_pose_is_taken_at_once():
+    m = ContactModel(k_max=7000.0)
+    m.refresh([0.0, 0.0, 0.0], 0.2 * Z)
+    proxy = np.array([0.0, 0.0, -0.0005])
+    m.refresh([0.0, 0.0, -0.001], 0.5 * Z, served=1, proxy=proxy)
+    assert m.at(proxy)[2] == pytest.approx(0.5 - m.stiffness * 0.0005, rel=1e-12)
+    np.testing.assert_array_equal(m.anchor_force(), 0.5 * Z)
+
+
+class VoigtWall(Wall):
+    """A wall that also resists motion, as the tissue's dashpots do: ``k d + c d'``, the rate from
+    the depth at the previous answer."""
+
+    def __init__(self, k: float, c: float) -> None:
+        super().__init__(k)
+        self.c = c
+        self.depth = None
+
+    def answer(self, x: np.ndarray, dt: float) -> np.ndarray:
+        d = max(0.0, -x[2])
+        rate = 0.0 if self.depth is None else (d - self.depth) / dt
+        self.depth = d
+        return max(0.0, self.k * d + self.c * rate) * Z if d > 0.0 else np.zeros(3)
+
+
+def press_and_hold_live(delay: int) -> dict:
+    """Press 5 mm at 20 mm/s into a :class:`VoigtWall` (300 N/m, 3 N s/m), hold 1 s, withdraw, on
+    the live schedule made repeatable: the solver takes the newest proxy whenever it is free and
+    its answer arrives ``delay`` poses later. Returns :func:`tissue_common.feel.feel` of it."""
+    from types import SimpleNamespace
+
+    from sph_tissue_sim.haptics.multirate import MultiRate
+    from tissue_common.feel import feel
+
+    handoff = MultiRate(HapticRenderer(RendererConfig()), every=0, max_dt=0.02)
+    wall = VoigtWall(300.0, 3.0)
+    z = quantised(np.r_[np.linspace(0.001, -0.004, 250), np.full(1000, -0.004),
+                        np.linspace(-0.004, 0.001, 250)])
+    path = np.stack([0 * z, 0 * z, z], axis=1)
+    forces, pending, due = [], None, 0
+    for k, x in enumerate(path):
+        if pending is not None and k >= due:
+            handoff.refresh(*pending)
+            pending = None
+        forces.append(handoff.answer(x, T).force)
+        if pending is None:
+            job = handoff.take()
+            if job is not None:
+                reaction = wall.answer(job.point, job.dt)
+                pending, due = (job, SimpleNamespace(tool_segment=None, force_raw=reaction)), k + delay
+    return feel(path, np.array(forces))
+
+
+def test_a_solver_forty_poses_late_steps_the_force_no_more_than_one_answering_every_pose():
+    """The live click: the solver's answer to the end of the press (its dashpot's share included)
+    reaches the renderer 40 poses into the hold; taken at once it dropped the force by 52 mN in a
+    frame. Blended in, no frame changes it more than on the schedule that answers every pose."""
+    every_pose = press_and_hold_live(delay=1)
+    late = press_and_hold_live(delay=40)
+    assert late['dF_max_mN'] <= 1.1 * every_pose['dF_max_mN']
+    assert late['reversals'] == 0
+
+
 def test_coupling_without_a_contact_force_renders_nothing():
     c = VirtualCoupling(700.0, 0.5, 2.0, ContactModel(700.0))
     proxy, force = c.render(np.zeros(3), np.zeros(3), T)

@@ -10,6 +10,16 @@ tissue's stiffness ``k`` along the contact normal ``n = F0 / |F0|``::
 series, so it is what the hand should feel, not the stiffer frozen-particle penalty), low-pass
 filtered over refreshes and kept in ``[0, k_max]``.
 
+A model that served ``m > 1`` poses (a live solver's) is stale by then: its successor would change
+the force at the proxy at once, by the tissue's motion over those poses (a click of 15-40 mN on the
+bags' live schedule). The jump ``c`` (old model minus new, at the proxy) is carried in ``F0`` and
+taken out in equal parts over the next ``min(m, BLEND_POSES)`` poses, so the force at the proxy is
+continuous and the new model is reached about when its successor is due::
+
+    F(x) = F0 + c - k n (n . (x - x0)),    c -> 0 over the blend
+
+A model refreshed every pose (lockstep, ``m = 1``) is taken at once, as before.
+
 The simulated tool (the proxy ``x_t = x^ + a``) is held by a spring ``K_c`` to the filtered device
 point ``x^``, pushed by the contact model, and its offset ``a`` from the device point is damped by
 ``B_p``. Each sample updates the offset implicitly (a 3x3 solve, Sherman-Morrison)::
@@ -55,6 +65,9 @@ import numpy as np
 
 #: a refresh moved the proxy less than this along the normal: too little to measure a stiffness [m]
 MIN_SECANT_TRAVEL = 2e-6
+#: the most poses a stale model's jump is spread over (100 ms: a solver five times slower than
+#: real time refreshes every 100 poses or so; a longer stall is a fault, not a schedule)
+BLEND_POSES = 100
 #: weight of a new secant in the filtered stiffness when the model served one pose (about 20 poses
 #: of memory; a model that served ``m`` poses weighs its successor's secant ``1 - (1 - gain)^m``)
 STIFFNESS_GAIN = 0.05
@@ -80,10 +93,32 @@ class ContactModel:
         self.point = np.zeros(3)      # x0 [m]
         self.normal = np.zeros(3)     # n
         self.magnitude = 0.0          # |F0| [N]
+        self.carry = np.zeros(3)      # c: the jump still to take out [N]
+        self._carry_step = np.zeros(3)
+        self._carry_left = 0          # poses until c is gone
 
-    def refresh(self, point, force, served: int = 1) -> None:
+    def at(self, x) -> np.ndarray:
+        """The model's push at ``x`` [m] (carry included): zero without contact or where it would pull."""
+        if self.magnitude == 0.0:
+            return np.zeros(3)
+        f = self.anchor_force() - (self.stiffness * float(self.normal @ (np.asarray(x, float) - self.point))) * self.normal
+        return f if float(f @ self.normal) > 0.0 else np.zeros(3)
+
+    def anchor_force(self) -> np.ndarray:
+        """``F0 + c``: the force the model renders at ``x0``."""
+        return self.force + self.carry if self._carry_left else self.force
+
+    def advance(self) -> None:
+        """One pose passed: take the next part of the carried jump out."""
+        if self._carry_left:
+            self._carry_left -= 1
+            self.carry = self.carry - self._carry_step if self._carry_left else np.zeros(3)
+
+    def refresh(self, point, force, served: int = 1, proxy=None) -> None:
         """The solver found reaction ``force`` [N] with the tool at ``point`` [m]; the model it
-        replaces answered ``served`` poses.
+        replaces answered ``served`` poses. With ``proxy`` [m] (where the simulated tool is now)
+        and ``served > 1``, the force there stays what it was and the change comes over the next
+        poses (see the module docstring).
 
         The stiffness's memory is counted in poses, not refreshes: a live solver refreshes every
         15-30 poses, and with a per-refresh memory of 20 the first touch rendered a flat force
@@ -96,6 +131,7 @@ class ContactModel:
             self.lose()
             self.point = point
             return
+        before = self.at(proxy) if proxy is not None and served > 1 else None
         normal = force / mag
         if self.magnitude > 0.0:
             travel = float(normal @ (point - self.point))
@@ -106,6 +142,13 @@ class ContactModel:
                 self.stiffness += gain * (secant - self.stiffness)
         self.force, self.point, self.normal, self.magnitude = force, point, normal, mag
         self.refreshes += 1
+        self._carry_left = 0
+        self.carry = np.zeros(3)
+        if before is not None:
+            n = min(int(served), BLEND_POSES)
+            self.carry = before - self.at(proxy)
+            self._carry_step = self.carry / n
+            self._carry_left = n
 
 
 class VirtualCoupling:
@@ -144,7 +187,7 @@ class VirtualCoupling:
             # B_p (a - a_prev) / dt = -K_c a + F0 - k n n.(x^ + a - x0) for the offset a = x_t - x^,
             # solved for a: ((b + K_c) I + k n n^T) a = r, inverted by Sherman-Morrison
             b, kc, k, n = self.proxy_damping / dt, self.stiffness, m.stiffness, m.normal
-            r = b * self.offset + m.force - (k * float(n @ (x_hat - m.point))) * n
+            r = b * self.offset + m.anchor_force() - (k * float(n @ (x_hat - m.point))) * n
             self.offset = (r - (k * float(n @ r) / (b + kc + k)) * n) / (b + kc)
             length = math.sqrt(float(self.offset @ self.offset))
             if m.magnitude > 0.0 and kc * length > self.push_limit:

@@ -121,6 +121,8 @@ class HapticRenderer:
     def answer(self, x, dt: float) -> Rendered:
         """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one."""
         energy = self.observer.observe(x)
+        if dt > 0.0:
+            self.model.advance()
         x_hat, v_hat = self.estimator.update(x, dt)
         proxy, force = self.coupling.render(x_hat, v_hat, dt)
         pushing = bool(force.any())
@@ -138,5 +140,6 @@ class HapticRenderer:
 
     def refresh(self, point, force, served: int = 1) -> None:
         """The solver found the reaction ``force`` [N] with its tool at ``point`` [m]; the contact
-        model it replaces answered ``served`` poses."""
-        self.model.refresh(point, force, served)
+        model it replaces answered ``served`` poses: a stale one's successor is blended in from the
+        force at the proxy (:class:`~.coupling.ContactModel`)."""
+        self.model.refresh(point, force, served, self.proxy)
