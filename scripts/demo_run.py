@@ -4,9 +4,11 @@
 Starts, as separate processes from their installed executables (what ``ros2 run`` starts) on a
 private ROS_DOMAIN_ID: ``tissue_viz viz_node``, ``sph_tissue_sim sim_node`` and
 ``haptic_omni_driver omni_driver`` replaying a bundled bag (or playing its script, or the device).
-Shows one live line: progress, the force sent to the device, pose->force latency, haptic rate and
-the simulation step time. At the end of the bag (the script; Ctrl-C for a device) the nodes are
-stopped (SIGINT, as Ctrl-C) and the viz report folder is printed.
+Shows one live line: progress, the tissue's reaction and step time (``tissue/metrics``), and the
+pose->force latency and force rate as viz_node measures them (its ``/diagnostics``: this script
+reads no 1 kHz topic, which would take CPU from the solver). At the end of the bag (the script;
+Ctrl-C for a device) the nodes are stopped (SIGINT, as Ctrl-C) and the closing lines, from viz_node's
+report, say what the device got: replies, latency, and the force's smoothness and passivity.
 
 The same choices as ``ros2 launch sph_tissue_sim bringup.launch.py`` (for installs without the
 launch packages): backend, bag, model, tool, timing, and one YAML per node.
@@ -24,7 +26,6 @@ import argparse
 import math
 import os
 import signal
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -38,18 +39,21 @@ ROOT = Path(__file__).resolve().parent.parent
 WAIT_TELL = 5.0
 
 
-def _fmt_line(mon: graph.Monitor, t_prev: tuple, step_ms: float | None) -> tuple[str, tuple]:
-    now = time.monotonic()
-    with mon.lock:
-        n_forces = mon.n_forces
-        lat = mon.latencies[-500:]
-        force = mon.last_force
-    rate = (n_forces - t_prev[1]) / max(now - t_prev[0], 1e-6)
-    fnorm = math.sqrt(sum(v * v for v in force))
-    lat_ms = statistics.median(lat) * 1e3 if lat else float('nan')
-    step = f'{step_ms:.3f} ms' if step_ms is not None else '-'
-    return (f'|F| {fnorm:5.2f} N  latency {lat_ms:5.2f} ms  rate {rate:6.0f} Hz  step {step}',
-            (now, n_forces))
+def _fmt_line(mon: graph.Monitor) -> tuple[str, int]:
+    """The live line from viz_node's latest diagnostics and sim_node's latest metrics (this script
+    reads neither 1 kHz topic: it would take the solver's CPU on a 2-core machine); and the poses
+    seen so far."""
+    d = mon.viz_values()
+    lat = d.get('pose to force latency', {}).get('p50 [ms]', 'n/a')
+    rate = d.get('omni/force_feedback rate', {}).get('rate [Hz]', 'n/a')
+    poses = d.get('omni/pose rate', {}).get('messages', '0')
+    m = mon.last_metrics
+    force = '-'
+    if m is not None:
+        force = f'{math.hypot(m.contact_force.x, m.contact_force.y, m.contact_force.z):5.2f} N'
+    step = f'{m.step_wall_time * 1e3:.3f} ms' if m is not None else '-'
+    return (f'|F| {force}  latency p50 {lat} ms  rate {rate} Hz  step {step}',
+            int(poses) if poses.isdigit() else 0)
 
 
 def feel_line(q: dict) -> str:
@@ -63,6 +67,25 @@ def feel_line(q: dict) -> str:
     return (f'force sent: {steady}; {q["reversals"]} one-frame reversals above '
             f'{feel.REVERSAL * 1e3:g} mN; E_in min {q["E_in_min_uJ"]:.2f} uJ; '
             + ('targets met' if not missed else 'missed: ' + ', '.join(missed)))
+
+
+def closing_lines(summary_path: Path) -> list[str]:
+    """What the graph gave the device, from viz_node's report (``summary.json``): the replies and
+    their latency, and what the hand got (:func:`feel_line`)."""
+    import json
+
+    try:
+        s = json.loads(summary_path.read_text())
+    except (OSError, ValueError) as exc:
+        return [f'no report summary ({exc})']
+    lines = [f"{s['poses']} poses, {s['forces']} forces, {s['replies_missed']} poses without a reply "
+             f"({s['replies_missed_pct']:.2f} %); pose->force latency median "
+             f"{s['latency_p50_s'] * 1e3:.3f} ms, p99 {s['latency_p99_s'] * 1e3:.3f} ms"]
+    if 'feel_reversals' in s:
+        lines.append(feel_line({'dF_p99_mN': s['feel_dF_p99_mN'], 'dF_max_mN': s['feel_dF_max_mN'],
+                                'reversals': int(s['feel_reversals']),
+                                'E_in_min_uJ': s['feel_E_in_min_uJ']}))
+    return lines
 
 
 def _wait_telling(proc, pattern: str, timeout: float, t_start: float):
@@ -146,12 +169,12 @@ def main(argv=None) -> int:
     sim_params = {k: v for k, v in (('model', args.model), ('tool_shape', args.tool)) if v}
     sim = graph.sim(sim_mode, env=env, golden=args.golden, params=sim_params,
                     params_file=args.sim_params)
-    # pose subscribers to wait for: sim, viz and this script's monitor
+    # pose subscribers to wait for: sim and viz (this script's monitor reads no pose)
     if args.backend == 'replay':
-        drv = graph.driver_replay(bag, args.mode, env=env, rate=args.rate, subscribers=3,
+        drv = graph.driver_replay(bag, args.mode, env=env, rate=args.rate, subscribers=2,
                                   params_file=args.driver_params)
     else:
-        drv = graph.driver_device(args.backend, env=env, subscribers=3,
+        drv = graph.driver_device(args.backend, env=env, subscribers=2,
                                   params_file=args.driver_params)
     procs = [drv, sim, viz]
     code = 0
@@ -165,8 +188,7 @@ def main(argv=None) -> int:
         ready = _wait_telling(sim, graph.SIM_READY + r'(model [^\n]*)', 240, t_start)
         print(f'demo: sim_node {ready.group(1)}', flush=True)
         print(f'demo: nodes ready after {time.monotonic() - t_start:.1f} s; replaying', flush=True)
-        with graph.Monitor(env, reliable=args.mode == 'lockstep') as mon:
-            mon.probe_sim()
+        with graph.Monitor(env, loop=False) as mon:
             drv.start()
             drv.wait_for_output(graph.DRIVER_READY, timeout=60)
             bar = None
@@ -179,41 +201,25 @@ def main(argv=None) -> int:
                 size = shutil.get_terminal_size((120, 24))
                 bar = tqdm(total=n_total or None, unit='pose', ncols=max(size.columns, 100),
                            nrows=max(size.lines, 10), smoothing=0.1, file=sys.stdout)
-            prev = (time.monotonic(), 0)
             last_print = 0.0
             while drv.alive():
                 time.sleep(0.2)
-                m = mon.last_metrics
-                step_ms = m.step_wall_time * 1e3 if m is not None else None
-                done = min(mon.n_poses, n_total) if n_total else mon.n_poses
+                line, seen = _fmt_line(mon)
+                done = min(seen, n_total) if n_total else seen
                 if bar is not None:
-                    line, prev = _fmt_line(mon, prev, step_ms)
                     bar.update(done - bar.n)
                     bar.set_postfix_str(line, refresh=True)
                 elif time.monotonic() - last_print >= 5.0:
-                    line, prev = _fmt_line(mon, prev, step_ms)
                     last_print = time.monotonic()
                     pct = f'{100.0 * done / n_total:5.1f} % ' if n_total else ''
                     print(f'demo: {pct}{done}/{n_total or "?"} poses  {line}', flush=True)
             if bar is not None:
-                bar.update((min(mon.n_poses, n_total) if n_total else mon.n_poses) - bar.n)
+                bar.update((n_total or done) - bar.n)
                 bar.close()
             if drv.returncode != 0:
                 print(f'demo: error: omni_driver exited with {drv.returncode}:\n'
                       f'{drv.output()[-3000:]}', file=sys.stderr)
                 code = 1
-            with mon.lock:
-                lat = sorted(mon.latencies)
-                n_poses, n_forces = mon.n_poses, mon.n_forces
-            unanswered = mon.unanswered()
-            felt = mon.feel()
-        if lat:
-            p99 = lat[min(len(lat) - 1, int(0.99 * len(lat)))]
-            print(f'demo: {n_poses} poses, {n_forces} forces, {unanswered} poses without a reply; '
-                  f'pose->force latency median {statistics.median(lat) * 1e3:.3f} ms, '
-                  f'p99 {p99 * 1e3:.3f} ms', flush=True)
-        if felt is not None:
-            print(f'demo: {feel_line(felt)}', flush=True)
     except AssertionError as exc:
         print(f'demo: error: {exc}', file=sys.stderr)
         code = 1
@@ -235,6 +241,8 @@ def main(argv=None) -> int:
         index = Path(m.group(1))
         folder = index.parent
         pngs = sorted(p.name for p in folder.glob('*.png'))
+        for line in closing_lines(folder / 'summary.json'):
+            print(f'demo: {line}', flush=True)
         print(f'demo: report folder: {folder}', flush=True)
         print(f'demo: report: {index}' + (f' (plots: {", ".join(pngs)})' if pngs else ''),
               flush=True)

@@ -172,14 +172,16 @@ class Monitor:
 
     Pose->force latency is measured here: receive time of the force whose header stamp equals a
     pose's stamp minus the receive time of that pose (best-effort readers by default, so it never
-    slows the loop down; ``reliable=True`` for lossless lockstep checks). Spins in its own thread
-    with an EventsExecutor. Use as a context manager.
+    slows the loop down; ``reliable=True`` for lossless lockstep checks). With ``loop=False`` it
+    reads neither (two 1 kHz Python readers cost about half a core: a watcher that leaves the
+    measuring to viz_node). Spins in its own thread with an EventsExecutor. Use as a context manager.
     """
 
     def __init__(self, domain_env: Mapping[str, str] | None = None, keep: bool = True,
-                 reliable: bool = False, depth: int = 1000) -> None:
+                 reliable: bool = False, depth: int = 1000, loop: bool = True) -> None:
         self.env = domain_env
         self.keep = keep
+        self.loop = loop
         self.reliable = reliable   # reliable pose/force readers: no loss, match reliable writers only
         # reader history: with reliable readers, deeper than what this monitor may fall behind by
         # on a busy machine (a full history drops its oldest message)
@@ -238,9 +240,10 @@ class Monitor:
         reliable = QoSProfile(depth=self.depth, history=HistoryPolicy.KEEP_LAST,
                               reliability=ReliabilityPolicy.RELIABLE)
         n = self.node
-        self.pose_sub = n.create_subscription(PoseStamped, 'omni/pose', self._on_pose, fast)
-        self.force_sub = n.create_subscription(WrenchStamped, 'omni/force_feedback', self._on_force,
-                                               fast)
+        if self.loop:
+            self.pose_sub = n.create_subscription(PoseStamped, 'omni/pose', self._on_pose, fast)
+            self.force_sub = n.create_subscription(WrenchStamped, 'omni/force_feedback',
+                                                   self._on_force, fast)
         self.state_sub = n.create_subscription(DeviceState, 'omni/state', self._on_state, reliable)
         self.metrics_sub = n.create_subscription(SimMetrics, 'tissue/metrics', self._on_metrics,
                                                  reliable)
@@ -381,6 +384,17 @@ class Monitor:
                 elif 'sim' in status.name:
                     out.add('sim')
         return out
+
+    def viz_values(self) -> dict[str, dict[str, str]]:
+        """viz_node's latest /diagnostics, by status name without the node's prefix (e.g. 'pose to
+        force latency'): its key-value pairs ({} before the first)."""
+        with self.lock:
+            arrays = list(self.diagnostics)
+        for array in reversed(arrays):
+            if any(s.name.startswith('viz_node') for s in array.status):
+                return {s.name.split(': ', 1)[-1]: {kv.key: kv.value for kv in s.values}
+                        for s in array.status}
+        return {}
 
     def probe_sim(self, timeout: float = 30.0) -> None:
         """Make sure the sim's force writer has matched this monitor's reader before a run.

@@ -98,10 +98,12 @@ class ContactModel:
         self._carry_left = 0          # poses until c is gone
 
     def at(self, x) -> np.ndarray:
-        """The model's push at ``x`` [m] (carry included): zero without contact or where it would pull."""
+        """The model's push at ``x`` [m] (carry included): zero without contact or where it would
+        pull."""
         if self.magnitude == 0.0:
             return np.zeros(3)
-        f = self.anchor_force() - (self.stiffness * float(self.normal @ (np.asarray(x, float) - self.point))) * self.normal
+        depth = float(self.normal @ (np.asarray(x, float) - self.point))
+        f = self.anchor_force() - (self.stiffness * depth) * self.normal
         return f if float(f @ self.normal) > 0.0 else np.zeros(3)
 
     def anchor_force(self) -> np.ndarray:
