@@ -201,7 +201,7 @@ def main(argv=None) -> int:
                 size = shutil.get_terminal_size((120, 24))
                 bar = tqdm(total=n_total or None, unit='pose', ncols=max(size.columns, 100),
                            nrows=max(size.lines, 10), smoothing=0.1, file=sys.stdout)
-            last_print = 0.0
+            last_print, done = 0.0, 0
             while drv.alive():
                 time.sleep(0.2)
                 line, seen = _fmt_line(mon)
