@@ -13,8 +13,9 @@ filtered over refreshes and kept in ``[0, k_max]``.
 A model that served ``m > 1`` poses (a live solver's) is stale by then: its successor would change
 the force at the proxy at once, by the tissue's motion over those poses (a click of 15-40 mN on the
 bags' live schedule). The jump ``c`` (old model minus new, at the proxy) is carried in ``F0`` and
-taken out in equal parts over the next ``min(m, BLEND_POSES)`` poses, so the force at the proxy is
-continuous and the new model is reached about when its successor is due::
+taken out in equal parts over the next ``min(m // 2, BLEND_POSES)`` poses, so the force at the proxy
+is continuous and the new model holds alone well before its successor is due (blending over all
+``m`` poses lagged more: a poke answered 16 poses late gave 1.8 uJ back)::
 
     F(x) = F0 + c - k n (n . (x - x0)),    c -> 0 over the blend
 
@@ -65,9 +66,9 @@ import numpy as np
 
 #: a refresh moved the proxy less than this along the normal: too little to measure a stiffness [m]
 MIN_SECANT_TRAVEL = 2e-6
-#: the most poses a stale model's jump is spread over (100 ms: a solver five times slower than
-#: real time refreshes every 100 poses or so; a longer stall is a fault, not a schedule)
-BLEND_POSES = 100
+#: the most poses a stale model's jump is spread over (half of the 100 poses between the refreshes
+#: of a solver five times slower than real time; a longer stall is a fault, not a schedule)
+BLEND_POSES = 50
 #: weight of a new secant in the filtered stiffness when the model served one pose (about 20 poses
 #: of memory; a model that served ``m`` poses weighs its successor's secant ``1 - (1 - gain)^m``)
 STIFFNESS_GAIN = 0.05
@@ -119,8 +120,8 @@ class ContactModel:
     def refresh(self, point, force, served: int = 1, proxy=None) -> None:
         """The solver found reaction ``force`` [N] with the tool at ``point`` [m]; the model it
         replaces answered ``served`` poses. With ``proxy`` [m] (where the simulated tool is now)
-        and ``served > 1``, the force there stays what it was and the change comes over the next
-        poses (see the module docstring).
+        and ``served >= 4``, the force there stays what it was and the change comes over the next
+        ``served // 2`` poses (see the module docstring).
 
         The stiffness's memory is counted in poses, not refreshes: a live solver refreshes every
         15-30 poses, and with a per-refresh memory of 20 the first touch rendered a flat force
@@ -133,7 +134,8 @@ class ContactModel:
             self.lose()
             self.point = point
             return
-        before = self.at(proxy) if proxy is not None and served > 1 else None
+        blend = min(int(served) // 2, BLEND_POSES) if proxy is not None else 0
+        before = self.at(proxy) if blend > 1 else None
         normal = force / mag
         if self.magnitude > 0.0:
             travel = float(normal @ (point - self.point))
@@ -147,10 +149,9 @@ class ContactModel:
         self._carry_left = 0
         self.carry = np.zeros(3)
         if before is not None:
-            n = min(int(served), BLEND_POSES)
             self.carry = before - self.at(proxy)
-            self._carry_step = self.carry / n
-            self._carry_left = n
+            self._carry_step = self.carry / blend
+            self._carry_left = blend
 
 
 class VirtualCoupling:
