@@ -78,13 +78,23 @@ def closing_lines(summary_path: Path) -> list[str]:
         s = json.loads(summary_path.read_text())
     except (OSError, ValueError) as exc:
         return [f'no report summary ({exc})']
-    lines = [f"{s['poses']} poses, {s['forces']} forces, {s['replies_missed']} poses without a reply "
-             f"({s['replies_missed_pct']:.2f} %); pose->force latency median "
-             f"{s['latency_p50_s'] * 1e3:.3f} ms, p99 {s['latency_p99_s'] * 1e3:.3f} ms"]
+
+    def num(key: str) -> float:   # the report writes a figure it could not measure as null
+        v = s.get(key)
+        return float(v) if isinstance(v, (int, float)) else math.nan
+
+    def ms(key: str) -> str:
+        v = num(key)
+        return f'{v * 1e3:.3f} ms' if math.isfinite(v) else 'n/a'
+
+    lines = [f"{s.get('poses', 0)} poses, {s.get('forces', 0)} forces, {s.get('replies_missed', 0)} "
+             f"poses without a reply ({num('replies_missed_pct'):.2f} %); pose->force latency median "
+             f"{ms('latency_p50_s')}, p99 {ms('latency_p99_s')}"]
     if 'feel_reversals' in s:
-        lines.append(feel_line({'dF_p99_mN': s['feel_dF_p99_mN'], 'dF_max_mN': s['feel_dF_max_mN'],
-                                'reversals': int(s['feel_reversals']),
-                                'E_in_min_uJ': s['feel_E_in_min_uJ']}))
+        reversals = num('feel_reversals')
+        lines.append(feel_line({'dF_p99_mN': num('feel_dF_p99_mN'), 'dF_max_mN': num('feel_dF_max_mN'),
+                                'reversals': int(reversals) if math.isfinite(reversals) else 0,
+                                'E_in_min_uJ': num('feel_E_in_min_uJ')}))
     return lines
 
 

@@ -62,6 +62,22 @@ def test_demo_refuses_lockstep_without_a_bag_and_a_missing_params_file(tmp_path)
         assert out.returncode == 2 and why in out.stderr, out.stderr
 
 
+def test_demo_closing_lines_read_a_report_without_latency_figures(tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location('demo_run', harness.REPO_ROOT / 'scripts' / 'demo_run.py')
+    demo_run = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(demo_run)
+    summary = tmp_path / 'summary.json'
+    summary.write_text(json.dumps({'poses': 12, 'forces': 0, 'replies_missed': 12, 'replies_missed_pct': 100.0,
+                                   'latency_p50_s': None, 'latency_p99_s': None, 'feel_dF_p99_mN': None,
+                                   'feel_dF_max_mN': None, 'feel_reversals': 0.0, 'feel_E_in_min_uJ': 0.0}))
+    lines = demo_run.closing_lines(summary)
+    assert lines[0] == ('12 poses, 0 forces, 12 poses without a reply (100.00 %); pose->force latency '
+                        'median n/a, p99 n/a')
+    assert 'no frames in steady contact' in lines[1] and 'nan' not in lines[1]
+
+
 def test_demo_feel_line_says_no_steady_contact_instead_of_nan():
     import importlib.util
 
