@@ -10,7 +10,7 @@ tissue's stiffness ``k`` along the contact normal ``n = F0 / |F0|``::
 series, so it is what the hand should feel, not the stiffer frozen-particle penalty), low-pass
 filtered over refreshes and kept in ``[0, k_max]``.
 
-A model that served ``m > 1`` poses (a live solver's) is stale by then: its successor would change
+A model that served ``m >= 4`` poses (a live solver's) is stale by then: its successor would change
 the force at the proxy at once, by the tissue's motion over those poses (a click of 15-40 mN on the
 bags' live schedule). The jump ``c`` (old model minus new, at the proxy) is carried in ``F0`` and
 taken out in equal parts over the next ``min(m // 2, BLEND_POSES)`` poses, so the force at the proxy
@@ -19,7 +19,7 @@ is continuous and the new model holds alone well before its successor is due (bl
 
     F(x) = F0 + c - k n (n . (x - x0)),    c -> 0 over the blend
 
-A model refreshed every pose (lockstep, ``m = 1``) is taken at once, as before.
+A model refreshed every pose or nearly (lockstep, ``m < 4``) is taken at once, as before.
 
 The simulated tool (the proxy ``x_t = x^ + a``) is held by a spring ``K_c`` to the filtered device
 point ``x^``, pushed by the contact model, and its offset ``a`` from the device point is damped by
