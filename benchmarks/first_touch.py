@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """What a touch on new ground costs the frame that makes it: the organ's far field waiting for its
-responses, against solving them on a worker thread (``SolverConfig.far_field_background``).
+responses, against solving them on a worker thread (``Solver(..., background=True)``).
 
 Local mode with the organ's far field (the default on the bundled liver) solves a particle's
 response the first time it carries the tool; each takes tens of milliseconds. Here the tool
@@ -42,8 +42,8 @@ REPORT_DEPTHS = (0.002, 0.004, 0.010)
 
 def press(model, background: bool, xy, depth: float, speed: float, dt: float = 1e-3) -> dict:
     """One paced press from first touch; per frame: depth [m], wall time [s], Fz [N]."""
-    solver = Solver(model, liver_default(), SolverConfig(mode='local', parallel_min_particles=0,
-                                                         far_field_background=background))
+    solver = Solver(model, liver_default(), SolverConfig(mode='local', parallel_min_particles=0),
+                    background=background)
     start = first_touch(model, solver.contact_reach, xy, NUDGE)
     frames = int(np.ceil(depth / (speed * dt)))
     out = {k: np.zeros(frames) for k in ('depth', 'wall', 'fz')}

@@ -407,13 +407,8 @@ def main(argv=None) -> int:
         if default is None or not text:
             ap.error(f'--set {item!r}: expected FIELD=VALUE with FIELD a SolverConfig field')
         try:
-            if isinstance(default, bool):
-                # bool('false') is True
-                flags = {'true': True, '1': True, 'yes': True, 'false': False, '0': False, 'no': False}
-                OVERRIDES[name.strip()] = flags[text.strip().lower()]
-            else:
-                OVERRIDES[name.strip()] = type(default)(text)
-        except (KeyError, ValueError):
+            OVERRIDES[name.strip()] = type(default)(text)
+        except ValueError:
             ap.error(f'--set {item!r}: {text!r} is not a {type(default).__name__}')
     try:
         solver_config().validate()

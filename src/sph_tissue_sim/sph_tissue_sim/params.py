@@ -212,14 +212,18 @@ def build_material(p: dict) -> Material:
 
 
 def build_config(p: dict) -> SolverConfig:
-    """Validated solver settings from the parameters (raises ConfigError). The organ's far field
-    solves its responses in the background unless the timing is lockstep (bit-identical replays)."""
-    cfg = SolverConfig(**{name: p[name] for name in solver_params()},
-                       far_field_background=p['timing_mode'] != 'lockstep')
+    """Validated solver settings from the parameters (raises ConfigError)."""
+    cfg = SolverConfig(**{name: p[name] for name in solver_params()})
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')
     return cfg
+
+
+def solves_in_background(p: dict) -> bool:
+    """The organ's far field solves its responses on a worker thread unless the timing is lockstep:
+    live, a touch on new ground must not stall its frame; lockstep replays repeat bit for bit."""
+    return p['timing_mode'] != 'lockstep'
 
 
 def build_renderer(p: dict) -> RendererConfig:

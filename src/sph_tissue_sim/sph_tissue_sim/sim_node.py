@@ -79,7 +79,7 @@ from .mapping import DeviceMapping, anchor_point, check_position
 from .haptics.multirate import MultiRate, SolverJob
 from .haptics.renderer import HapticRenderer
 from .params import (NEXT_STEP_SETTINGS, SIM_PARAMS, build_config, build_material, build_model,
-                     build_renderer, check_value)
+                     build_renderer, check_value, solves_in_background)
 from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 
 EXIT_OK, EXIT_INPUT = 0, 1
@@ -93,13 +93,14 @@ SHUTDOWN_JOIN = 5.0
 TOOL_LAG_LOG = 1e-3  # [m] a lag behind the device worth telling the operator about
 
 
-def make_solver(model, material, config: SolverConfig, nominal_dt: float) -> Solver:
+def make_solver(model, material, config: SolverConfig, nominal_dt: float, background: bool = False) -> Solver:
     """A solver whose scheme can actually step (a probe step without tool, then back to rest).
+    ``background``: the organ's far field solves its responses on a worker thread.
 
     Raises:
         ConfigError: invalid settings, or a scheme this build cannot run yet.
     """
-    solver = Solver(model, material, config)
+    solver = Solver(model, material, config, background=background)
     solver.step(None, nominal_dt)
     solver.reset()
     return solver
@@ -159,7 +160,8 @@ class SimNode(Node):
                 warmup(config.scheme, config.contact_integration, config.integrator)
             except SimError as exc:  # the probe step below still compiles what this model needs
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
-        self.solver = make_solver(self.model, self.material, config, p['nominal_dt'])
+        self.solver = make_solver(self.model, self.material, config, p['nominal_dt'],
+                                  background=solves_in_background(p))
         self._cloud = CloudBuffer(self.solver.n_particles, p['tissue_frame'])
         self._pack_cloud()  # compiles (or loads) its kernel now, not at the first cloud
         self.compile_time = time.perf_counter() - t0
@@ -763,7 +765,7 @@ class SimNode(Node):
             solver = None
             if 'solver' in kinds:
                 solver = make_solver(self.model, material or self.solver.material, config,
-                                     new['nominal_dt'])
+                                     new['nominal_dt'], background=solves_in_background(new))
             mapping = None
             if 'mapping' in kinds or solver is not None:
                 mapping = self._make_mapping(new, solver or self.solver)

@@ -1,6 +1,5 @@
 """The organ's linear compliance as local mode's far field (``far_field_model: organ``, :mod:`.core.compliance`)."""
 
-import dataclasses
 import os
 import signal
 import subprocess
@@ -163,12 +162,12 @@ def _place_without_waiting(organ, x, X, idx, at, weights, load) -> int:
 
 def test_in_the_background_a_touch_never_waits_for_a_response_and_shares_the_load_among_the_ready_ones():
     """A first touch on the liver asks for a few responses of about 45 ms each; with
-    ``far_field_background`` the frame goes on without them: the load is shared by the touched
+    ``background`` the frame goes on without them: the load is shared by the touched
     particles whose responses are ready (none: the shell stays at rest), and once the worker has
     solved them (and the shell has come in from rest) the placement is the waiting one's."""
     cfg = SolverConfig(mode='local', far_field_model='organ', far_field=1.0)
     waiting = Solver(_block(), SOFT, cfg).organ
-    organ = Solver(_block(), SOFT, dataclasses.replace(cfg, far_field_background=True)).organ
+    organ = Solver(_block(), SOFT, cfg, background=True).organ
     assert organ.background and not waiting.background
     X = organ.X
     top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
@@ -233,8 +232,8 @@ def test_a_killed_factoring_process_is_a_clear_error_and_the_next_ask_starts_ano
 def test_closing_a_solver_stops_its_far_fields_worker():
     """sim_node replaces its solver on a parameter change: the old worker must not stay behind
     holding the old factor."""
-    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0,
-                                                 far_field_background=True))
+    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0),
+                    background=True)
     X = solver.X
     top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
     solver.organ.place(X.copy(), X, top.astype(np.int32), top[:1].astype(np.int32), np.ones(1), np.zeros(3))
@@ -333,8 +332,8 @@ def test_the_default_far_field_is_the_organs_for_tlsph_and_the_half_space_otherw
 
 
 def _organ(background: bool = False, material: Material = SOFT):
-    return Solver(_block(), material, SolverConfig(mode='local', far_field_model='organ', far_field=1.0,
-                                                   far_field_background=background)).organ
+    return Solver(_block(), material, SolverConfig(mode='local', far_field_model='organ', far_field=1.0),
+                  background=background).organ
 
 
 def _top(organ) -> int:

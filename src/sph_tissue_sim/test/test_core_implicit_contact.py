@@ -9,14 +9,20 @@ from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.backward_euler import NoOperator, backward_euler_step
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
+from sph_tissue_sim.core import solver as solver_module
 from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig
 from sph_tissue_sim.validation.cases import press_and_hold
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 SPACING = 0.0075
-#: the samples as the surface (the particles' balls too small to meet the tool first), explicit
-#: unless a test says implicit
-SURFACE = {**BALL_CONTACT, 'contact_samples': 3, 'contact_particle_radius': 1e-3}
+#: the samples as the surface (the particles' balls too small to meet the tool first: the fixture
+#: below), explicit unless a test says implicit
+SURFACE = {**BALL_CONTACT, 'contact_samples': 3}
+
+
+@pytest.fixture(autouse=True)
+def samples_alone(monkeypatch):
+    monkeypatch.setattr(solver_module, 'BALL_RADIUS', 1e-3)
 
 
 def _pressed(**config) -> Solver:

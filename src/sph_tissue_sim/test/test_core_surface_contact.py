@@ -8,6 +8,7 @@ from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import Material, liver_default
 from sph_tissue_sim.core.models import make_block
+from sph_tissue_sim.core import solver as solver_module
 from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig
 from sph_tissue_sim.core.surface_contact import nearest_sample_gap, samples_in_reach
 from sph_tissue_sim.validation.cases import gives_way, press_and_hold, press_curve
@@ -15,8 +16,13 @@ from sph_tissue_sim.validation.cases import gives_way, press_and_hold, press_cur
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 LIVER_DEFAULT = liver_default()
 SPACING = 0.0075
-#: the samples as the surface (explicit, with the half-space far field, as these tests were measured)
-SURFACE = {**BALL_CONTACT, 'contact_samples': 3, 'contact_particle_radius': 1e-3}
+#: the samples as the surface (explicit, with the half-space far field, as these tests were measured;
+#: with the fixture samples_alone)
+SURFACE = {**BALL_CONTACT, 'contact_samples': 3}
+@pytest.fixture
+def samples_alone(monkeypatch):
+    """The particles' balls shrunk to a point, so the tool meets the surface samples alone."""
+    monkeypatch.setattr(solver_module, 'BALL_RADIUS', 1e-3)
 
 
 def _sample_positions(solver: Solver, x: np.ndarray) -> np.ndarray:
@@ -39,6 +45,7 @@ def _block_solver(mode: str = 'global', **config) -> Solver:
     return Solver(model, LIVER, SolverConfig(mode=mode, **{**SURFACE, **config}))
 
 
+@pytest.mark.usefixtures('samples_alone')
 def test_samples_sit_half_a_spacing_outside_a_flat_face_and_interpolate_with_a_partition_of_unity():
     solver = _block_solver()
     X = solver.X
@@ -60,6 +67,7 @@ def test_samples_sit_half_a_spacing_outside_a_flat_face_and_interpolate_with_a_p
     assert np.diff(xs) == pytest.approx(1.0)
 
 
+@pytest.mark.usefixtures('samples_alone')
 def test_the_samples_move_with_a_translated_body():
     solver = _block_solver()
     shift = np.array([0.003, -0.002, 0.001])
@@ -67,6 +75,7 @@ def test_the_samples_move_with_a_translated_body():
     assert moved - _sample_positions(solver, solver.X) == pytest.approx(np.broadcast_to(shift, moved.shape))
 
 
+@pytest.mark.usefixtures('samples_alone')
 def test_the_tool_touches_the_material_surface_half_a_spacing_above_the_particles():
     """What the point cloud shows is what the hand feels: contact starts at the surface, half a
     spacing above the particle centres (the ball model touched a whole spacing above them)."""
@@ -80,6 +89,7 @@ def test_the_tool_touches_the_material_surface_half_a_spacing_above_the_particle
         assert (fz > 0.0) == touching, (gap, fz)
 
 
+@pytest.mark.usefixtures('samples_alone')
 def test_a_straight_press_between_surface_particles_pushes_them_straight_down():
     """A frictionless tool pressed straight down on a flat face, between four surface particles:
     the surface under it goes down with it (the particle nearest the tool stays under it) and the
@@ -95,6 +105,7 @@ def test_a_straight_press_between_surface_particles_pushes_them_straight_down():
     assert curve['slip'][-1] < 1e-3
 
 
+@pytest.mark.usefixtures('samples_alone')
 @pytest.mark.parametrize('mode', ['global', 'local'])
 def test_pressing_twice_the_tool_radius_deep_the_force_keeps_rising_and_no_particle_passes_over(mode):
     """Pop-through: with particles as balls, a tool pressed about 1.5 radii between surface
@@ -118,6 +129,7 @@ def test_surface_discs_and_samples_are_exclusive():
         SolverConfig(contact_samples=6).validate()
 
 
+@pytest.mark.usefixtures('samples_alone')
 def test_a_shaft_laid_on_the_surface_presses_it_along_its_length():
     """The samples meet any tool shape through its segment: a capsule lying flat, lowered 2 mm into
     the surface, is pushed straight up, harder than its tip alone would be."""
@@ -138,6 +150,7 @@ def test_a_shaft_laid_on_the_surface_presses_it_along_its_length():
     assert np.hypot(f[0], f[1]) < 0.1 * f[2]
 
 
+@pytest.mark.usefixtures('samples_alone')
 def test_through_the_renderer_the_tool_rests_where_the_tissue_holds_the_device_limit():
     """The device pressed 30 mm into the block through the haptic renderer (force limit 1 N):
     the simulated tool stops where the tissue's own force-depth curve (the tool pressed directly)
@@ -160,6 +173,7 @@ def test_through_the_renderer_the_tool_rests_where_the_tissue_holds_the_device_l
     assert curve['over'].max() == 0
 
 
+@pytest.mark.usefixtures('samples_alone')
 @pytest.mark.slow
 def test_the_far_field_does_not_ring_when_a_fine_liver_is_pressed_deep():
     """The far field places the shell at its response to the force, and the force follows the

@@ -158,9 +158,9 @@ def test_the_implicit_integrator_swings_a_cantilever_at_its_bending_frequency():
     sub-step per frame of 1/200 of the period (the explicit scheme needs 59 there, the CFL bound): its f1
     within 7 % of Timoshenko (explicit: -5.1 %). Backward Euler's own error at 200 steps per
     period is small: an undamped oscillator's phase per step is atan(omega dt), 0.03 % slow,
-    and its amplitude falls 0.05 % per step. The solve runs to 1e-3 here: the default 1e-2,
-    which holds a press's force to 1e-5 N, puts this free vibration 1 % lower (-6.2 %)."""
-    f, f_eb, f_t = cantilever_frequency(10, 8.0, n_wide=4, integrator='implicit', implicit_tol=1e-3)
+    and its amplitude falls 0.05 % per step. The solve stops at IMPLICIT_TOL (1e-2), which holds a
+    press's force to 1e-5 N and puts this free vibration 1 % lower than a solve to 1e-3."""
+    f, f_eb, f_t = cantilever_frequency(10, 8.0, n_wide=4, integrator='implicit')
     err = f / f_t - 1.0
     print(f'implicit cantilever: f1 = {f:.4f} Hz, Timoshenko {f_t:.4f} Hz, error {err:+.4f} '
           f'(Euler-Bernoulli {f / f_eb - 1.0:+.4f})')

@@ -571,7 +571,7 @@ def test_a_capsule_chosen_by_parameter_follows_the_stylus_orientation_and_is_pus
 
     n, radius, length = 2000, 0.004, 0.15
     model = make_model('liver', n_particles=n)          # the node builds the same model
-    # particles meet the tool one spacing from their centre (the core's contact_particle_radius)
+    # particles meet the tool one spacing from their centre (the core's BALL_RADIUS)
     tips, rot, axis = tilted_shaft_press(model.positions, Capsule(radius, length), model.spacing,
                                          math.radians(20.0), 0.004)
     r_map = quaternion_matrix(DEFAULT_ROTATION)          # device -> tissue (anchor origin: no offset)

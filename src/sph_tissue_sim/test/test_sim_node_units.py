@@ -13,8 +13,8 @@ from sph_tissue_sim.core.errors import ConfigError, ModelError
 from sph_tissue_sim.mapping import DEFAULT_ROTATION, DeviceMapping, anchor_point, check_position
 from tissue_common.rotation import quaternion_matrix
 from sph_tissue_sim.core.factory import block_of
-from sph_tissue_sim.params import (SIM_PARAMS, build_config, build_material, build_model,
-                                   check_value)
+from sph_tissue_sim.params import (SIM_PARAMS, build_config, build_material, build_model, check_value,
+                                   solves_in_background)
 from sph_tissue_sim.timing import BACKWARDS, FIRST, JUMP, OK, REPEAT, StampClock
 
 
@@ -223,9 +223,9 @@ def test_solver_config_cross_checks():
 def test_the_far_field_solves_in_the_background_unless_the_timing_is_lockstep():
     """Live, a touch on new ground must not stall its frame for the organ's responses; lockstep
     replays must repeat bit for bit, which a worker thread's timing would not let them."""
-    assert build_config(defaults(timing_mode='live')).far_field_background is True
-    assert build_config(defaults(timing_mode='lockstep')).far_field_background is False
-    assert 'far_field_background' not in SIM_PARAMS
+    assert solves_in_background(defaults(timing_mode='live')) is True
+    assert solves_in_background(defaults(timing_mode='lockstep')) is False
+    assert 'background' not in SIM_PARAMS
 
 
 def test_every_solver_parameter_is_its_solver_config_field_with_the_same_default_doc_and_limits():
@@ -242,8 +242,7 @@ def test_every_solver_parameter_is_its_solver_config_field_with_the_same_default
             assert SIM_PARAMS[f.name][:3] == (f.default, f.metadata['doc'], f.metadata['limits']), f.name
         else:
             assert f.name not in SIM_PARAMS, f.name
-    live = dataclasses.replace(SolverConfig(), far_field_background=True)
-    assert build_config(defaults()) == live
+    assert build_config(defaults()) == SolverConfig()
     assert set(NEXT_STEP_SETTINGS) == {'friction', 'max_tool_speed', 'force_limit'}
     for name, spec in solver_params().items():
         limits = spec[2]
@@ -279,8 +278,8 @@ def test_the_contact_parameters_reach_the_solver_config_and_bad_ones_are_refused
 
 
 def test_the_integrator_reaches_the_solver_config_and_bad_values_are_refused():
-    cfg = build_config(defaults(integrator='implicit', implicit_max_dt=0.004, implicit_tol=1e-3))
-    assert (cfg.integrator, cfg.implicit_max_dt, cfg.implicit_tol) == ('implicit', 0.004, 1e-3)
+    cfg = build_config(defaults(integrator='implicit', implicit_max_dt=0.004))
+    assert (cfg.integrator, cfg.implicit_max_dt) == ('implicit', 0.004)
     assert build_config(defaults()).integrator == 'explicit'
     for bad, match in ((dict(integrator='verlet'), 'integrator'),
                        (dict(integrator='implicit', scheme='paper'), 'integrator implicit needs scheme tlsph'),

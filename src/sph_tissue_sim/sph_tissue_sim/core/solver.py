@@ -62,12 +62,17 @@ ORGAN_SHARE = 1.01
 #: and its responses cost too much (the 12k liver, 11149 free: 66 s, 4.6 GB, 0.3 s per response)
 ORGAN_MAX_FREE = 5000
 INTEGRATORS = ('explicit', 'implicit')
-#: the contact of the defaults before 2026-11-27: the tool against the particles' balls alone,
-#: explicitly integrated, with the half-space far field (SolverConfig(**BALL_CONTACT))
+#: the tool against the particles' balls alone, explicitly integrated, with the half-space far
+#: field (SolverConfig(**BALL_CONTACT)): the contact before the surface samples, for comparisons
 BALL_CONTACT = {'contact_samples': 0, 'contact_integration': 'explicit', 'far_field_model': 'half_space',
                 'far_field': 0.9}
 #: relative residual of the implicit contact's solve (cheap: it spans the particles under the tool)
 CONTACT_TOL = 1e-8
+#: the implicit integrator's solve stops at this velocity error relative to the velocities: holds a
+#: press's force to 1e-5 N; a free vibration swings 1 % slower than at 1e-3 (test_core_validation)
+IMPLICIT_TOL = 0.01
+#: [spacings] radius of a particle's contact ball
+BALL_RADIUS = 1.0
 #: [m], [m/s] a particle outside the local area is released below this displacement and speed
 RELAX_DISP_TOL, RELAX_VEL_TOL = 2e-4, 2e-3
 #: [m/s] a faster particle is a blow-up (state restored, SimError)
@@ -122,8 +127,6 @@ class SolverConfig:
                                        'sample', (1.0, 1e5))
     contact_damping_ratio: float = setting(1.0, '[-] contact dashpot as a fraction of critical for one '
                                            'particle', (0.0, 10.0))
-    contact_particle_radius: float = setting(1.0, '[spacings] a particle\'s contact ball', (1e-3, 2.0),
-                                             node=False)
     contact_disc: float = setting(0.0, '[spacings] surface particles as discs normal to the surface (lost '
                                   'to the samples, to be removed)', (0.0, 0.5))
     contact_samples: int = setting(3, 'samples per side of a surface particle behind the balls, which hold '
@@ -146,8 +149,6 @@ class SolverConfig:
     max_substeps: int = setting(64, 'sub-steps per frame at most (beyond it simulated time lags; reported)',
                                 (1, 100000))
     implicit_max_dt: float = setting(0.016, '[s] the implicit integrator\'s largest sub-step', (1e-5, 1.0))
-    implicit_tol: float = setting(0.01, '[-] the implicit solve stops at this velocity error relative to the '
-                                  'velocities', (1e-9, 0.1))
     parallel_min_particles: int = setting(0, 'tlsph: numba\'s threads from this many stressed particles (0: '
                                           'never; only on cores of its own: a busy core stalls each sub-step)',
                                           (0, 10_000_000))
@@ -158,19 +159,13 @@ class SolverConfig:
     far_field_model: str = setting('auto', 'auto (organ for tlsph up to ORGAN_MAX_FREE free particles, else '
                                    'half_space) | organ (the organ\'s own linear response, factored when first needed) '
                                    '| half_space (Boussinesq)', FAR_FIELD_MODELS)
-    far_field_background: bool = setting(False, 'organ: solve responses on a worker thread, so a touch never '
-                                         'waits (not repeatable bit for bit; sim_node: unless lockstep)',
-                                         node=False)
 
     def validate(self) -> 'SolverConfig':
         """Check every field against its limits; raises :class:`ConfigError` naming the bad field.
         Returns self, with the integer fields as ``int``."""
         for f in fields(self):
             val, limits = getattr(self, f.name), f.metadata['limits']
-            if isinstance(f.default, bool):
-                if not isinstance(val, (bool, np.bool_)):
-                    raise ConfigError(f'{f.name} must be true or false, got {val!r}')
-            elif isinstance(f.default, str):
+            if isinstance(f.default, str):
                 if val not in limits:
                     raise ConfigError(f'{f.name} must be one of {limits}, got {val!r}')
             else:
@@ -233,6 +228,8 @@ class Solver:
         model: reference configuration (positions, spacing, fixed mask).
         material: Kelvin-Voigt material.
         config: solver settings (validated here).
+        background: the organ's far field solves its responses on a worker thread, so a touch
+            never waits for one (not repeatable bit for bit: sim_node's live timing).
 
     Raises:
         ModelError: empty model.
@@ -240,12 +237,14 @@ class Solver:
             a neighbour.
     """
 
-    def __init__(self, model: TissueModel, material: Material, config: SolverConfig | None = None) -> None:
+    def __init__(self, model: TissueModel, material: Material, config: SolverConfig | None = None,
+                 background: bool = False) -> None:
         if model is None or len(model.positions) == 0:
             raise ModelError('the model has no particles')
         if not isinstance(material, Material):
             raise ConfigError(f'material must be a Material, got {type(material).__name__}')
         self.config = cfg = (config or SolverConfig()).validate()
+        self.background = background
         self.model = model
         self.n = model.n_particles
         self.h = cfg.h_ratio * model.spacing
@@ -280,7 +279,7 @@ class Solver:
         stiffness = cfg.integrator == 'implicit'
         contacts = stiffness or cfg.contact_integration == 'implicit'
         self.backward = (BackwardSolve(self.scheme if stiffness else None, self.n,
-                                       cfg.implicit_tol if stiffness else CONTACT_TOL,
+                                       IMPLICIT_TOL if stiffness else CONTACT_TOL,
                                        IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER)
                          if contacts else None)
         n_samples = len(self.sample_arrays[4]) if self.sample_arrays is not None else 0
@@ -300,15 +299,15 @@ class Solver:
         cfg = self.config
         per = cfg.contact_samples
         if per == 0:
-            self.contact_reach = self.tool.radius + cfg.contact_particle_radius * spacing
+            self.contact_reach = self.tool.radius + BALL_RADIUS * spacing
             self.ball_reach = self.detect_reach = self.cand_reach = self.samples_reach = self.contact_reach
             self.sample_arrays, self.sample_margin, self.sample_factor = None, 0.0, 1.0
             return
         # the tool meets samples on the material's surface, half a spacing outside the particle
         # centres, and the particles' own balls: of the tool's size behind the samples, or of
-        # contact_particle_radius in front of them (the samples then a backstop)
+        # BALL_RADIUS in front of them (the samples then a backstop)
         surface_reach = self.tool.radius + SURFACE_OFFSET * spacing
-        self.ball_reach = self.tool.radius + cfg.contact_particle_radius * spacing
+        self.ball_reach = self.tool.radius + BALL_RADIUS * spacing
         self.contact_reach = max(surface_reach, self.ball_reach)
         *self.sample_arrays, reach, support = surface_samples(self.X, self.offsets, self.indices, self.h,
                                                               self.volume, spacing, per)
@@ -404,7 +403,7 @@ class Solver:
                     f'66 s, 4.6 GB, 0.3 s per response): use far_field_model half_space')
             self.organ = OrganCompliance(self.X, self.fixed, self.scheme.state(None, None, 0),
                                          ORGAN_SHARE * self.model.spacing, self.abort,
-                                         background=cfg.far_field_background)
+                                         background=self.background)
         if self.backward is not None:
             self.backward.set_material(material)
         c = self.scheme.wave_speed(material, self.mass)
