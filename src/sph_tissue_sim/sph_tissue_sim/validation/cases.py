@@ -193,6 +193,29 @@ def press_and_hold(model: TissueModel, material: Material, config: SolverConfig,
     return res.force
 
 
+def press_steps(model: TissueModel, material: Material, config: SolverConfig, depths, xy=None,
+                ramp: int = 300, hold: int = 100, dt: float = 1e-3) -> np.ndarray:
+    """Lower the tool from first touch into the top surface above ``xy`` through each of the
+    increasing ``depths`` [m] at one speed (the deepest reached after ``ramp`` frames of motion),
+    holding ``hold`` frames at each; returns the forces [N] at the ends of the holds, (len(depths), 3):
+    :func:`press_and_hold` at several depths in one run."""
+    solver = Solver(model, material, config)
+    P = model.positions
+    if xy is None:
+        xy = (P[:, 0].mean(), P[:, 1].mean())
+    start = first_touch(model, solver.contact_reach, xy, NUDGE)
+    step = max(depths) / ramp
+    forces, z = [], 0.0
+    for depth in depths:
+        while z < depth:
+            z = min(depth, z + step)
+            solver.step(start - np.array([0.0, 0.0, z]), dt)
+        for _ in range(hold):
+            res = solver.step(start - np.array([0.0, 0.0, z]), dt)
+        forces.append(res.force)
+    return np.array(forces)
+
+
 def drag(model: TissueModel, material: Material, config: SolverConfig, depth: float, travel: float,
          xy, direction=(1.0, 0.0), speed: float = 0.02, press: int = 250, hold: int = 100,
          dt: float = 1e-3) -> tuple[float, float, np.ndarray]:
