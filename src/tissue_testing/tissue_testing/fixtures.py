@@ -12,10 +12,15 @@ from . import harness
 
 @pytest.fixture(scope='session', autouse=True)
 def response_store(tmp_path_factory):
-    """The organ's responses on disk (sph_tissue_sim's response_store) in a folder of this session,
-    shared by its tests and the node processes they start, never the user's cache."""
+    """The organ's responses on disk (sph_tissue_sim's response_store) in a folder of this run,
+    shared by its tests, its pytest-xdist workers and the node processes they start, never the
+    user's cache (the store writes each response whole and renames it, so sharing is safe)."""
     saved = os.environ.get('SPH_TISSUE_CACHE')
-    folder = tmp_path_factory.mktemp('responses')
+    if os.environ.get('PYTEST_XDIST_WORKER'):
+        folder = tmp_path_factory.getbasetemp().parent / 'responses'
+        folder.mkdir(exist_ok=True)
+    else:
+        folder = tmp_path_factory.mktemp('responses')
     os.environ['SPH_TISSUE_CACHE'] = str(folder)
     yield folder
     if saved is None:

@@ -45,14 +45,27 @@ _DOMAIN_LOCK = threading.Lock()
 _DOMAIN_STATE = {'next': None}
 
 
+def _domain_block() -> range:
+    """The domain ids this process may use: all of 1..100, or its share when pytest-xdist runs the
+    suite in several workers (so two workers never share a domain)."""
+    worker = os.environ.get('PYTEST_XDIST_WORKER', '')
+    count = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1') or 1)
+    if not worker.startswith('gw') or count <= 1:
+        return range(1, 101)
+    size = 100 // count
+    index = int(worker[2:]) % count
+    return range(1 + index * size, 1 + (index + 1) * size)
+
+
 def new_domain_id() -> int:
     """A domain id unlikely to be used by another test run on this machine (1..100)."""
     with _DOMAIN_LOCK:
+        block = _domain_block()
         if _DOMAIN_STATE['next'] is None:
-            _DOMAIN_STATE['next'] = random.Random(os.getpid() ^ time.time_ns()).randrange(1, 101)
-        did = _DOMAIN_STATE['next']
-        _DOMAIN_STATE['next'] = did % 100 + 1
-        return did
+            _DOMAIN_STATE['next'] = random.Random(os.getpid() ^ time.time_ns()).randrange(len(block))
+        k = _DOMAIN_STATE['next']
+        _DOMAIN_STATE['next'] = (k + 1) % len(block)
+        return block[k]
 
 
 def ros_env(domain_id: int | None = None, base: Mapping[str, str] | None = None) -> dict:
