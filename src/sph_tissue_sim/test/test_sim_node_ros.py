@@ -127,7 +127,7 @@ def test_the_device_frame_is_latched_and_maps_the_device_where_the_simulation_do
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     from sph_tissue_sim import params as sim_params
-    from sph_tissue_sim.sim_node import SimNode, make_solver
+    from sph_tissue_sim.runner import make_mapping, make_solver
     from sim_probe import BLOCK
     from tissue_common.frames import from_msg
 
@@ -140,7 +140,7 @@ def test_the_device_frame_is_latched_and_maps_the_device_where_the_simulation_do
     p = {name: spec[0] for name, spec in SIM_PARAMS.items()} | BLOCK
     solver = make_solver(sim_params.build_model(p), sim_params.build_material(p),
                          sim_params.build_config(p), p['nominal_dt'])
-    mapping = SimNode._make_mapping(p, solver)
+    mapping = make_mapping(p, solver)
     for point in ([0.0, 0.0, 0.0], [0.01, -0.004, 0.02], [-0.03, 0.05, 0.0]):
         assert tr.apply(point) == pytest.approx(mapping.to_tissue(point), abs=1e-12)
     # the default map: the device's up (y) is the tissue's up (z)
