@@ -43,15 +43,10 @@ from .core.errors import ConfigError, ModelError, SimError
 from .core.solver import warmup
 from .params import SIM_PARAMS, build_config, build_material, build_model, check_value, solves_in_background
 from .runner import Pose, Runner, make_solver, metrics_values, pose_history
-from .startup import numba_cache_stats, one_blas_thread, startup_report
+from .startup import numba_cache_stats, one_blas_thread, reload_from_cache, startup_report
 
 EXIT_OK, EXIT_INPUT = 0, 1
-REEXEC_ENV = 'SPH_SIM_NODE_REEXEC'
 SWITCH_INTERVAL = 2e-4  # [s]
-
-
-class Reexec(Exception):
-    """Start the process again (its kernels were compiled here, see SimNode.__init__)."""
 
 
 class SimNode(Node):
@@ -72,19 +67,18 @@ class SimNode(Node):
                 warmup(config.scheme, config.contact_integration, config.integrator)
             except SimError as exc:  # the probe step below still compiles what this model needs
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
-        solver = make_solver(self.model, build_material(p), config, p['nominal_dt'],
-                             background=solves_in_background(p))
-        self.runner = Runner(p, self.model, solver, self._send_force, self._send_metrics, self._send_cloud,
-                             self._log)
+        self.runner = self._make_runner(config)
         self.compile_time = time.perf_counter() - t0
         self.kernels_compiled, self.kernels_loaded = numba_cache_stats()
-        if self.kernels_compiled and self.runner.lockstep and not os.environ.get(REEXEC_ENV):
-            # A kernel compiled in this process and the same kernel loaded from numba's cache can
-            # differ in the last bits (measured: 4e-15 N); every later start loads from the cache,
-            # so run cached code now too, or the first replay after a core change is not identical.
-            log.warning(f'{self.kernels_compiled} numba kernels were compiled in this process: '
-                        f'restarting once to run them from the cache (bit-identical lockstep)')
-            raise Reexec()
+        self.kernels_reloaded = self.kernels_again = 0
+        if self.kernels_compiled and self.runner.lockstep:
+            # every later start runs the kernels from numba's cache, and a kernel compiled here can
+            # differ from it in the last bits: run the cached ones now too, and build again what the
+            # compiled ones computed, or the first replay after a core change is not repeatable
+            self.kernels_reloaded, self.kernels_again = reload_from_cache()
+            if self.kernels_reloaded or self.kernels_again:
+                self.runner.solver.close()
+                self.runner = self._make_runner(config)
         self._wrench_msg = WrenchStamped()
         self._metrics_msg = SimMetrics()
         depth, reliable, note = pose_history(p, self.runner)
@@ -113,6 +107,12 @@ class SimNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.pose_sub = self.create_subscription(PoseStamped, 'omni/pose', self._on_pose, io_qos)
 
+    def _make_runner(self, config) -> Runner:
+        p = self.p
+        solver = make_solver(self.model, build_material(p), config, p['nominal_dt'],
+                             background=solves_in_background(p))
+        return Runner(p, self.model, solver, self._send_force, self._send_metrics, self._send_cloud, self._log)
+
     def _publish_device_frame(self) -> None:
         m = self.runner.mapping
         frame = Transform.from_matrix(self.p['tissue_frame'], self.p['device_frame'], m.rotation,
@@ -137,7 +137,7 @@ class SimNode(Node):
         """Start the stepping thread (if configured) and report ready."""
         self.runner.start()
         for level, text in startup_report(self.compile_time, self.kernels_compiled, self.kernels_loaded,
-                                          self.runner.lockstep):
+                                          self.kernels_reloaded, self.kernels_again, self.runner.lockstep):
             self._log(level, text)
         self.get_logger().info('ready: ' + self.describe())
 
@@ -230,7 +230,6 @@ def main(args=None) -> int:
         return EXIT_PARAMS
     node = None
     code = EXIT_OK
-    reexec = False
     stopped = True
     # before the organ's factorisation too: its bits must not depend on the host's core count
     one_blas_thread()
@@ -240,9 +239,6 @@ def main(args=None) -> int:
                 ConfigError: ('invalid parameters', EXIT_PARAMS),
                 ModelError: ('cannot build the tissue', EXIT_INPUT),
                 SimError: ('cannot build the tissue', EXIT_INPUT)})
-        except Reexec:
-            reexec = True
-            return EXIT_OK
         except Exception:
             if not rclpy.ok():  # Ctrl-C during the warm-up shut the context down under us
                 rclpy.logging.get_logger('sim_node').info('interrupted during start-up')
@@ -272,11 +268,6 @@ def main(args=None) -> int:
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(code)
-        if reexec:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os.environ[REEXEC_ENV] = '1'
-            os.execv(sys.executable, [sys.executable, *sys.argv])
     return code
 
 

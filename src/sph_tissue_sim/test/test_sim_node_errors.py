@@ -56,23 +56,14 @@ def node(ros_domain):
         yield n
 
 
-@pytest.fixture
-def in_process_lockstep(monkeypatch):
-    """A lockstep node restarts its process when its kernels were compiled there (so that a replay
-    runs the cached kernels); in a test process, run on instead."""
-    from sph_tissue_sim.sim_node import REEXEC_ENV
-
-    monkeypatch.setenv(REEXEC_ENV, '1')
-
-
 @pytest.fixture(params=['direct', 'multirate'])
-def any_node(request, ros_domain, in_process_lockstep):
+def any_node(request, ros_domain):
     with make_node(haptic_mode=request.param, timing_mode='lockstep') as n:
         yield n
 
 
 @pytest.fixture
-def multirate(ros_domain, in_process_lockstep):
+def multirate(ros_domain):
     with make_node(haptic_mode='multirate', timing_mode='lockstep') as n:
         yield n
 
