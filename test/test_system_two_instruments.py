@@ -63,10 +63,11 @@ def test_two_instruments_in_namespaces_keep_their_loops_apart(rclpy_node):
 
         assert rclpy_node.spin_until(lambda: pressed('left') and pressed('right') and len(cps) > 50,
                                      60), [p.output()[-1500:] for p in procs]
-        # remapped: the CRTK name is where the client looks, and not under omni/ any more
-        assert rclpy_node.get_publishers_info_by_topic('/left/measured_cp')
+        # remapped: the CRTK name is where the client looks, and not under omni/ any more (the
+        # graph learns of each publisher on its own: wait until both drivers' are known)
+        assert rclpy_node.spin_until(lambda: rclpy_node.get_publishers_info_by_topic('/left/measured_cp')
+                                     and rclpy_node.get_publishers_info_by_topic('/right/omni/measured_cp'), 30)
         assert rclpy_node.get_publishers_info_by_topic('/left/omni/measured_cp') == []
-        assert rclpy_node.get_publishers_info_by_topic('/right/omni/measured_cp')
     finally:
         graph.stop_all(procs, timeout=30)
     for ns in seen:
