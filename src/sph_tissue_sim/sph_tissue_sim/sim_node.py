@@ -516,6 +516,8 @@ class SimNode(Node):
         if job is None:
             return
         with self._lock:
+            if not self.haptic.current(job):
+                return   # taken before a reset (or a rebuilt solver) while this thread waited for the lock
             res = self._step(job.point, job.dt, job.rotation)
             if res is not None:
                 self.haptic.refresh(job, res)

@@ -401,6 +401,22 @@ class FakeStep:
     force_raw = np.zeros(3)
 
 
+def test_a_job_taken_before_a_reset_is_no_longer_current():
+    """The solver thread may take a job, then wait for the solver while a reset holds it: that job's
+    pose time and proxy belong to the tissue before the reset (stepped, it put 2 ms of old pose
+    time on the new tissue's clock)."""
+    from sph_tissue_sim.haptics.multirate import MultiRate
+
+    h = MultiRate(HapticRenderer(), 0, 0.02)
+    h.answer([0.0, 0.0, 0.01], T)
+    old = h.take()
+    assert h.current(old)
+    h.reset()
+    assert not h.current(old)
+    h.answer([0.0, 0.0, 0.01], T)
+    assert h.current(h.take())
+
+
 def test_the_solver_rate_counts_refreshes_and_falls_when_steps_slow_down():
     """Steps of 15 ms read 67 Hz within a window, even after a burst of quick ones (an average of
     1/interval read 330-625 Hz here); the model's age is the pose time it served."""

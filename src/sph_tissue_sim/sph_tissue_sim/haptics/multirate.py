@@ -38,6 +38,7 @@ class SolverJob:
     dt: float                         # [s] pose time to simulate (clamped to ``max_dt``)
     age: float                        # [s] pose time the contact model has served (unclamped)
     stamp: Any                        # the newest pose's stamp (for the metrics)
+    generation: int = 0               # the resets before it was taken (see MultiRate.current)
 
 
 @dataclass
@@ -65,6 +66,7 @@ class MultiRate:
         self.max_dt = float(max_dt)
         self._clock = clock
         self._lock = threading.Lock()
+        self._generation = 0
         self._clear()
 
     def _clear(self) -> None:
@@ -83,6 +85,7 @@ class MultiRate:
         with self._lock:
             self.renderer.reset()
             self._clear()
+            self._generation += 1
 
     def answer(self, x, dt: float, rotation=None, stamp=None) -> Rendered:
         """The force for the device sample ``x`` [m, tissue frame], ``dt`` [s] after the previous."""
@@ -109,10 +112,15 @@ class MultiRate:
             if self._poses == 0 or self._point is None:
                 return None
             job = SolverJob(self._point.copy(), self._rotation, min(self._pending, self.max_dt),
-                            self._pending, self._stamp)
+                            self._pending, self._stamp, self._generation)
             self._poses = 0
             self._pending = 0.0
             return job
+
+    def current(self, job: SolverJob) -> bool:
+        """The job was taken after the last reset: a job taken before it holds pose time and a
+        proxy of the device and tissue that the reset forgot, so the solver must not step it."""
+        return job.generation == self._generation
 
     def refresh(self, job: SolverJob, result) -> None:
         """The solver stepped ``job``; ``result`` is its :class:`~..core.solver.StepResult` (the
