@@ -1,7 +1,7 @@
 """Fault injection: the simulator dies mid-session; the driver's watchdog makes the device safe; the
 loop resumes when a new simulator starts.
 
-The driver replays the long session at its recorded 1 kHz timing (a live device); sim_node runs in
+The driver replays the long session at its recorded 1 kHz timing, looped (a live device); sim_node runs in
 live mode. Once the tool presses the tissue the sim process is killed (SIGKILL: no goodbye
 message). The driver must then report, on omni/state, watchdog_tripped with a zero commanded force,
 the trip happening when the newest command was watchdog_timeout old in the driver's running time
@@ -54,7 +54,9 @@ def test_killing_the_sim_trips_the_watchdog_to_zero_force_and_a_restarted_sim_re
     # no ramp: a reply is rendered at once, so on a busy machine, where replies come in bursts and
     # the 20 ms watchdog trips between them, the device still renders the contact force (a ramp
     # would restart at every trip and might never reach it)
-    drv = graph.driver_replay(graph.BAGS / 'long', 'timed', env=env, subscribers=2,
+    # looped: with the suite in two workers the restarted sim may be ready only after the 63 s
+    # session has ended, and a driver that exits at its end would leave nothing to resume
+    drv = graph.driver_replay(graph.BAGS / 'long', 'timed', env=env, subscribers=2, loop=True,
                               params={'watchdog_timeout': WATCHDOG, 'ramp_time': 0.0})
     sim2 = graph.sim('live', env=env, name='sim_node_restarted')
     procs = [drv, sim, sim2]
