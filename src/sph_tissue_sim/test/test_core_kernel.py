@@ -61,21 +61,56 @@ def test_cell_grid_ball_query_matches_brute_force():
         assert got == expected
 
 
-def test_kernels_are_compiled_for_the_portable_cpu_level_where_the_host_has_it():
-    """The lockstep goldens are bit-identical across hosts only if every host compiles the same
-    code: the core picks x86-64-v3 instead of the host's own CPU (sph_tissue_sim/core/__init__.py)."""
+def _portable_host() -> bool:
     import os
     import platform
 
     from llvmlite import binding as ll
 
     import sph_tissue_sim.core as core
-    from sph_tissue_sim.core.kernel import kernel_w
-
     features = ll.get_host_cpu_features()
-    if (os.environ.get('NUMBA_CPU_NAME') or platform.machine().lower() not in ('x86_64', 'amd64')
-            or not all(features.get(name) for name in core.PORTABLE_FEATURES)):
+    return (not os.environ.get('NUMBA_CPU_NAME') and platform.machine().lower() in ('x86_64', 'amd64')
+            and all(features.get(name) for name in core.PORTABLE_FEATURES))
+
+
+#: run in a fresh interpreter: what the code generator of numba's CPU target was made with (its
+#: cache key's CPU name is read from the config at each call, so it would not tell)
+_PROBE = """
+import {first}
+from sph_tissue_sim.core.kernel import kernel_w
+kernel_w(0.1, 1.0)
+codegen = kernel_w.targetctx.codegen()
+print(codegen._get_host_cpu_name(), repr(codegen._tm_features))
+"""
+
+
+def _codegen_in_fresh_process(first: str) -> tuple[str, list[str]]:
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, '-c', _PROBE.format(first=first)], capture_output=True,
+                         text=True, timeout=300, check=True)
+    cpu, features = out.stdout.split()
+    return cpu, features, out.stderr
+
+
+@pytest.mark.parametrize('first', ['sph_tissue_sim.core.kernel', 'sph_tissue_sim.sim_node',
+                                   'sph_tissue_sim.cloud'])
+def test_kernels_are_compiled_for_the_portable_cpu_level_whatever_module_a_process_imports_first(first):
+    """The lockstep goldens are bit-identical across hosts only if every process compiles the same
+    code: the core picks x86-64-v3 instead of the host's own CPU (sph_tissue_sim/core/__init__.py),
+    also in sim_node, whose first @njit decoration (cloud.py) came before the core's import."""
+    import sph_tissue_sim.core as core
+    if not _portable_host():
         pytest.skip('this host compiles for itself (no x86-64-v3, or NUMBA_CPU_NAME set)')
-    kernel_w(0.1, 1.0)
-    _, cpu, cpu_features = kernel_w.targetctx.codegen().magic_tuple()
-    assert (cpu, cpu_features) == (core.PORTABLE_CPU, '')
+    cpu, features, err = _codegen_in_fresh_process(first)
+    assert (cpu, features) == (core.PORTABLE_CPU, "''"), err
+    assert 'RuntimeWarning' not in err
+
+
+def test_a_process_that_made_numbas_cpu_target_before_the_core_is_warned_its_kernels_are_the_hosts():
+    if not _portable_host():
+        pytest.skip('this host compiles for itself (no x86-64-v3, or NUMBA_CPU_NAME set)')
+    cpu, features, err = _codegen_in_fresh_process('numba\n@numba.njit\ndef f(x):\n    return x\n'
+                                                   'import sph_tissue_sim')
+    assert 'numba made its CPU target before sph_tissue_sim.core was imported' in err
+    assert features != "''"

@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import os
 import platform
+import warnings
 from pathlib import Path
 
 #: the x86-64 level the kernels are compiled for on hosts that have it (AVX2 + FMA)
@@ -28,18 +29,28 @@ def _use_portable_codegen() -> None:
     same on every x86-64 host with the level's features (AVX2, FMA, BMI, ...; measured on an
     AVX-512 host: no slower). Hosts without them, other architectures, and an explicit
     ``NUMBA_CPU_NAME`` keep numba's choice.
-    Must run before the first kernel is compiled in the process.
+    Must run before numba makes its CPU target, which the first ``@njit`` decoration in the
+    process does (not the first compile): the package's ``__init__`` imports this module first.
     """
     if os.environ.get('NUMBA_CPU_NAME') or platform.machine().lower() not in ('x86_64', 'amd64'):
         return
     from llvmlite import binding as ll
     from numba.core import config
+    from numba.core.registry import cpu_target
 
     try:
         features = ll.get_host_cpu_features()
     except RuntimeError:  # no feature list on this host: keep numba's default
         return
     if all(features.get(name) for name in PORTABLE_FEATURES):
+        if '_toplevel_target_context' in vars(cpu_target):
+            # its code generator already holds the host's CPU and features, whatever the config
+            # says now (numba's own cache key would still read x86-64-v3)
+            warnings.warn('numba made its CPU target before sph_tissue_sim.core was imported: the '
+                          'kernels compile for this host, and lockstep forces may differ from the '
+                          'goldens in their last bits (import sph_tissue_sim before any @njit code)',
+                          RuntimeWarning, stacklevel=2)
+            return
         config.CPU_NAME = PORTABLE_CPU
         config.CPU_FEATURES = ''   # the level's own feature set, not the host's
 
