@@ -60,7 +60,7 @@ from haptic_omni_driver.bag_reader import read_bag
 from sph_tissue_sim import params as sim_params
 from sph_tissue_sim.haptics.multirate import MultiRate
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
-from sph_tissue_sim.sim_node import SimNode, make_solver
+from sph_tissue_sim.runner import make_mapping, make_solver
 from tissue_common.feel import TICK, feel
 from tissue_common.force import clamp_norm
 from tissue_common.stamps import stamp_to_ns
@@ -103,7 +103,7 @@ def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int
     solver at that real-time factor: a job of ``dt`` pose time takes ``dt / rtf``."""
     solver = make_solver(sim_params.build_model(p), sim_params.build_material(p),
                          sim_params.build_config(p), p['nominal_dt'])
-    mapping = SimNode._make_mapping(p, solver)
+    mapping = make_mapping(p, solver)
     live = bool(delay or rtf)
     handoff = MultiRate(HapticRenderer(config or RendererConfig(force_limit=p['force_limit'])),
                         0 if live else every, p['max_dt'])

@@ -19,13 +19,13 @@ LIMIT = 0.5
 
 
 def pose(pos, ns: int, frame: str = 'omni_base'):
-    from geometry_msgs.msg import PoseStamped
+    """A pose as the node hands it to its runner (the stamp a message's own)."""
+    from builtin_interfaces.msg import Time
 
-    msg = PoseStamped()
-    msg.header.frame_id = frame
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pos)
-    return msg
+    from sph_tissue_sim.runner import Pose
+
+    sec, nanosec = divmod(int(ns), 1_000_000_000)
+    return Pose(Time(sec=sec, nanosec=nanosec), int(ns), frame, tuple(float(v) for v in pos), (0.0, 0.0, 0.0, 1.0))
 
 
 @contextlib.contextmanager
@@ -41,8 +41,8 @@ def make_node(**extra):
     params = {**BLOCK, 'force_limit': LIMIT, 'particles_rate': 0.0, 'warmup': False, **extra}
     n = SimNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
     n.sent = []
-    n._publish_force = lambda header, f: n.sent.append(
-        (header.stamp.sec * 1_000_000_000 + header.stamp.nanosec, np.array(f, dtype=float)))
+    n.runner.send_force = lambda stamp, frame, f: n.sent.append(
+        (stamp.sec * 1_000_000_000 + stamp.nanosec, np.array(f, dtype=float)))
     try:
         yield n
     finally:
@@ -56,30 +56,21 @@ def node(ros_domain):
         yield n
 
 
-@pytest.fixture
-def in_process_lockstep(monkeypatch):
-    """A lockstep node restarts its process when its kernels were compiled there (so that a replay
-    runs the cached kernels); in a test process, run on instead."""
-    from sph_tissue_sim.sim_node import REEXEC_ENV
-
-    monkeypatch.setenv(REEXEC_ENV, '1')
-
-
 @pytest.fixture(params=['direct', 'multirate'])
-def any_node(request, ros_domain, in_process_lockstep):
+def any_node(request, ros_domain):
     with make_node(haptic_mode=request.param, timing_mode='lockstep') as n:
         yield n
 
 
 @pytest.fixture
-def multirate(ros_domain, in_process_lockstep):
+def multirate(ros_domain):
     with make_node(haptic_mode='multirate', timing_mode='lockstep') as n:
         yield n
 
 
 def press(node, n: int = 60, t0: int = T0_NS) -> int:
     for k, p in enumerate(press_path(n, depth=0.004)):
-        node._handle(pose(p, t0 + k * 1_000_000))
+        node.runner.handle(pose(p, t0 + k * 1_000_000))
     return t0 + n * 1_000_000
 
 
@@ -87,42 +78,42 @@ def test_unstable_step_answers_zero_and_resets_the_tissue(node, monkeypatch):
     from sph_tissue_sim.core.errors import SimError
 
     t = press(node)
-    assert node.sent[-1][1][1] > 0.0 and node.solver.sim_time > 0.0
+    assert node.sent[-1][1][1] > 0.0 and node.runner.solver.sim_time > 0.0
 
     def unstable(tool, dt, rot=None):
         raise SimError('tlsph local step went unstable')
 
-    monkeypatch.setattr(node.solver, 'step', unstable)
-    node._handle(pose((0.0, -0.004, 0.0), t))
+    monkeypatch.setattr(node.runner.solver, 'step', unstable)
+    node.runner.handle(pose((0.0, -0.004, 0.0), t))
     assert node.sent[-1][0] == t and np.all(node.sent[-1][1] == 0.0)
-    assert node.counts['sim_errors'] == 1
-    assert node.solver.sim_time == 0.0
-    assert np.array_equal(node.solver.positions, node.model.positions)
+    assert node.runner.counts['sim_errors'] == 1
+    assert node.runner.solver.sim_time == 0.0
+    assert np.array_equal(node.runner.solver.positions, node.model.positions)
     monkeypatch.undo()
-    node._handle(pose((0.0, 0.01, 0.0), t + 1_000_000))      # the clock restarted too
-    assert node.solver.sim_time == pytest.approx(node.p['nominal_dt'])
+    node.runner.handle(pose((0.0, 0.01, 0.0), t + 1_000_000))      # the clock restarted too
+    assert node.runner.solver.sim_time == pytest.approx(node.p['nominal_dt'])
 
 
 def test_input_refused_by_the_core_answers_zero_and_leaves_the_state(node, monkeypatch):
     from sph_tissue_sim.core.solver import InvalidInput
 
     t = press(node)
-    before = node.solver.positions.copy()
-    monkeypatch.setattr(node.solver, 'step', lambda tool, dt, rot=None: (_ for _ in ()).throw(
+    before = node.runner.solver.positions.copy()
+    monkeypatch.setattr(node.runner.solver, 'step', lambda tool, dt, rot=None: (_ for _ in ()).throw(
         InvalidInput('tool position is more than 10 m from the tissue')))
-    node._handle(pose((0.0, -0.004, 0.0), t))
+    node.runner.handle(pose((0.0, -0.004, 0.0), t))
     assert np.all(node.sent[-1][1] == 0.0)
-    assert np.array_equal(node.solver.positions, before)
+    assert np.array_equal(node.runner.solver.positions, before)
 
 
 def test_an_unexpected_exception_answers_zero_and_the_node_goes_on(node, monkeypatch):
     t = press(node)
-    step = node.solver.step
-    monkeypatch.setattr(node.solver, 'step', lambda tool, dt, rot=None: 1 / 0)
-    node._handle(pose((0.0, -0.004, 0.0), t))
+    step = node.runner.solver.step
+    monkeypatch.setattr(node.runner.solver, 'step', lambda tool, dt, rot=None: 1 / 0)
+    node.runner.handle(pose((0.0, -0.004, 0.0), t))
     assert node.sent[-1][0] == t and np.all(node.sent[-1][1] == 0.0)
-    monkeypatch.setattr(node.solver, 'step', step)
-    node._handle(pose((0.0, -0.004, 0.0), t + 1_000_000))
+    monkeypatch.setattr(node.runner.solver, 'step', step)
+    node.runner.handle(pose((0.0, -0.004, 0.0), t + 1_000_000))
     assert node.sent[-1][1][1] > 0.0
 
 
@@ -150,24 +141,24 @@ def test_random_poses_and_stamps_never_give_a_bad_force(any_node):
             t += int(rng.integers(1, 3_000_000_000))          # jump
         elif s > 0.12:                                        # else: repeated stamp
             t += int(rng.integers(100_000, 2_000_000))
-        node._handle(pose(p, t, frame))
+        node.runner.handle(pose(p, t, frame))
     assert len(node.sent) == n
     forces = np.array([f for _, f in node.sent])
     assert np.all(np.isfinite(forces))
     assert np.all(np.linalg.norm(forces, axis=1) <= LIMIT + 1e-12)
     assert np.any(np.linalg.norm(forces, axis=1) > 0.0)        # some presses were felt
-    assert node.counts["rejected"] > 0
+    assert node.runner.counts["rejected"] > 0
 
 
 def test_multirate_answers_from_the_renderer_and_steps_the_solver_after_each_pose(multirate):
     node = multirate
     t = press(node)
-    assert node.counts['steps'] == 60 and len(node.sent) == 60
+    assert node.runner.counts['steps'] == 60 and len(node.sent) == 60
     assert node.sent[-1][1][1] > 0.0                          # pushed back up (device y)
-    status = node.haptic.status()
+    status = node.runner.haptic.status()
     assert status.model_age == pytest.approx(1e-3) and status.stretch > 0.0
-    node._handle(pose((0.0, -0.004, 0.0), t - 1_000_000))     # a repeated stamp: the same answer
-    assert np.array_equal(node.sent[-1][1], node.sent[-2][1]) and node.counts['steps'] == 60
+    node.runner.handle(pose((0.0, -0.004, 0.0), t - 1_000_000))     # a repeated stamp: the same answer
+    assert np.array_equal(node.sent[-1][1], node.sent[-2][1]) and node.runner.counts['steps'] == 60
 
 
 def test_multirate_unstable_solver_step_resets_the_tissue_and_the_renderer(multirate, monkeypatch):
@@ -181,23 +172,23 @@ def test_multirate_unstable_solver_step_resets_the_tissue_and_the_renderer(multi
     def unstable(tool, dt, rot=None):
         raise SimError('tlsph local step went unstable')
 
-    monkeypatch.setattr(node.solver, 'step', unstable)
-    node._handle(pose((0.0, -0.004, 0.0), t))
+    monkeypatch.setattr(node.runner.solver, 'step', unstable)
+    node.runner.handle(pose((0.0, -0.004, 0.0), t))
     # the pose was answered from the contact model before the solver failed
     assert np.all(np.isfinite(node.sent[-1][1])) and np.linalg.norm(node.sent[-1][1]) <= LIMIT
-    assert node.counts['sim_errors'] == 1 and node.solver.sim_time == 0.0
-    assert node.haptic.renderer.model.magnitude == 0.0        # the contact is forgotten
+    assert node.runner.counts['sim_errors'] == 1 and node.runner.solver.sim_time == 0.0
+    assert node.runner.haptic.renderer.model.magnitude == 0.0        # the contact is forgotten
     monkeypatch.undo()
-    node._handle(pose((0.0, -0.004, 0.0), t + 1_000_000))
+    node.runner.handle(pose((0.0, -0.004, 0.0), t + 1_000_000))
     assert np.all(node.sent[-1][1] == 0.0)                    # no model yet: nothing is pushed
 
 
 def test_multirate_rejected_pose_is_answered_zero_and_charged_as_zero(multirate):
     node = multirate
     t = press(node)
-    node._handle(pose((np.nan, 0.0, 0.0), t))
-    assert np.all(node.sent[-1][1] == 0.0) and node.counts['rejected'] == 1
-    assert np.all(node.haptic.renderer.observer._f == 0.0)   # E_in charges what the device held
+    node.runner.handle(pose((np.nan, 0.0, 0.0), t))
+    assert np.all(node.sent[-1][1] == 0.0) and node.runner.counts['rejected'] == 1
+    assert np.all(node.runner.haptic.renderer.observer._f == 0.0)   # E_in charges what the device held
 
 
 @pytest.fixture
@@ -216,12 +207,12 @@ def test_multirate_live_solver_thread_runs_nicer_than_the_answering_thread(live_
 
     node = live_multirate
     mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-    solver = os.getpriority(os.PRIO_PROCESS, node._solver_thread.native_id)
+    solver = os.getpriority(os.PRIO_PROCESS, node.runner._solver_thread.native_id)
     assert solver == min(mine + node.p['solver_nice'], 19) and node.p['solver_nice'] == 10
 
 
 def test_multirate_live_pose_history_carries_poses_over_a_stall(live_multirate):
-    from sph_tissue_sim.sim_node import MULTIRATE_MIN_DEPTH
+    from sph_tissue_sim.runner import MULTIRATE_MIN_DEPTH
 
     assert live_multirate.io_qos.depth >= MULTIRATE_MIN_DEPTH >= 10
 
@@ -240,11 +231,11 @@ def test_multirate_live_cloud_is_packed_and_published_by_the_solver_thread(live_
             published.set()
 
     node.cloud_pub = Recorder()
-    node._publish_cloud()                      # what the cloud timer calls on the executor thread
+    node.runner.cloud_tick()                      # what the cloud timer calls on the executor thread
     deadline = time.monotonic() + 30.0
     while not published.wait(0.1) and time.monotonic() < deadline:
         pass
-    assert threads == [('sim_solver', node.solver.n_particles)]
+    assert threads == [('sim_solver', node.runner.solver.n_particles)]
 
 
 def test_lockstep_clouds_carry_the_simulation_clock_from_the_start(any_node):
@@ -258,9 +249,9 @@ def test_lockstep_clouds_carry_the_simulation_clock_from_the_start(any_node):
             stamps.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
 
     node.cloud_pub = Recorder()
-    node._publish_cloud_once()
+    node.runner.send_cloud_once()
     last = press(node) - 1_000_000             # the last pose's stamp
-    node._publish_cloud_once()
+    node.runner.send_cloud_once()
     assert stamps == [0, last]
 
 
@@ -277,8 +268,8 @@ def test_a_cloud_that_fails_to_publish_is_logged_and_the_next_one_goes_out(multi
             sent.append(msg.width)
 
     node.cloud_pub = Flaky()
-    node._publish_cloud_once()                 # raises inside: logged, never out of the node
-    node._publish_cloud_once()
-    assert sent == [None, node.solver.n_particles]
-    assert node._log_throttle.counts['cloud'] == 1
+    node.runner.send_cloud_once()                 # raises inside: logged, never out of the node
+    node.runner.send_cloud_once()
+    assert sent == [None, node.runner.solver.n_particles]
+    assert node.runner._log_throttle.counts['cloud'] == 1
 

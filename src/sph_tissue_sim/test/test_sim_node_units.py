@@ -384,24 +384,21 @@ def test_shutdown_interrupts_the_step_and_reports_a_thread_that_outlives_its_wai
     import threading
     from types import SimpleNamespace
 
-    from sph_tissue_sim import sim_node
-    monkeypatch.setattr(sim_node, 'SHUTDOWN_JOIN', 0.05)
+    from sph_tissue_sim import runner
+    monkeypatch.setattr(runner, 'SHUTDOWN_JOIN', 0.05)
     release = threading.Event()
     busy = threading.Thread(target=lambda: release.wait(30.0), daemon=True)
     busy.start()
     interrupts = []
-    node = SimpleNamespace(
+    loop = SimpleNamespace(
         _stop=threading.Event(), _cv=threading.Condition(), _wake=threading.Event(), _worker=None, _retired=[],
-        _solver_thread=busy, solver=SimpleNamespace(interrupt=lambda: interrupts.append(1), close=lambda t: True),
-        counts=dict.fromkeys(('poses', 'steps', 'dropped', 'rejected', 'sim_errors', 'overflow',
-                              'interrupted'), 0),
-        _wall=np.zeros(1), get_name=lambda: 'sim_node')
-    assert sim_node.SimNode.shutdown(node) is False
-    assert interrupts and node._stop.is_set() and node._wake.is_set()
+        _solver_thread=busy, solver=SimpleNamespace(interrupt=lambda: interrupts.append(1), close=lambda t: True))
+    assert runner.Runner.shutdown(loop) is False
+    assert interrupts and loop._stop.is_set() and loop._wake.is_set()
     release.set()
     busy.join(5.0)
-    assert sim_node.SimNode.shutdown(node) is True
+    assert runner.Runner.shutdown(loop) is True
     # the far field's worker still inside a sparse solve counts the same
     waits = []
-    node.solver.close = lambda timeout: waits.append(timeout) or False
-    assert sim_node.SimNode.shutdown(node) is False and waits == [0.05]
+    loop.solver.close = lambda timeout: waits.append(timeout) or False
+    assert runner.Runner.shutdown(loop) is False and waits == [0.05]
