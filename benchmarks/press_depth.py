@@ -9,10 +9,9 @@ at 10 mm/s from first touch, one 1 ms frame at a time (``cases.press_curve``), f
 combination of
 
 * ``--particles``: the liver's resolution (3670 is the default model; 12k and 30k the finer ones);
-* ``--contacts``: ``balls`` (particles as balls: ``solver.BALL_CONTACT``), ``discs``
-  (``contact_disc: 0.5``) and ``backstop`` (the surface samples behind the balls:
-  ``contact_samples: 3`` with ``contact_integration: implicit``), all with the half-space far
-  field, and ``backstop_organ`` (those with the organ's own far field, ``far_field_model: organ``
+* ``--contacts``: ``balls`` (particles as balls: ``solver.BALL_CONTACT``) and ``backstop`` (the
+  surface samples behind the balls: ``contact_samples: 3`` with ``contact_integration:
+  implicit``), both with the half-space far field, and ``backstop_organ`` (those with the organ's own far field, ``far_field_model: organ``
   with ``far_field: 1``: the defaults);
 * ``--tools``: ``sphere`` (the default 5 mm probe tip) and ``capsule`` (the same tip on a 60 mm
   shaft along +z: an instrument, whose shaft fills the pit above the tip).
@@ -50,7 +49,7 @@ from sph_tissue_sim.validation import cases
 ROOT = Path(__file__).resolve().parents[1]
 #: (x, y) [m] of the press: the top of the right lobe's dome (validate.py's LIVER_TOP)
 LIVER_TOP = (-0.034, 0.0)
-CONTACTS = {'balls': dict(BALL_CONTACT), 'discs': {**BALL_CONTACT, 'contact_disc': 0.5},
+CONTACTS = {'balls': dict(BALL_CONTACT),
             'backstop': {**BALL_CONTACT, 'contact_samples': 3, 'contact_integration': 'implicit'},
             # the same with the organ's own far field, whose area needs no widening (the defaults)
             'backstop_organ': {'contact_samples': 3, 'contact_integration': 'implicit',
@@ -120,7 +119,7 @@ def plot(curves: dict, rows: list[dict], limit: float, path: Path) -> None:
 
     sizes = sorted({r['particles'] for r in rows})
     fig, axes = plt.subplots(1, len(sizes), figsize=(5.0 * len(sizes), 3.8), sharey=True, squeeze=False)
-    colours = {'balls': '#d62728', 'discs': '#2ca02c', 'backstop': '#9467bd',
+    colours = {'balls': '#d62728', 'backstop': '#9467bd',
                'backstop_organ': '#8c564b'}
     for ax, n in zip(axes[0], sizes):
         for r in rows:

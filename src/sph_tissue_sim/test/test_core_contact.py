@@ -1,11 +1,11 @@
-"""Contact: the force felt while the tool slides over the surface, and the surface-disc option."""
+"""Contact: the force felt while the tool slides over the surface, and friction."""
 
 import numpy as np
 import pytest
 
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core.solver import Solver, SolverConfig
+from sph_tissue_sim.core.solver import SolverConfig
 from sph_tissue_sim.validation.cases import drag
 
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
@@ -39,42 +39,20 @@ def test_local_area_force_changes_smoothly_while_the_tool_is_dragged_across_part
     assert jump_local < 3.0 * jump_global + 0.005
 
 
-def test_surface_disc_contact_pushes_an_off_centre_particle_straight_in():
-    """A frictionless tool pressed straight down on a flat surface pushes straight down: with
-    ``contact_disc = 0.5`` the pressed surface particle (tool 0.5 mm off its axis) stays under the
-    tool and the force has no sideways part; as a ball it slid 5 mm out from under the tool and the
-    tool felt a sideways force of 18 % of the normal one."""
-    model = make_block(10, 10, 6, spacing=0.0075, fix='bottom')
-    X = model.positions
-    top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
-    node = top[np.argmin(np.linalg.norm(X[top, :2] - X[top, :2].mean(axis=0), axis=1))]
-    solver = Solver(model, LIVER, SolverConfig(mode='global', contact_disc=0.5, contact_samples=0))
-    start = X[node] + np.array([5e-4, 1.5e-4, solver.contact_reach])
-    for k in range(500):
-        res = solver.step(start - np.array([0.0, 0.0, 0.006 * min(1.0, (k + 1) / 300)]), 1e-3)
-    d = solver.positions[node] - X[node]
-    f = res.force
-    assert d[2] < -0.004                                  # it went down with the tool
-    assert np.hypot(d[0], d[1]) < 1e-3
-    assert np.hypot(f[0], f[1]) < 0.05 * f[2]
-
-
 def _one_ball(anchor_offset: np.ndarray, friction: float):
     """One free particle 1 mm inside a sphere tool's reach (pushed straight up, +z), holding an
     anchor ``anchor_offset`` away from where it sits; returns (reaction on the tool, acceleration,
     the anchor after the call, ToolPath)."""
-    from sph_tissue_sim.core.contact import contact_forces, surface_discs
+    from sph_tissue_sim.core.contact import contact_forces
     from sph_tissue_sim.core.state import Body, Motion, ToolPath, no_touches
     from sph_tissue_sim.core.surface_contact import no_samples
 
     X = np.array([[0.0, 0.0, 0.009]])                  # 9 mm above the tool centre; reach 10 mm
-    offsets, indices = np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int32)
-    surf = surface_discs(X, offsets, indices, 0.01, 1e-6, 0.005, 0.0)
     seg = np.zeros((2, 3))
     body = Body(X, np.zeros(1, dtype=np.bool_), 0.5, 2.0)
     motion = Motion(X.copy(), np.zeros((1, 3)), np.zeros((1, 3)))
     anchor = (X - seg[0]) + anchor_offset
-    tool = ToolPath(seg, seg, True, 0.010, 300.0, 0.0, surf, no_samples(1), no_touches(), friction,
+    tool = ToolPath(seg, seg, True, 0.010, 300.0, 0.0, no_samples(1), no_touches(), friction,
                     anchor, np.ones(1, dtype=np.bool_))
     react = np.zeros(3)
     contact_forces(body, motion, np.zeros(1, dtype=np.int32), 1, tool, seg, np.zeros((2, 3)), react)

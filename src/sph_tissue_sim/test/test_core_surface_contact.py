@@ -122,9 +122,7 @@ def test_pressing_twice_the_tool_radius_deep_the_force_keeps_rising_and_no_parti
     assert curve['over'].max() == 0
 
 
-def test_surface_discs_and_samples_are_exclusive():
-    with pytest.raises(ConfigError, match='contact_disc'):
-        SolverConfig(contact_samples=3, contact_disc=0.5).validate()
+def test_more_than_five_samples_per_side_are_refused():
     with pytest.raises(ConfigError, match='contact_samples'):
         SolverConfig(contact_samples=6).validate()
 

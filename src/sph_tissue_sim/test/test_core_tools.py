@@ -111,13 +111,11 @@ def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
     """One particle under the far end of a shaft that swings down about its tip: the contact force
     is k d - c (v_i - v_tool(c)) . n with v_tool the velocity of the touching point (the far end's
     here), not the tip's (zero)."""
-    from sph_tissue_sim.core.contact import contact_forces, surface_discs
+    from sph_tissue_sim.core.contact import contact_forces
     from sph_tissue_sim.core.state import Body, Motion, ToolPath, no_touches
     from sph_tissue_sim.core.surface_contact import no_samples
 
     X = np.array([[0.1, 0.0, -0.004]])              # 4 mm below the far end of a 100 mm shaft
-    offsets, indices = np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int32)
-    surf = surface_discs(X, offsets, indices, 0.01, 1e-6, 0.005, 0.0)
     seg = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
     reach, k, c, inv_mass = 0.005, 300.0, 0.5, 10.0
     for far_end_velocity, tip_velocity in ((-0.2, 0.0), (0.0, 0.0), (0.0, -0.2)):
@@ -125,7 +123,7 @@ def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
         react = np.zeros(3)
         body = Body(X, np.zeros(1, dtype=np.bool_), 1.0 / inv_mass, inv_mass)
         motion = Motion(X.copy(), np.zeros((1, 3)), np.zeros((1, 3)))
-        tool = ToolPath(seg, seg, True, reach, k, c, surf, no_samples(1), no_touches(), 0.0, np.zeros((1, 3)),
+        tool = ToolPath(seg, seg, True, reach, k, c, no_samples(1), no_touches(), 0.0, np.zeros((1, 3)),
                         np.zeros(1, dtype=np.bool_))
         overlap = contact_forces(body, motion, np.zeros(1, dtype=np.int32), 1, tool, seg, seg_vel,
                                  react)

@@ -261,11 +261,9 @@ def test_one_blas_thread_leaves_every_blas_library_with_one_thread():
         assert blas and all(i['num_threads'] == 1 for i in blas)
 
 
-def test_threads_and_disc_contact_parameters_reach_the_solver_config():
-    cfg = build_config(defaults())
-    assert (cfg.parallel_min_particles, cfg.contact_disc) == (0, 0.0)
-    cfg = build_config(defaults(parallel_min_particles=2000, contact_disc=0.5, contact_samples=0))
-    assert (cfg.parallel_min_particles, cfg.contact_disc) == (2000, 0.5)
+def test_the_threads_parameter_reaches_the_solver_config():
+    assert build_config(defaults()).parallel_min_particles == 0
+    assert build_config(defaults(parallel_min_particles=2000)).parallel_min_particles == 2000
 
 
 def test_the_contact_parameters_reach_the_solver_config_and_bad_ones_are_refused():

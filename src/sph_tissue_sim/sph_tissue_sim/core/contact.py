@@ -10,15 +10,10 @@ Penalty contact with a dashpot (for passivity): a particle at ``x_i`` overlappin
 
 receives ``f_i = max(0, k_c d_i - c_c (v_i - v_tool(c_i)) . n_i) n_i`` with
 ``n_i = (x_i - c_i)/|x_i - c_i|`` (push only, never pull; ``v_tool(c_i)`` interpolates the
-velocities of the segment's ends). A surface particle is not a ball but a patch of surface: the overlap is
-measured from the closest point of a disc of radius ``contact_disc * spacing`` (a
-:class:`~.solver.SolverConfig` option; 0, the default, is the ball model) through ``x_i`` normal to the
-current surface (``n_i`` then points from the tool centre to that point). Pressing on a flat
-surface anywhere above a particle's patch therefore pushes it straight in; with a ball the radial
-normal pushed an off-centre particle sideways ever harder as it slid, so the pressed particle
-slid out from under the tool (an unstable equilibrium). In the bulk the disc shrinks to the
-point (the ball model). The reaction of the tissue on the tool is ``-sum_i f_i``: equal and
-opposite, so the force rendered to the device is exactly what the tissue feels (not the paper's
+velocities of the segment's ends). A ball's radial normal pushes an off-centre particle sideways,
+so the tool can slip between surface particles; the surface samples of :mod:`.surface_contact`
+hold it out of those gaps (surface discs lost: docs/decisions/retired-contact_disc.md). The
+reaction of the tissue on the tool is ``-sum_i f_i``: equal and opposite, so the force rendered to the device is exactly what the tissue feels (not the paper's
 eq. 23, which adds a stress to a force). ``k_c`` is kept below the Omni's displayable stiffness
 (~1 N/mm) and the haptic loop sees the tissue in series with it.
 
@@ -65,82 +60,26 @@ def segment_distance2(i, x, seg):
 
 
 @njit(cache=True, fastmath=True, inline='always')
-def contact_vector(i, x, seg, surf):
-    """Vector from the tool segment's closest point to the closest point of particle ``i``'s
-    contact shape.
-
-    Returns ``(u0, u1, u2, s0, s1, s2, t)``: the vector [m], the particle's current unit outward
-    surface normal (zero for a bulk particle, whose shape is the point ``x_i``) and where on the
-    segment the closest point lies (0 at ``seg[0]``, 1 at ``seg[1]``).
-    """
-    X, offsets, indices, cw, Minv, N, disc = surf
-    a = disc[i]
+def contact_vector(i, x, seg):
+    """Vector ``(u0, u1, u2, t)`` [m] from the tool segment's closest point to particle ``i``'s
+    centre, and where on the segment that point lies (0 at ``seg[0]``, 1 at ``seg[1]``)."""
     tc0, tc1, tc2, tseg = closest_on_segment(x[i, 0], x[i, 1], x[i, 2], seg)
-    e0 = x[i, 0] - tc0
-    e1 = x[i, 1] - tc1
-    e2 = x[i, 2] - tc2
-    u0 = e0; u1 = e1; u2 = e2
-    s0 = 0.0; s1 = 0.0; s2 = 0.0
-    if a > 0.0:
-        # current surface normal n = F^-T N (Nanson) with F the kernel-weighted least-squares
-        # deformation gradient of the reference neighbourhood; F^-T N ~ cof(F) N needs no inverse
-        a00 = 0.0; a01 = 0.0; a02 = 0.0; a10 = 0.0; a11 = 0.0; a12 = 0.0
-        a20 = 0.0; a21 = 0.0; a22 = 0.0
-        for k in range(offsets[i], offsets[i + 1]):
-            j = indices[k]
-            w = cw[k]
-            dx0 = w * (x[j, 0] - x[i, 0]); dx1 = w * (x[j, 1] - x[i, 1]); dx2 = w * (x[j, 2] - x[i, 2])
-            dX0 = X[j, 0] - X[i, 0]; dX1 = X[j, 1] - X[i, 1]; dX2 = X[j, 2] - X[i, 2]
-            a00 += dx0 * dX0; a01 += dx0 * dX1; a02 += dx0 * dX2
-            a10 += dx1 * dX0; a11 += dx1 * dX1; a12 += dx1 * dX2
-            a20 += dx2 * dX0; a21 += dx2 * dX1; a22 += dx2 * dX2
-        F = np.empty((3, 3))
-        for q in range(3):
-            F[0, q] = a00 * Minv[i, 0, q] + a01 * Minv[i, 1, q] + a02 * Minv[i, 2, q]
-            F[1, q] = a10 * Minv[i, 0, q] + a11 * Minv[i, 1, q] + a12 * Minv[i, 2, q]
-            F[2, q] = a20 * Minv[i, 0, q] + a21 * Minv[i, 1, q] + a22 * Minv[i, 2, q]
-        det = (F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
-               - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
-               + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]))
-        if det > 1e-6:
-            # columns f_c of F: cof(F) = [f1 x f2, f2 x f0, f0 x f1]
-            N0 = N[i, 0]; N1 = N[i, 1]; N2 = N[i, 2]
-            s0 = (N0 * (F[1, 1] * F[2, 2] - F[2, 1] * F[1, 2]) + N1 * (F[1, 2] * F[2, 0] - F[2, 2] * F[1, 0])
-                  + N2 * (F[1, 0] * F[2, 1] - F[2, 0] * F[1, 1]))
-            s1 = (N0 * (F[2, 1] * F[0, 2] - F[0, 1] * F[2, 2]) + N1 * (F[2, 2] * F[0, 0] - F[0, 2] * F[2, 0])
-                  + N2 * (F[2, 0] * F[0, 1] - F[0, 0] * F[2, 1]))
-            s2 = (N0 * (F[0, 1] * F[1, 2] - F[1, 1] * F[0, 2]) + N1 * (F[0, 2] * F[1, 0] - F[1, 2] * F[0, 0])
-                  + N2 * (F[0, 0] * F[1, 1] - F[1, 0] * F[0, 1]))
-        sn = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-        if sn > 1e-30:
-            s0 /= sn; s1 /= sn; s2 /= sn
-            hgt = e0 * s0 + e1 * s1 + e2 * s2
-            q0 = e0 - hgt * s0; q1 = e1 - hgt * s1; q2 = e2 - hgt * s2
-            rho = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
-            # closest point of the particle's surface disc to the tool's closest point
-            cut = 1.0 if rho <= a else a / rho
-            u0 = e0 - cut * q0; u1 = e1 - cut * q1; u2 = e2 - cut * q2
-        else:
-            s0 = 0.0; s1 = 0.0; s2 = 0.0
-    return u0, u1, u2, s0, s1, s2, tseg
+    return x[i, 0] - tc0, x[i, 1] - tc1, x[i, 2] - tc2, tseg
 
 
 @njit(cache=True, fastmath=True, inline='always')
-def touch_normal(i, x, seg, surf, reach):
-    """Whether particle ``i``'s contact shape lies within ``reach`` of the tool segment; returns
-    ``(touching, overlap [m], n0, n1, n2, t)``: the unit normal along which the tool pushes it and
-    where on the segment the closest point lies (see :func:`contact_vector`)."""
-    lim = reach + surf[6][i]
-    if segment_distance2(i, x, seg) >= lim * lim:
+def touch_normal(i, x, seg, reach):
+    """Whether particle ``i`` lies within ``reach`` of the tool segment; returns ``(touching,
+    overlap [m], n0, n1, n2, t)``: the unit normal along which the tool pushes it and where on
+    the segment the closest point lies (see :func:`contact_vector`)."""
+    if segment_distance2(i, x, seg) >= reach * reach:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0
-    u0, u1, u2, s0, s1, s2, ts = contact_vector(i, x, seg, surf)
+    u0, u1, u2, ts = contact_vector(i, x, seg)
     r = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
     if r >= reach:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0
     if r < 1e-12:
-        # the tool's closest point exactly on the particle's disc: push along its surface normal (or +z)
-        if s0 * s0 + s1 * s1 + s2 * s2 > 0.5:
-            return True, reach - r, -s0, -s1, -s2, ts
+        # the tool's closest point exactly on the particle's centre: push along +z
         return True, reach - r, 0.0, 0.0, 1.0, ts
     return True, reach - r, u0 / r, u1 / r, u2 / r, ts
 
@@ -180,9 +119,9 @@ def stick_slip(i, x, seg, n0, n1, n2, push, k, mu, anchor, stuck):
 
 
 @njit(cache=True, nogil=True)
-def contact_vector_py(i, x, seg, surf):
-    """:func:`contact_vector` callable from Python (``(u0, u1, u2, s0, s1, s2, t)``)."""
-    return contact_vector(i, x, seg, surf)
+def contact_vector_py(i, x, seg):
+    """:func:`contact_vector` callable from Python (``(u0, u1, u2, t)``)."""
+    return contact_vector(i, x, seg)
 
 
 @njit(cache=True, fastmath=True)
@@ -192,17 +131,15 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
 
     ``seg`` (2, 3) is the tool's segment now and ``seg_vel`` (2, 3) the velocities of its ends [m/s];
     ``tool`` (:class:`~.state.ToolPath`) gives the contact law: ``reach``, ``stiffness`` ``k_c``,
-    ``damping`` ``c_c``, ``friction`` (with the anchors :func:`stick_slip` keeps) and ``surf = (X, offsets, indices, cw, Minv, N, disc)``: reference
-    positions and neighbour CSR, pair weights ``V_j W(R0_ij)``, inverse second moments, reference outward normals and the
-    surface-disc radius of each particle [m] (0 in the bulk), see :func:`surface_discs`.
+    ``damping`` ``c_c`` and ``friction`` (with the anchors :func:`stick_slip` keeps).
     Returns the largest overlap [m] (0 without contact).
     """
     x, v, acc, fixed, inv_mass = motion.x, motion.v, motion.acc, body.fixed, body.inv_mass
-    reach, k_c, c_c, surf, mu = tool.reach, tool.stiffness, tool.damping, tool.surf, tool.friction
+    reach, k_c, c_c, mu = tool.reach, tool.stiffness, tool.damping, tool.friction
     best = 0.0
     for t in range(n_cand):
         i = cand[t]
-        touching, overlap, n0, n1, n2, ts = touch_normal(i, x, seg, surf, reach)
+        touching, overlap, n0, n1, n2, ts = touch_normal(i, x, seg, reach)
         if not touching:
             tool.stuck[i] = False
             continue
@@ -249,59 +186,16 @@ def first_moments(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: fl
     return rows, d, cw, m
 
 
-def surface_discs(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float, volume: float,
-                  spacing: float, disc_fraction: float) -> tuple:
-    """Contact surface geometry of the reference body: ``(X, offsets, indices, cw, Minv, N, disc)``.
-
-    A surface particle stands for a patch of surface about one spacing wide, not for a ball: the
-    tool meets a flat disc of radius ``disc_fraction * spacing`` (0.5: the particle's own patch;
-    0: the ball model) normal to the local surface (rounded by the contact radius). The surface is found from the kernel-weighted first moment of the neighbours,
-    ``m_i = sum_j V_j W_ij (X_j - X_i)`` (``cw`` = ``V_j W_ij``): ``|m_i|`` is 0.24 spacings on a
-    flat face, 0.014 one layer below, 0 in the bulk; the reference outward normal is
-    ``N_i = -m_i / |m_i|`` and the disc radius ramps from 0 to its full size between 0.05 and
-    0.2 spacings so it is continuous. ``Minv`` is the inverse of ``sum_j V_j W_ij dX dX^T``, which
-    turns the current neighbourhood into a least-squares deformation gradient for ``n = F^-T N``.
-    """
-    n = len(X)
-    if disc_fraction <= 0.0:
-        # ball model: contact_vector never reads cw, Minv or N (empty arrays keep the types)
-        return (np.ascontiguousarray(X, dtype=np.float64), offsets, indices, np.zeros(0),
-                np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(n))
-    rows, d, cw, m = first_moments(X, offsets, indices, h, volume)
-    mn = np.linalg.norm(m, axis=1)
-    g = mn / spacing
-    disc = disc_fraction * spacing * np.clip((g - 0.05) / 0.15, 0.0, 1.0)
-    N = np.zeros((n, 3))
-    N[mn > 0] = -m[mn > 0] / mn[mn > 0, None]
-    M = np.empty((n, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            M[:, a, b] = M[:, b, a] = np.bincount(rows, weights=cw * d[:, a] * d[:, b], minlength=n)
-    del d, rows
-    Minv = np.zeros((n, 3, 3))
-    det = np.linalg.det(M)
-    ok = np.abs(det) > 1e-12 * np.maximum(np.abs(M).max(axis=(1, 2)), 1e-300) ** 3
-    Minv[ok] = np.linalg.inv(M[ok])
-    disc[~ok] = 0.0
-    return (np.ascontiguousarray(X, dtype=np.float64), offsets, indices, np.ascontiguousarray(cw),
-            np.ascontiguousarray(Minv), np.ascontiguousarray(N), np.ascontiguousarray(disc))
-
-
 @njit(cache=True, nogil=True)
-def deepest_contact(x, cand, n_cand, seg, reach, surf):
-    """Collision detection (paper sec. 4.4): the candidate with the largest overlap, or -1.
-
-    The overlap is measured to the same contact shape as :func:`contact_forces` uses.
-    """
-    disc = surf[6]
+def deepest_contact(x, cand, n_cand, seg, reach):
+    """Collision detection (paper sec. 4.4): the candidate with the largest overlap, or -1."""
     best = -1
     best_d = 0.0
     for t in range(n_cand):
         i = cand[t]
-        lim = reach + disc[i]
-        if segment_distance2(i, x, seg) >= lim * lim:
+        if segment_distance2(i, x, seg) >= reach * reach:
             continue
-        u0, u1, u2, s0, s1, s2, ts = contact_vector(i, x, seg, surf)
+        u0, u1, u2, ts = contact_vector(i, x, seg)
         overlap = reach - math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
         if overlap > best_d:
             best_d = overlap

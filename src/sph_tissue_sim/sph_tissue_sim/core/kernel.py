@@ -96,7 +96,7 @@ def strain_rate(f, h):
 
 @njit(cache=True)
 def kernel_w_array(r: np.ndarray, h: float) -> np.ndarray:
-    """:func:`kernel_w` over an array of distances (the surface discs' pair weights)."""
+    """:func:`kernel_w` over an array of distances (the first moments of the surface normals)."""
     out = np.empty(r.shape[0])
     for i in range(r.shape[0]):
         out[i] = kernel_w(r[i], h)

@@ -268,13 +268,12 @@ def active_stats(x, X, v, idx, n, mass):
 
 
 @njit(cache=True, nogil=True)
-def detect_local(X, x, grid, area, n_active, seg, reach, margin, surf):
+def detect_local(X, x, grid, area, n_active, seg, reach, margin):
     """Deepest-overlap particle of the tool segment ``seg`` (2, 3) in local mode, O(active + cells
     near the tool), or -1.
 
     Inactive particles sit within ``margin`` of their reference position, so the reference grid
-    finds them; active ones (possibly far from home) are checked directly. The overlap is measured
-    to the contact shape of :func:`~.contact.contact_forces` (``surf``).
+    finds them; active ones (possibly far from home) are checked directly.
 
     Also returns the touched particles with their overlaps as weights (``area.touch``,
     ``area.touch_w``; count as second return value) and their overlap-weighted reference centroid
@@ -288,20 +287,18 @@ def detect_local(X, x, grid, area, n_active, seg, reach, margin, surf):
     n_touch = 0
     wsum = 0.0
     c0 = 0.0; c1 = 0.0; c2 = 0.0
-    disc = surf[6]
     mid = np.empty(3)
     half2 = 0.0
     for a in range(3):
         mid[a] = 0.5 * (seg[0, a] + seg[1, a])
         half2 += (0.5 * (seg[1, a] - seg[0, a])) ** 2
-    nq = query_ball(mid, math.sqrt(half2) + reach + margin + np.max(disc), X, grid, tmp)
+    nq = query_ball(mid, math.sqrt(half2) + reach + margin, X, grid, tmp)
     nq = min(nq, tmp.shape[0])
     for q in range(nq + n_active):
         j = tmp[q] if q < nq else active_list[q - nq]
-        lim = reach + disc[j]
-        if segment_distance2(j, x, seg) >= lim * lim:
+        if segment_distance2(j, x, seg) >= reach * reach:
             continue
-        u0, u1, u2, s0, s1, s2, ts = contact_vector(j, x, seg, surf)
+        u0, u1, u2, ts = contact_vector(j, x, seg)
         overlap = reach - math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
         if overlap <= 0.0:
             continue
@@ -352,17 +349,14 @@ class LocalArea:
     Args:
         X: (N, 3) reference positions; fixed: (N,) boundary mask.
         topo: reference neighbours within 2h; grid: the reference cell grid.
-        h: smoothing length [m]; n_layers: transmission layers; surf: contact surface
-            (:func:`~.contact.surface_discs`).
+        h: smoothing length [m]; n_layers: transmission layers.
     """
 
     def __init__(self, X: np.ndarray, fixed: np.ndarray, topo: Topology, grid: Grid, h: float,
-                 n_layers: int, surf: tuple) -> None:
+                 n_layers: int) -> None:
         n = len(X)
         self.X, self.fixed, self.topo = X, fixed, topo
-        self.grid, self.h, self.n_layers, self.surf = grid, h, n_layers, surf
-        self.disc = surf[-1]
-        self.disc_max = float(self.disc.max()) if n else 0.0
+        self.grid, self.h, self.n_layers = grid, h, n_layers
         self.free = np.flatnonzero(~fixed).astype(np.int32)
         self.all = np.arange(n, dtype=np.int32)
         self.region = np.zeros(n, dtype=np.int8)
@@ -421,7 +415,7 @@ class LocalArea:
         """The deepest touched particle of the tool's segment (or -1); records the touched ones
         and centres the area on their overlap-weighted centroid (:func:`detect_local`)."""
         deepest, self.n_touch = detect_local(self.X, x, self.grid, self.bundle, self.n_active, seg,
-                                             reach, margin, self.surf)
+                                             reach, margin)
         return deepest
 
     def prepare(self, body: Body, seg0: np.ndarray | None, seg1: np.ndarray | None, reach: float, margin: float,
@@ -429,8 +423,8 @@ class LocalArea:
         """The sets of a local frame; returns ``(sets, n_interaction, n_relaxing)``.
 
         ``Dr`` [m] is the area's radius: from the contact particle (``on_contact``, the paper's
-        sec. 4.2) or from the edge of the touched patch (surface discs included, so a load spread
-        over several particles is inside). The candidates are every particle the tool can reach
+        sec. 4.2) or from the edge of the touched patch (so a load spread over several particles
+        is inside). The candidates are every particle the tool can reach
         anywhere on its way through the frame (``seg0`` to ``seg1``; None: no tool).
         """
         if seg0 is not None:
@@ -438,7 +432,7 @@ class LocalArea:
             ends = seg0.tolist() + seg1.tolist()
             c = [0.25 * (ends[0][a] + ends[1][a]) + 0.25 * (ends[2][a] + ends[3][a]) for a in range(3)]
             cand_centre = np.array(c)
-            cand_radius = max(math.dist(e, c) for e in ends) + reach + self.disc_max + margin
+            cand_radius = max(math.dist(e, c) for e in ends) + reach + margin
         else:
             cand_centre = self.centre
             cand_radius = -1.0
@@ -448,7 +442,7 @@ class LocalArea:
         elif self.n_touch > 0:
             ti = self.touch[:self.n_touch]
             d = self.X[ti] - self.centre
-            Dr += float((np.sqrt((d * d).sum(axis=1)) + self.disc[ti]).max())
+            Dr += float(np.sqrt((d * d).sum(axis=1)).max())
         self.stamp_val += 1
         (self.n_active, n_sph, n_lp, n_stress, n_cand, n_inter, n_relax) = local_prepare(
             body, self.topo, self.grid, self.bundle, self.n_active, self.stamp_val, contact, Dr,

@@ -23,7 +23,7 @@ import numpy as np
 from tissue_common.force import HARD_FORCE_LIMIT, clamp_norm
 
 from . import frame
-from .contact import contact_vector_py, deepest_contact, surface_discs
+from .contact import contact_vector_py, deepest_contact
 from .surface_contact import (SURFACE_OFFSET, nearest_sample_gap, no_samples, sample_stiffness_factor,
                               surface_samples)
 from .errors import ConfigError, ModelError, SimError
@@ -127,8 +127,6 @@ class SolverConfig:
                                        'sample', (1.0, 1e5))
     contact_damping_ratio: float = setting(1.0, '[-] contact dashpot as a fraction of critical for one '
                                            'particle', (0.0, 10.0))
-    contact_disc: float = setting(0.0, '[spacings] surface particles as discs normal to the surface (lost '
-                                  'to the samples, to be removed)', (0.0, 0.5))
     contact_samples: int = setting(3, 'samples per side of a surface particle behind the balls, which hold '
                                    'the tool out of the gaps between particles (0: the balls alone, the '
                                    'tool slips between them; 3 costs 1.3-1.4x the balls\' step)', (0, 5))
@@ -180,8 +178,6 @@ class SolverConfig:
                     setattr(self, f.name, int(val))
         if self.k1_min > self.k1_max:
             raise ConfigError(f'k1_min ({self.k1_min}) must be <= k1_max ({self.k1_max})')
-        if self.contact_samples > 0 and self.contact_disc > 0.0:
-            raise ConfigError('contact_disc must be 0 with contact_samples > 0 (the samples are the surface)')
         if self.far_field_model == 'organ' and self.scheme != 'tlsph':
             raise ConfigError(f'far_field_model organ needs scheme tlsph, got {self.scheme!r}')
         if self.integrator == 'implicit' and self.scheme != 'tlsph':
@@ -262,8 +258,6 @@ class Solver:
         if np.diff(self.offsets).max() == 0:
             raise ConfigError(f'smoothing length h = {self.h:.3g} m is too small: no particle has a '
                               f'neighbour within 2h (spacing {model.spacing:.3g} m)')
-        self.contact_surf = surface_discs(self.X, self.offsets, self.indices, self.h, self.volume,
-                                          model.spacing, cfg.contact_disc)
         self._contact_geometry(model.spacing)
         self.x = self.X.copy()
         self.v = np.zeros((self.n, 3))
@@ -289,7 +283,7 @@ class Solver:
         self.stuck = np.zeros(self.n, dtype=np.bool_)
         self._touch_vn = np.zeros(len(self.touches.idx))
         self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
-                              self.h, cfg.n_layers, self.contact_surf)
+                              self.h, cfg.n_layers)
         self.set_material(material)
         self.reset()
 
@@ -595,7 +589,7 @@ class Solver:
         if not tool_on:
             self.stuck[:] = False      # a new touch starts a new anchor
         path = ToolPath(seg0, seg1, tool_on, self.ball_reach, cfg.contact_stiffness,
-                        self.contact_damping, self.contact_surf, self.samples, self.touches,
+                        self.contact_damping, self.samples, self.touches,
                         cfg.friction, self.anchor, self.stuck)
         if cfg.mode == 'global':
             res = self._global_step(path, n_sub, sub_dt, dt)
@@ -604,7 +598,7 @@ class Solver:
         if self.dashpot_rate is not None:
             # explicit contacts add their dashpots on the touched particles (the samples' own,
             # spread over their particles, are left out)
-            contact = ((path.seg1, path.reach, path.surf, self.contact_damping * self.inv_mass)
+            contact = ((path.seg1, path.reach, self.contact_damping * self.inv_mass)
                        if tool_on and not self.touches.on and cfg.contact_damping_ratio > 0.0 else None)
             self.dashpot_rate.update(self.body, self.x, self._last_sets, sub_dt, contact)
         force_raw = self.react.copy()
@@ -642,7 +636,7 @@ class Solver:
         """
         prev = self.last_result.contact_index if self.last_result is not None else -1
         if prev >= 0:
-            u = contact_vector_py(prev, self.x, seg, self.contact_surf)
+            u = contact_vector_py(prev, self.x, seg)
             if u[0] * u[0] + u[1] * u[1] + u[2] * u[2] < reach * reach:
                 return prev
         return -1
@@ -687,8 +681,7 @@ class Solver:
         if path.on:
             contact = self._sticky_contact(path.seg1, self.detect_reach)
             if contact < 0:
-                contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, self.detect_reach,
-                                          self.contact_surf)
+                contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, self.detect_reach)
         sets = self.area.global_sets(contact)
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'global')
         md, ke = active_stats(self.x, self.X, self.v, sets.sph, sets.n_sph, self.mass)

@@ -68,14 +68,14 @@ def _load(u, v, idx, n):
 
 
 @njit(cache=True)
-def _contact_dashpots(x, v, acc, cand, n_cand, seg, reach, surf, rate):
+def _contact_dashpots(x, v, acc, cand, n_cand, seg, reach, rate):
     """``acc -= rate (v . n) n`` on the candidates the tool touches (``n`` the normal it pushes
     them along, ``rate`` = c_c / m): the explicit contact dashpots' share of ``-M^-1 C v``. A
     touched particle's dashpots add up: on the 3670 liver the contact's alone has ``c dt`` 0.95
     at the reference bounds' sub-step."""
     for t in range(n_cand):
         i = cand[t]
-        touching, overlap, n0, n1, n2, ts = touch_normal(i, x, seg, surf, reach)
+        touching, overlap, n0, n1, n2, ts = touch_normal(i, x, seg, reach)
         if touching:
             vn = rate * (v[i, 0] * n0 + v[i, 1] * n1 + v[i, 2] * n2)
             acc[i, 0] -= vn * n0
@@ -129,7 +129,7 @@ class DashpotRate:
 
     def update(self, body: Body, x: np.ndarray, sets: Sets, sub_dt: float, contact=None) -> float:
         """Count a finished frame on ``sets`` with sub-steps of ``sub_dt`` [s] ending at positions
-        ``x``; when due, one power iteration over ``sets.sph``. ``contact``: ``(seg, reach, surf,
+        ``x``; when due, one power iteration over ``sets.sph``. ``contact``: ``(seg, reach,
         c_c / m)`` of explicit contact dashpots on the tool's particles (None: none). Returns the
         rate's estimate [1/s]."""
         self._frames += 1
@@ -147,8 +147,8 @@ class DashpotRate:
         else:
             tlsph_pass(self.state, body, self._motion(x), sets)
         if contact is not None:
-            seg, reach, surf, c_over_m = contact
-            _contact_dashpots(x, self._v, self._acc, sets.cand, sets.n_cand, seg, reach, surf, c_over_m)
+            seg, reach, c_over_m = contact
+            _contact_dashpots(x, self._v, self._acc, sets.cand, sets.n_cand, seg, reach, c_over_m)
         rate = _store(self._acc, self._u, self._v, sets.sph, sets.n_sph)
         if math.isfinite(rate):
             self._rising = rate > self.rate * (1.0 + RISING * gap)

@@ -136,7 +136,6 @@ class ToolPath(NamedTuple):
     reach: float           # [m] contact distance: tool radius + particle contact radius
     stiffness: float       # [N/m] penalty stiffness per particle
     damping: float         # [N s/m] contact dashpot per particle
-    surf: tuple            # contact surface geometry (:func:`~.contact.surface_discs`)
     samples: Samples       # contact samples (none: the particles' ball model alone)
     touches: Touches       # where the pushing contacts are recorded (implicit contact)
     friction: float        # Coulomb coefficient of the balls' stick-slip friction (0: frictionless)
