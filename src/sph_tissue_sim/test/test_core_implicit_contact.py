@@ -9,7 +9,7 @@ from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.backward_euler import NoOperator, backward_euler_step
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core import solver as solver_module
+from sph_tissue_sim.core import contact_kinds
 from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig
 from sph_tissue_sim.validation.cases import press_and_hold
 
@@ -22,7 +22,7 @@ SURFACE = {**BALL_CONTACT, 'contact_samples': 3}
 
 @pytest.fixture(autouse=True)
 def samples_alone(monkeypatch):
-    monkeypatch.setattr(solver_module, 'BALL_RADIUS', 1e-3)
+    monkeypatch.setattr(contact_kinds, 'BALL_RADIUS', 1e-3)
 
 
 def _pressed(**config) -> Solver:

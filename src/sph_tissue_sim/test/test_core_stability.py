@@ -72,8 +72,8 @@ def test_a_touched_particles_contact_dashpot_adds_to_the_tracked_rate():
     x = s.X.copy()
     material = _largest_dashpot_rate(s, x)
     top = x[:, 2].max()
-    tip = np.array([0.0105, 0.0095, top + s.ball_reach - 0.002])
-    contact = (np.stack([tip, tip]), s.ball_reach, 5.0 * material)
+    tip = np.array([0.0105, 0.0095, top + s.contact.ball_reach - 0.002])
+    contact = (np.stack([tip, tip]), s.contact.ball_reach, 5.0 * material)
     exact = _largest_dashpot_rate(s, x, contact)
     for _ in range(30):
         s.dashpot_rate.update(s.body, x, sets, 1e-4, contact)

@@ -8,7 +8,7 @@ from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import Material, liver_default
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core import solver as solver_module
+from sph_tissue_sim.core import contact_kinds
 from sph_tissue_sim.core.solver import BALL_CONTACT, Solver, SolverConfig
 from sph_tissue_sim.core.surface_contact import nearest_sample_gap, samples_in_reach
 from sph_tissue_sim.validation.cases import gives_way, press_and_hold, press_curve
@@ -22,7 +22,7 @@ SURFACE = {**BALL_CONTACT, 'contact_samples': 3}
 @pytest.fixture
 def samples_alone(monkeypatch):
     """The particles' balls shrunk to a point, so the tool meets the surface samples alone."""
-    monkeypatch.setattr(solver_module, 'BALL_RADIUS', 1e-3)
+    monkeypatch.setattr(contact_kinds, 'BALL_RADIUS', 1e-3)
 
 
 def _sample_positions(solver: Solver, x: np.ndarray) -> np.ndarray:

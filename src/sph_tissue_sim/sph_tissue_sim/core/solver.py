@@ -24,8 +24,8 @@ from tissue_common.force import HARD_FORCE_LIMIT, clamp_norm
 
 from . import frame
 from .contact import contact_vector_py, deepest_contact
-from .surface_contact import (SURFACE_OFFSET, nearest_sample_gap, no_samples, sample_stiffness_factor,
-                              surface_samples)
+from .contact_kinds import BallContact, make_contact
+from .surface_contact import nearest_sample_gap
 from .errors import ConfigError, ModelError, SimError
 from .implicit_contact import contact_terms, make_touches
 from .backward_euler import BackwardSolve
@@ -40,7 +40,7 @@ from .paper import PaperScheme
 from .protocols import STATUS_OK
 from .springs import MassSpringScheme
 from .stability import DASHPOT_RATE_EVERY, DashpotRate
-from .state import Body, Loads, Motion, Samples, Sets, ToolPath, Topology, no_touches
+from .state import Body, Loads, Motion, Sets, ToolPath, Topology, no_touches
 from .tlsph import TlsphScheme
 from .tools import NO_ROTATION, TOOLS, make_tool
 
@@ -51,9 +51,6 @@ CONTACT_MAX_ITER = 200
 IMPLICIT_MAX_ITER = 2000
 MODES = ('global', 'local')
 CONTACT_INTEGRATIONS = ('explicit', 'implicit')
-#: backstop samples that push the tool grow the local area's radius by this many h (with the
-#: half-space far field)
-SAMPLE_AREA_GROWTH = 1.5
 FAR_FIELD_MODELS = ('auto', 'half_space', 'organ')
 #: the organ's far field lends a particle's response to the particles within this many spacings
 #: (a response costs a back-substitution, about 45 ms on the 3670 liver)
@@ -71,8 +68,6 @@ CONTACT_TOL = 1e-8
 #: the implicit integrator's solve stops at this velocity error relative to the velocities: holds a
 #: press's force to 1e-5 N; a free vibration swings 1 % slower than at 1e-3 (test_core_validation)
 IMPLICIT_TOL = 0.01
-#: [spacings] radius of a particle's contact ball
-BALL_RADIUS = 1.0
 #: [m], [m/s] a particle outside the local area is released below this displacement and speed
 RELAX_DISP_TOL, RELAX_VEL_TOL = 2e-4, 2e-3
 #: [m/s] a faster particle is a blow-up (state restored, SimError)
@@ -217,6 +212,42 @@ class StepResult:
     n_active: int = 0                 # particles integrated this frame
 
 
+def organ_far_field(cfg: SolverConfig, X: np.ndarray, fixed: np.ndarray, scheme, spacing: float,
+                    abort: np.ndarray, background: bool) -> OrganCompliance | None:
+    """Local mode's far field from the organ's own linear response (``far_field_model`` organ, or
+    auto for tlsph up to :data:`ORGAN_MAX_FREE` free particles), or None (the half-space's; or no
+    far field: global mode, ``far_field`` 0)."""
+    n_free = int(np.count_nonzero(~fixed))
+    organ = cfg.far_field_model == 'organ' or (cfg.far_field_model == 'auto' and cfg.scheme == 'tlsph'
+                                                and n_free <= ORGAN_MAX_FREE)
+    if not (organ and cfg.mode == 'local' and cfg.far_field > 0.0):
+        return None
+    if n_free > ORGAN_MAX_FREE:
+        raise ConfigError(
+            f'far_field_model organ factors the whole model\'s stiffness; {n_free} free particles '
+            f'are more than {ORGAN_MAX_FREE} (3276 free: 5 s, 0.8 GB, 45 ms per response; 11149: '
+            f'66 s, 4.6 GB, 0.3 s per response): use far_field_model half_space')
+    return OrganCompliance(X, fixed, scheme.state(None, None, 0), ORGAN_SHARE * spacing, abort,
+                           background=background)
+
+
+def frame_bounds(cfg: SolverConfig, contact: BallContact, h: float, wave_speed: float, material: Material,
+                 mass: float, contact_damping: float, implicit_contacts: bool) -> dict:
+    """[s] the largest stable sub-step of each bound (:func:`~.integrate.substep_bounds`, the
+    contact's dashpot), by name. Backward-Euler contacts drop the contact's bounds; the implicit
+    integrator has one, the accuracy the caller asks for."""
+    if cfg.integrator == 'implicit':
+        return {'implicit': cfg.implicit_max_dt}
+    bounds = substep_bounds(h, wave_speed, material.rho, material.eta_longitudinal, mass,
+                            cfg.contact_stiffness * contact.stiffness_factor, cfg.cfl)
+    if cfg.contact_damping_ratio > 0.0:
+        bounds['contact_damping'] = contact.damping_bound(mass, contact_damping)
+    if implicit_contacts:
+        bounds.pop('contact', None)
+        bounds.pop('contact_damping', None)
+    return bounds
+
+
 class Solver:
     """Viscoelastic tissue simulator for one :class:`TissueModel`.
 
@@ -258,7 +289,8 @@ class Solver:
         if np.diff(self.offsets).max() == 0:
             raise ConfigError(f'smoothing length h = {self.h:.3g} m is too small: no particle has a '
                               f'neighbour within 2h (spacing {model.spacing:.3g} m)')
-        self._contact_geometry(model.spacing)
+        self.contact: BallContact = make_contact(cfg.contact_samples, self.tool.radius, model.spacing, self.X,
+                                                 self.offsets, self.indices, self.h, self.volume)
         self.x = self.X.copy()
         self.v = np.zeros((self.n, 3))
         self.acc = np.zeros((self.n, 3))
@@ -276,8 +308,7 @@ class Solver:
                                        IMPLICIT_TOL if stiffness else CONTACT_TOL,
                                        IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER)
                          if contacts else None)
-        n_samples = len(self.sample_arrays[4]) if self.sample_arrays is not None else 0
-        self.touches = make_touches(self.n + n_samples) if contacts else no_touches()
+        self.touches = make_touches(self.n + self.contact.n_samples) if contacts else no_touches()
         #: friction's anchors (contact.stick_slip)
         self.anchor = np.zeros((self.n, 3))
         self.stuck = np.zeros(self.n, dtype=np.bool_)
@@ -286,36 +317,6 @@ class Solver:
                               self.h, cfg.n_layers)
         self.set_material(material)
         self.reset()
-
-    def _contact_geometry(self, spacing: float) -> None:
-        """Where the tool touches: the reach of the particles' balls, of touch detection and of
-        the local area's candidates, and the surface samples (``contact_samples`` > 0)."""
-        cfg = self.config
-        per = cfg.contact_samples
-        if per == 0:
-            self.contact_reach = self.tool.radius + BALL_RADIUS * spacing
-            self.ball_reach = self.detect_reach = self.cand_reach = self.samples_reach = self.contact_reach
-            self.sample_arrays, self.sample_margin, self.sample_factor = None, 0.0, 1.0
-            return
-        # the tool meets samples on the material's surface, half a spacing outside the particle
-        # centres, and the particles' own balls: of the tool's size behind the samples, or of
-        # BALL_RADIUS in front of them (the samples then a backstop)
-        surface_reach = self.tool.radius + SURFACE_OFFSET * spacing
-        self.ball_reach = self.tool.radius + BALL_RADIUS * spacing
-        self.contact_reach = max(surface_reach, self.ball_reach)
-        *self.sample_arrays, reach, support = surface_samples(self.X, self.offsets, self.indices, self.h,
-                                                              self.volume, spacing, per)
-        # a sample reads particles within `support` of it: farther than this from its owner, the
-        # material around it is torn apart
-        self.sample_margin = reach + support + spacing
-        self.sample_factor = sample_stiffness_factor(*self.sample_arrays[1:4])
-        # touch detection (the local area's centre) sees a particle where its samples may touch,
-        # and local mode solves every particle a touching sample reads
-        self.detect_reach = max(self.tool.radius + reach, self.ball_reach)
-        self.cand_reach = self.samples_reach = max(self.tool.radius + reach + support, self.ball_reach)
-        # a sample lies within `reach` of its owner, inside the owner's ball: until a sample
-        # pushes the tool (Solver.samples_push), the balls' candidates and area suffice
-        self.cand_reach = self.ball_reach
 
     def _make_scheme(self):
         cfg = self.config
@@ -366,7 +367,8 @@ class Solver:
         return self.organ.close(timeout)
 
     def set_material(self, material: Material) -> None:
-        """Change the material (takes effect at the next step; sub-step bounds are recomputed)."""
+        """Change the material (takes effect at the next step): its constants, the organ's far field
+        and the sub-step bounds follow."""
         if not isinstance(material, Material):
             raise ConfigError(f'material must be a Material, got {type(material).__name__}')
         self.material = material
@@ -375,45 +377,16 @@ class Solver:
         self.inv_mass = 1.0 / self.mass
         self.body = Body(self.X, self.fixed, self.mass, self.inv_mass)
         self.contact_damping = cfg.contact_damping_ratio * 2.0 * math.sqrt(cfg.contact_stiffness * self.mass)
-        per = cfg.contact_samples
-        if per > 0:
-            # a sample carries 1/per**2 of its particle's mass: the same damping ratio per sample
-            self.samples = Samples(*self.sample_arrays[:5], self.tool.radius, cfg.contact_stiffness,
-                                   self.contact_damping / per, self.sample_margin, *self.sample_arrays[5:])
-        else:
-            self.samples = no_samples(self.n)
+        self.samples = self.contact.samples(self.n, self.tool.radius, cfg.contact_stiffness, self.contact_damping)
         self.scheme.set_material(material, self.mass)
-        #: the organ's compliance for local mode's far field (None: the half-space's)
         self.close()
-        self.organ = None
-        n_free = int(np.count_nonzero(~self.fixed))
-        organ = cfg.far_field_model == 'organ' or (cfg.far_field_model == 'auto' and cfg.scheme == 'tlsph'
-                                                    and n_free <= ORGAN_MAX_FREE)
-        if organ and cfg.mode == 'local' and cfg.far_field > 0.0:
-            if n_free > ORGAN_MAX_FREE:
-                raise ConfigError(
-                    f'far_field_model organ factors the whole model\'s stiffness; {n_free} free particles '
-                    f'are more than {ORGAN_MAX_FREE} (3276 free: 5 s, 0.8 GB, 45 ms per response; 11149: '
-                    f'66 s, 4.6 GB, 0.3 s per response): use far_field_model half_space')
-            self.organ = OrganCompliance(self.X, self.fixed, self.scheme.state(None, None, 0),
-                                         ORGAN_SHARE * self.model.spacing, self.abort,
-                                         background=self.background)
+        #: the organ's compliance for local mode's far field (None: the half-space's, or none)
+        self.organ = organ_far_field(cfg, self.X, self.fixed, self.scheme, self.model.spacing, self.abort,
+                                     self.background)
         if self.backward is not None:
             self.backward.set_material(material)
-        c = self.scheme.wave_speed(material, self.mass)
-        self.dt_bounds = substep_bounds(self.h, c, material.rho, material.eta_longitudinal, self.mass,
-                                        cfg.contact_stiffness * self.sample_factor, cfg.cfl)
-        if cfg.contact_damping_ratio > 0.0:
-            # explicit dashpot: dt < 2 m / c; keep a factor 2 margin (implicit contact: none)
-            self.dt_bounds['contact_damping'] = self.mass / (self.samples.damping * self.sample_factor
-                                                             if per > 0 else self.contact_damping)
-        if self.touches.on:
-            # the pushing contacts are integrated backward along their normals
-            self.dt_bounds.pop('contact', None)
-            self.dt_bounds.pop('contact_damping', None)
-        if cfg.integrator == 'implicit':
-            # stable at any sub-step: only the accuracy the caller asks for bounds it
-            self.dt_bounds = {'implicit': cfg.implicit_max_dt}
+        self.dt_bounds = frame_bounds(cfg, self.contact, self.h, self.scheme.wave_speed(material, self.mass),
+                                      material, self.mass, self.contact_damping, self.touches.on)
         dashpots = self.scheme.dashpots_only() if isinstance(self.scheme, TlsphScheme) else None
         #: follows the explicit dashpots' rate as the tissue deforms (None: no explicit dashpots)
         self.dashpot_rate = DashpotRate(dashpots, self.n, DASHPOT_RATE_EVERY) if dashpots is not None else None
@@ -488,6 +461,11 @@ class Solver:
         if self.config.mode != 'local' or self.config.far_field <= 0.0:
             return 'none'
         return 'organ' if self.organ is not None else 'half_space'
+
+    @property
+    def contact_reach(self) -> float:
+        """[m] from the tool's axis to a particle centre at the first touch (the contact kind's)."""
+        return self.contact.contact_reach
 
     @property
     def smoothing_length(self) -> float:
@@ -588,7 +566,7 @@ class Solver:
             seg0 = seg1 = np.stack([self.centre, self.centre])
         if not tool_on:
             self.stuck[:] = False      # a new touch starts a new anchor
-        path = ToolPath(seg0, seg1, tool_on, self.ball_reach, cfg.contact_stiffness,
+        path = ToolPath(seg0, seg1, tool_on, self.contact.ball_reach, cfg.contact_stiffness,
                         self.contact_damping, self.samples, self.touches,
                         cfg.friction, self.anchor, self.stuck)
         if cfg.mode == 'global':
@@ -679,9 +657,9 @@ class Solver:
     def _global_step(self, path: ToolPath, n_sub: int, sub_dt: float, dt: float) -> dict:
         contact = -1
         if path.on:
-            contact = self._sticky_contact(path.seg1, self.detect_reach)
+            contact = self._sticky_contact(path.seg1, self.contact.detect_reach)
             if contact < 0:
-                contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, self.detect_reach)
+                contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, self.contact.detect_reach)
         sets = self.area.global_sets(contact)
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'global')
         md, ke = active_stats(self.x, self.X, self.v, sets.sph, sets.n_sph, self.mass)
@@ -697,20 +675,12 @@ class Solver:
         area.n_touch = 0
         contact = -1
         if path.on:
-            deepest = area.detect(self.x, path.seg1, self.detect_reach, margin)
-            contact = self._sticky_contact(path.seg1, self.detect_reach)
+            deepest = area.detect(self.x, path.seg1, self.contact.detect_reach, margin)
+            contact = self._sticky_contact(path.seg1, self.contact.detect_reach)
             if contact < 0:
                 contact = deepest
         k1 = min(max(cfg.k1_gain * self.f_prev, cfg.k1_min), cfg.k1_max)
-        Dr, reach = k1 * self.h, self.cand_reach
-        if self.samples_push:
-            # the samples spread their load over their support: solve every particle a touching
-            # sample reads, and with the half-space far field a larger area (sized for the balls,
-            # its shell is too near that load: local mode 12 % too soft or 7 % too stiff at a
-            # 10 mm press); the organ's far field knows the organ's shape there
-            reach = self.samples_reach
-            if self.organ is None:
-                Dr += SAMPLE_AREA_GROWTH * self.h
+        reach, Dr = self.contact.area(self.samples_push, self.organ is not None, k1 * self.h, self.h)
         sets, n_inter, n_relax = area.prepare(self.body, path.seg0 if path.on else None, path.seg1,
                                               reach, margin, contact, Dr, cfg.scheme == 'paper')
         area.far_field(self.body, self.x, sets, self.react, cfg.far_field, self.material.G, self.material.nu,

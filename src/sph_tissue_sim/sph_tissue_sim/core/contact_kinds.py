@@ -1,0 +1,112 @@
+"""Contact kinds: where the tool meets the tissue, as the solver needs it.
+
+A kind owns its reach radii, its surface samples (if any), what it adds to the sub-step bounds and
+how it grows the local area. Two kinds today, chosen by ``SolverConfig.contact_samples``:
+
+- :class:`BallContact` (0): the tool against the particles' balls of ``BALL_RADIUS`` spacings; the
+  tool slips between them.
+- :class:`SampledContact` (n > 0): the balls, and behind them n x n samples per surface particle on
+  the material's surface (:mod:`.surface_contact`) that hold the tool out of the gaps.
+
+A new kind is one class with the same attributes and methods, and its line in :func:`make_contact`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .state import Samples
+from .surface_contact import SURFACE_OFFSET, no_samples, sample_stiffness_factor, surface_samples
+
+#: [spacings] radius of a particle's contact ball
+BALL_RADIUS = 1.0
+#: backstop samples that push the tool grow the local area's radius by this many h (with the
+#: half-space far field)
+SAMPLE_AREA_GROWTH = 1.5
+
+
+class BallContact:
+    """The particles as balls. Reach radii [m] (tool radius included): ``contact_reach`` (where a
+    first touch is), ``ball_reach`` (a ball's spring), ``detect_reach`` (the local area's centre),
+    ``cand_reach`` and ``samples_reach`` (the local area's candidates before and after the samples
+    push the tool)."""
+
+    per_side = 0
+    #: a sample's stiffness over a ball's in the stiffest direction (the contact sub-step bound)
+    stiffness_factor = 1.0
+
+    def __init__(self, tool_radius: float, spacing: float) -> None:
+        self.ball_reach = tool_radius + BALL_RADIUS * spacing
+        self.contact_reach = self.detect_reach = self.cand_reach = self.samples_reach = self.ball_reach
+
+    @property
+    def n_samples(self) -> int:
+        return 0
+
+    def samples(self, n: int, tool_radius: float, stiffness: float, damping: float) -> Samples:
+        """The frame's samples (none) for ``n`` particles and a ball dashpot of ``damping`` [N s/m]."""
+        return no_samples(n)
+
+    def damping_bound(self, mass: float, damping: float) -> float:
+        """[s] explicit contact dashpot: dt < 2 m / c; a factor 2 margin."""
+        return mass / damping
+
+    def area(self, pushing: bool, organ: bool, Dr: float, h: float) -> tuple[float, float]:
+        """(candidate reach [m], area radius [m]) of the local area: the balls' whatever happens."""
+        return self.cand_reach, Dr
+
+
+class SampledContact(BallContact):
+    """The balls in front and ``per_side`` x ``per_side`` samples per surface particle behind them.
+
+    The tool meets the samples on the material's surface, half a spacing outside the particle
+    centres, and the particles' own balls: of the tool's size behind the samples, or of
+    ``BALL_RADIUS`` in front of them (the samples then a backstop)."""
+
+    def __init__(self, tool_radius: float, spacing: float, per_side: int, X: np.ndarray,
+                 offsets: np.ndarray, indices: np.ndarray, h: float, volume: float) -> None:
+        super().__init__(tool_radius, spacing)
+        self.per_side = per_side
+        surface_reach = tool_radius + SURFACE_OFFSET * spacing
+        self.contact_reach = max(surface_reach, self.ball_reach)
+        *self.arrays, reach, support = surface_samples(X, offsets, indices, h, volume, spacing, per_side)
+        # a sample reads particles within `support` of it: farther than this from its owner, the
+        # material around it is torn apart
+        self.margin = reach + support + spacing
+        self.stiffness_factor = sample_stiffness_factor(*self.arrays[1:4])
+        # touch detection (the local area's centre) sees a particle where its samples may touch,
+        # and local mode solves every particle a touching sample reads
+        self.detect_reach = max(tool_radius + reach, self.ball_reach)
+        self.samples_reach = max(tool_radius + reach + support, self.ball_reach)
+        # a sample lies within `reach` of its owner, inside the owner's ball: until a sample
+        # pushes the tool (Solver.samples_push), the balls' candidates and area suffice
+        self.cand_reach = self.ball_reach
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.arrays[4])
+
+    def samples(self, n: int, tool_radius: float, stiffness: float, damping: float) -> Samples:
+        # a sample carries 1/per**2 of its particle's mass: the same damping ratio per sample
+        return Samples(*self.arrays[:5], tool_radius, stiffness, damping / self.per_side, self.margin,
+                       *self.arrays[5:])
+
+    def damping_bound(self, mass: float, damping: float) -> float:
+        return mass / (damping / self.per_side * self.stiffness_factor)
+
+    def area(self, pushing: bool, organ: bool, Dr: float, h: float) -> tuple[float, float]:
+        """Once a sample pushes the tool: every particle a touching sample reads is solved, and with
+        the half-space far field the area grows (sized for the balls, its shell is too near the
+        samples' spread load: local mode 12 % too soft or 7 % too stiff at a 10 mm press); the
+        organ's far field knows the organ's shape there."""
+        if not pushing:
+            return self.cand_reach, Dr
+        return self.samples_reach, Dr if organ else Dr + SAMPLE_AREA_GROWTH * h
+
+
+def make_contact(per_side: int, tool_radius: float, spacing: float, X: np.ndarray, offsets: np.ndarray,
+                 indices: np.ndarray, h: float, volume: float) -> BallContact:
+    """The contact kind of ``per_side`` samples per side (0: the balls alone)."""
+    if per_side == 0:
+        return BallContact(tool_radius, spacing)
+    return SampledContact(tool_radius, spacing, per_side, X, offsets, indices, h, volume)
