@@ -1,8 +1,8 @@
 """The implicit integrator (``integrator: implicit``, :mod:`.core.backward_euler`): its
 stiffness product against finite differences of the elastic forces, the symmetry the conjugate
 gradients need, and a press on the liver at 16 ms frames against the explicit scheme at 1 ms.
-The validation cases (creep, uniaxial, cantilever, local against global, random poking) run it
-in ``test_core_validation.py``."""
+The validation cases (creep, uniaxial, local against global, random poking) run it in
+``test_core_validation.py``, the cantilever in ``test_core_beams.py``."""
 
 import numpy as np
 import pytest

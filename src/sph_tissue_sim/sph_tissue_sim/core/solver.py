@@ -66,7 +66,7 @@ BALL_CONTACT = {'contact_samples': 0, 'contact_integration': 'explicit', 'far_fi
 #: relative residual of the implicit contact's solve (cheap: it spans the particles under the tool)
 CONTACT_TOL = 1e-8
 #: the implicit integrator's solve stops at this velocity error relative to the velocities: holds a
-#: press's force to 1e-5 N; a free vibration swings 1 % slower than at 1e-3 (test_core_validation)
+#: press's force to 1e-5 N; a free vibration swings 1 % slower than at 1e-3 (test_core_beams)
 IMPLICIT_TOL = 0.01
 #: [m], [m/s] a particle outside the local area is released below this displacement and speed
 RELAX_DISP_TOL, RELAX_VEL_TOL = 2e-4, 2e-3
