@@ -24,14 +24,12 @@ def numba_cache_stats() -> tuple[int, int]:
     """(kernels compiled in this process, kernels loaded from numba's disk cache) of the core."""
     from numba.core.registry import CPUDispatcher
 
-    compiled = loaded = 0
-    for name, mod in list(sys.modules.items()):
-        if mod is None or not name.startswith('sph_tissue_sim.core'):
-            continue
-        for obj in vars(mod).values():
-            if isinstance(obj, CPUDispatcher):
-                compiled += sum(obj.stats.cache_misses.values())
-                loaded += sum(obj.stats.cache_hits.values())
+    # by id: a module that imports another's kernel holds the same dispatcher
+    kernels = {id(obj): obj for name, mod in list(sys.modules.items())
+               if mod is not None and name.startswith('sph_tissue_sim.core')
+               for obj in vars(mod).values() if isinstance(obj, CPUDispatcher)}
+    compiled = sum(sum(k.stats.cache_misses.values()) for k in kernels.values())
+    loaded = sum(sum(k.stats.cache_hits.values()) for k in kernels.values())
     return compiled, loaded
 
 
