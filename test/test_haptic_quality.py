@@ -105,3 +105,23 @@ def test_on_the_live_schedule_a_reaction_16_poses_late_neither_clicks_nor_gives_
     assert q['E_in_min_uJ'] >= -1.0
     assert q['steady_frames'] > 800
 
+
+
+def test_a_solver_at_half_real_time_cannot_give_back_more_than_the_hand_put_in(monkeypatch):
+    """The live loop with a solver at half real time (a job of 20 ms of pose time takes 40 ms): its
+    answer to each poke arrives while the hand already withdraws, so the force rises while the hand
+    holds still and is still high on the way out. With the energy bound out of the way the poke bag
+    gives back about 100 uJ more than the hand put in; with it E_in stays above -1 uJ, the force
+    is no rougher, and the pokes are still felt."""
+    hq = _load()
+    p = hq.golden_params()
+    stamps, device = hq.bag_poses('poke')
+    bound = hq.quality(*hq.replay(p, stamps, device, 'renderer', rtf=0.5))
+    from sph_tissue_sim.haptics.passivity import EnergyBound
+    monkeypatch.setattr(EnergyBound, 'limit', lambda self, spring, touching: spring)
+    free = hq.quality(*hq.replay(p, stamps, device, 'renderer', rtf=0.5))
+    assert free['E_in_min_uJ'] < -50.0
+    assert bound['E_in_min_uJ'] >= -1.0
+    assert bound['reversals'] == 0
+    assert bound['dF_p99_mN'] <= free['dF_p99_mN']
+    assert bound['peak_N'] > 0.1

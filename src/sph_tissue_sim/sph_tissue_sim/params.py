@@ -94,6 +94,11 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                               'passivity controller may add when the energy at the device port '
                               'goes negative', RENDERER_RANGES['passivity_max_damping'], False,
                               'renderer'),
+    'energy_bound_stiffness': (RendererConfig.energy_bound_stiffness, '[N/m] live timing: the force '
+                               'never gives back more than a spring this stiff would from the energy '
+                               'the hand put in during the touch (a late solver is felt softer, not '
+                               'active; stiffer tissue is felt this stiff)',
+                               RENDERER_RANGES['energy_bound_stiffness'], False, 'renderer'),
     # -- device -> tissue -------------------------------------------------------------------------
     'device_frame': ('omni_base', 'frame of accepted poses (and of the force replies)', None, False,
                      None),
@@ -235,6 +240,7 @@ def build_renderer(p: dict) -> RendererConfig:
                               coupling_damping=float(p['coupling_damping']),
                               proxy_damping=float(p['proxy_damping']),
                               passivity_max_damping=float(p['passivity_max_damping']),
+                              energy_bound_stiffness=float(p['energy_bound_stiffness']),
                               force_limit=float(p['force_limit']) / float(p['force_scale'])).validate()
     except ValueError as exc:
         raise ConfigError(f'haptic renderer: {exc}') from exc

@@ -8,8 +8,8 @@ import pytest
 
 from sph_tissue_sim.haptics.coupling import ContactModel, VirtualCoupling
 from tissue_common.estimator import TrackingFilter
-from sph_tissue_sim.haptics.passivity import (DISSIPATION_TIME, RAMP_TIME, PassivityController,
-                                              PassivityObserver)
+from sph_tissue_sim.haptics.passivity import (DISSIPATION_TIME, RAMP_TIME, EnergyBound,
+                                              PassivityController, PassivityObserver)
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
 from tissue_common.feel import one_frame_reversals
 
@@ -289,17 +289,20 @@ class VoigtWall(Wall):
         return max(0.0, self.k * d + self.c * rate) * Z if d > 0.0 else np.zeros(3)
 
 
-def press_and_hold_live(delay: int, blend: bool = True) -> dict:
+def press_and_hold_live(delay: int, blend: bool = True, bound: bool = True) -> dict:
     """Press 5 mm at 20 mm/s into a :class:`VoigtWall` (300 N/m, 3 N s/m), hold 1 s, withdraw, on
     the live schedule made repeatable: the solver takes the newest proxy whenever it is free and
     its answer arrives ``delay`` poses later (``blend=False``: each answer is taken at once, as a
-    model refreshed every pose is). Returns :func:`tissue_common.feel.feel` of it."""
+    model refreshed every pose is; ``bound=False``: without the live energy bound). Returns
+    :func:`tissue_common.feel.feel` of it."""
     from types import SimpleNamespace
 
     from sph_tissue_sim.haptics.multirate import MultiRate
     from tissue_common.feel import feel
 
     handoff = MultiRate(HapticRenderer(RendererConfig()), every=0, max_dt=0.02)
+    if not bound:
+        handoff.renderer.bound.limit = lambda spring, touching: spring
     wall = VoigtWall(300.0, 3.0)
     z = quantised(np.r_[np.linspace(0.001, -0.004, 250), np.full(1000, -0.004),
                         np.linspace(-0.004, 0.001, 250)])
@@ -324,9 +327,10 @@ def press_and_hold_live(delay: int, blend: bool = True) -> dict:
 def test_a_solver_forty_poses_late_steps_the_force_by_half_what_its_answer_taken_at_once_did():
     """The live click: the solver's answer to the end of the press (its dashpot's share included)
     reaches the renderer 40 poses into the hold; taken at once it drops the force by 52 mN in a
-    frame. Blended in, the largest frame step is at most half of that."""
-    at_once = press_and_hold_live(delay=40, blend=False)
-    late = press_and_hold_live(delay=40)
+    frame. Blended in, the largest frame step is at most half of that. (Without the energy bound:
+    it holds this force too, and the blend must not need it.)"""
+    at_once = press_and_hold_live(delay=40, blend=False, bound=False)
+    late = press_and_hold_live(delay=40, bound=False)
     assert at_once['dF_max_mN'] > 50.0
     assert late['dF_max_mN'] <= 0.5 * at_once['dF_max_mN']
     assert late['reversals'] == 0
@@ -439,3 +443,106 @@ def test_the_solver_rate_counts_refreshes_and_falls_when_steps_slow_down():
     assert status.model_age == pytest.approx(15e-3)
     clock.now += 1.0                           # no refresh for a second: no rate
     assert h.status().solver_rate == 0.0
+
+
+def test_the_energy_bound_leaves_a_passive_rendering_of_a_tissue_softer_than_it_untouched():
+    """A wall of 80 N/m (72 N/m through the coupling, below the bound's 100) answering every pose,
+    pressed 6 mm and released in encoder ticks, quickly and slowly: live and lockstep renderings
+    are the same force for force."""
+    for frames in (600, 120):
+        z = quantised(np.r_[np.linspace(0.001, -0.005, frames), np.full(200, -0.005),
+                            np.linspace(-0.005, 0.001, frames), np.full(100, 0.001)])
+        path = np.stack([0 * z, 0 * z, z], axis=1)
+        forces = []
+        for live in (False, True):
+            r, wall = HapticRenderer(RendererConfig()), Wall(80.0)
+            row = []
+            for x in path:
+                out = r.answer(x, T, live=live)
+                r.refresh(out.proxy, wall.force(out.proxy))
+                row.append(out.force)
+            forces.append(np.array(row))
+        np.testing.assert_array_equal(forces[1], forces[0])
+        assert forces[0][:, 2].max() > 0.35
+
+
+def test_the_energy_bound_gives_back_no_more_than_the_hand_put_in():
+    """A late model's force: 0.2 N pushing all the way while the hand presses 0.5 mm and withdraws
+    3 mm. Unbounded that gives back 500 uJ; bounded, E_in ends within a tick's work of zero and
+    the force falls to nothing in steps of a few ticks at the bound's 100 N/m."""
+    path = quantised(np.r_[np.linspace(0.0, -0.0005, 50), np.linspace(-0.0005, 0.0025, 600)])
+    free, o = PassivityObserver(), PassivityObserver()
+    bound = EnergyBound(100.0)
+    held = []
+    for h in path:
+        x = np.array([0.0, 0.0, h])
+        free.observe(x)
+        free.hold(0.2 * Z)
+        e = o.observe(x)
+        bound.track(x, o.held, e, 0.0, T)
+        o.hold(bound.limit(0.2 * Z, True))
+        held.append(o.held[2])
+    assert free.energy < -400e-6
+    assert o.minimum >= -1e-6
+    assert held[-1] == 0.0 and max(held) < 0.2
+    assert np.abs(np.diff(held)).max() < 100.0 * 3 * TICK
+
+
+def test_a_deficit_from_an_earlier_touch_does_not_silence_the_next():
+    """E_in left at -5 uJ (what many touches' allowances may add up to): the next touch still
+    renders the tissue from its first millimetre, as a renderer without the deficit does (the
+    passivity damper, which would take the deficit back, left out)."""
+    def press(deficit: float) -> np.ndarray:
+        r, wall = HapticRenderer(RendererConfig(passivity_max_damping=0.0)), Wall(80.0)
+        r.answer([0.0, 0.0, 0.001], T, live=True)
+        r.observer.energy = r.observer.minimum = deficit
+        row = []
+        for h in quantised(np.linspace(0.001, -0.003, 400)):
+            out = r.answer([0.0, 0.0, h], T, live=True)
+            r.refresh(out.proxy, wall.force(out.proxy))
+            row.append(out.force[2])
+        return np.array(row)
+
+    np.testing.assert_array_equal(press(-5e-6), press(0.0))
+
+
+def poke_live(delay: int, bound: bool = True) -> dict:
+    """Five quick 3 mm pokes (50 mm/s in, 40 ms held, out) into a :class:`VoigtWall` (100 N/m,
+    1 N s/m, the liver's stiffness as felt) on the live schedule with the solver's answer
+    ``delay`` poses late (``bound=False``: without the live energy bound)."""
+    from types import SimpleNamespace
+
+    from sph_tissue_sim.haptics.multirate import MultiRate
+    from tissue_common.feel import feel
+
+    handoff = MultiRate(HapticRenderer(RendererConfig()), every=0, max_dt=0.02)
+    if not bound:
+        handoff.renderer.bound.limit = lambda spring, touching: spring
+    wall = VoigtWall(100.0, 1.0)
+    one = np.r_[np.linspace(0.001, -0.003, 80), np.full(40, -0.003), np.linspace(-0.003, 0.001, 80),
+                np.full(150, 0.001)]
+    z = quantised(np.tile(one, 5))
+    path = np.stack([0 * z, 0 * z, z], axis=1)
+    forces, pending, due = [], None, 0
+    for k, x in enumerate(path):
+        if pending is not None and k >= due:
+            handoff.refresh(*pending)
+            pending = None
+        forces.append(handoff.answer(x, T).force)
+        if pending is None:
+            job = handoff.take()
+            if job is not None:
+                reaction = wall.answer(job.point, job.dt)
+                pending, due = (job, SimpleNamespace(tool_segment=None, force_raw=reaction)), k + delay
+    return feel(path, np.array(forces))
+
+
+def test_a_solver_forty_poses_late_gives_no_energy_back_on_quick_pokes():
+    """Without the bound the pokes' late answers arrive on the way out and give back more than a
+    millijoule over five pokes; with it E_in stays above -1 uJ, the force changes less from frame
+    to frame, and the pokes are still felt."""
+    free, held = poke_live(40, bound=False), poke_live(40)
+    assert free['E_in_min_uJ'] < -1000.0
+    assert held['E_in_min_uJ'] >= -1.0
+    assert held['dF_max_mN'] < free['dF_max_mN'] and held['reversals'] == 0
+    assert held['peak_N'] > 0.1

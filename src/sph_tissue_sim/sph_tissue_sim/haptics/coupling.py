@@ -174,11 +174,13 @@ class VirtualCoupling:
         self.proxy: np.ndarray | None = None
         self.offset = np.zeros(3)     # x_t - x^ [m]
         self.stretch = 0.0            # [m] how far the proxy sits outside the device point
+        self.spring = np.zeros(3)     # [N] the spring's part of the latest force (the damper's is the rest)
 
     def reset(self) -> None:
         self.proxy = None
         self.offset = np.zeros(3)
         self.stretch = 0.0
+        self.spring = np.zeros(3)
 
     def render(self, x_hat: np.ndarray, v_hat: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Proxy position and device force for the filtered device point and velocity, ``dt`` [s]
@@ -203,11 +205,13 @@ class VirtualCoupling:
         a_n = float(self.offset @ n)
         if m.magnitude == 0.0 or a_n <= 0.0:
             self.stretch = 0.0
+            self.spring = np.zeros(3)
             return self.proxy, np.zeros(3)
         self.stretch = a_n
         spring = self.stiffness * self.offset
         pull = math.sqrt(float(spring @ spring))
         if pull > self.push_limit:
             spring *= self.push_limit / pull
+        self.spring = spring
         force = spring - (self.damping * float(n @ v_hat)) * n
         return self.proxy, (force if float(force @ n) > 0.0 else np.zeros(3))

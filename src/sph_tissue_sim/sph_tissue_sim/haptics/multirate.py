@@ -90,7 +90,7 @@ class MultiRate:
     def answer(self, x, dt: float, rotation=None, stamp=None) -> Rendered:
         """The force for the device sample ``x`` [m, tissue frame], ``dt`` [s] after the previous."""
         with self._lock:
-            out = self.renderer.answer(x, dt)
+            out = self.renderer.answer(x, dt, live=self.every == 0)
             self._poses += 1
             self._served += 1
             self._pending += dt

@@ -1,4 +1,5 @@
-"""Time-domain passivity at the device port: an observer and a controller (Hannaford and Ryu).
+"""Time-domain passivity at the device port: an observer, a controller (Hannaford and Ryu) and, in
+live timing, an energy bound.
 
 The device holds each force ``F_k`` until the next sample (zero-order hold), so the energy the hand
 has put into the virtual tissue after sample ``k`` is
@@ -20,6 +21,30 @@ take the deficit back within one sample from that velocity kicked the hand by up
 every tick (``alpha`` 2 N s/m times 55 mm/s, then nothing), and the force it held was charged
 against the next sample's motion, usually none, so it did not even take the energy back
 (docs/decisions/passivity-controller.md).
+
+The controller acts once ``E_in`` is below zero, and a damper cannot take much back from a slow
+hand, so neither catches what a late contact model does: a live solver's answer to the press
+arrives tens of milliseconds after it, so the force rises while the hand holds still and is still
+high while it withdraws; more comes back than went in (-50 to -150 uJ per 3 mm poke at half real
+time). In live timing the :class:`EnergyBound` therefore holds the force to what the energy the
+hand has put in during the touch can pay back through a spring of stiffness ``k_b``::
+
+    |F| <= sqrt(2 k_b (E_in - E_touch + E_0))
+
+(``E_touch = min(E_in at the touch's first sample, 0)``, ``E_0`` an allowance for the touch's
+first force). A passive rendering of a tissue at most ``k_b`` stiff stays below the bound (it took
+``F^2 / 2k`` to reach ``F``); one that would give back more is held to it, and its force then
+falls with the hand's withdrawal at ``k_b``, as smoothly as such a tissue's. ``k_b`` is the
+contact model's stiffness as the hand feels it (in series with the coupling) averaged over
+``BOUND_TIME``, and at least a floor: the model's own stiffness jumps from refresh to refresh, and
+a bound that jumped with it clicked (docs/decisions/energy-bound.md). A deficit left by an earlier
+touch is not carried into the next (``E_touch``): a tool that owes energy could never push again.
+Only the coupling's spring is bounded: its dampers take energy, never give it.
+
+``E_in`` moves in encoder ticks, so a force held to a bound on it is a staircase (``k_b`` times a
+tick, 5.5 mN at 100 N/m, every tick). The bound reads a smooth account instead: the held force's
+work along the filtered positions, whose drift from ``E_in`` (the filter's overshoot where the hand
+turns) is taken out over ``ACCOUNT_TIME``, so that over any longer time it is ``E_in``'s.
 """
 
 from __future__ import annotations
@@ -34,6 +59,13 @@ MIN_SPEED = 1e-6
 DISSIPATION_TIME = 0.01
 #: ``alpha`` takes this long to go from nothing to ``max_damping`` [s]
 RAMP_TIME = 0.02
+#: ``E_0``: the energy a touch may give back before the hand has put any in [J] (at 100 N/m its
+#: first force may be 6 mN, then it grows with the hand's work)
+TOUCH_ALLOWANCE = 0.05e-6
+#: the energy bound's stiffness follows the contact model's over about this long [s]
+BOUND_TIME = 0.05
+#: the energy bound's smooth account comes back to ``E_in`` over about this long [s]
+ACCOUNT_TIME = 0.02
 
 
 class PassivityObserver:
@@ -60,6 +92,11 @@ class PassivityObserver:
     def hold(self, force) -> None:
         """``force`` [N] is what the device holds until the next sample."""
         self._f = np.array(force, dtype=float)
+
+    @property
+    def held(self) -> np.ndarray:
+        """The force [N] the device holds now."""
+        return self._f
 
 
 class PassivityController:
@@ -93,3 +130,54 @@ class PassivityController:
             return np.zeros(3)
         self.total += self.alpha
         return -self.alpha * velocity
+
+
+class EnergyBound:
+    """The live force held to what the hand's energy in the touch can pay back (module docstring)."""
+
+    def __init__(self, min_stiffness: float) -> None:
+        if not (math.isfinite(min_stiffness) and min_stiffness > 0.0):
+            raise ValueError(f'energy bound stiffness must be > 0 N/m, got {min_stiffness}')
+        self.min_stiffness = min_stiffness
+        self.reset()
+
+    def reset(self) -> None:
+        self.stiffness = self.min_stiffness    # k_b [N/m]
+        self._along = 0.0                      # the held force's work along the filtered points [J]
+        self._drift = 0.0                      # E_in minus that, low-passed [J]
+        self._last: np.ndarray | None = None
+        self.touch_energy = 0.0                # E_touch [J]
+        self.touching = False
+        self.bound = math.inf                  # the latest sample's bound [N]
+
+    @property
+    def account(self) -> float:
+        """The smooth account of ``E_in`` [J]."""
+        return self._along + self._drift
+
+    def track(self, x_hat: np.ndarray, held: np.ndarray, energy: float, stiffness: float,
+              dt: float) -> None:
+        """One sample: the filtered device point [m], the force held since the previous one [N],
+        ``E_in`` [J], the contact's stiffness as felt [N/m] and the time since the previous
+        sample [s]."""
+        if self._last is not None:
+            self._along -= float(held @ (x_hat - self._last))
+        self._last = np.array(x_hat, dtype=float)
+        if dt > 0.0:
+            self._drift += min(dt / ACCOUNT_TIME, 1.0) * (energy - self._along - self._drift)
+            self.stiffness += min(dt / BOUND_TIME, 1.0) * (max(stiffness, self.min_stiffness)
+                                                           - self.stiffness)
+
+    def limit(self, spring: np.ndarray, touching: bool) -> np.ndarray:
+        """The spring's force [N] scaled down to the bound; ``touching``: the rendering pushes now
+        (a touch begins where it starts to)."""
+        energy = self.account
+        if touching and not self.touching:
+            self.touch_energy = min(energy, 0.0)
+        self.touching = touching
+        if not touching:
+            self.bound = math.inf
+            return spring
+        self.bound = math.sqrt(2.0 * self.stiffness * max(energy - self.touch_energy + TOUCH_ALLOWANCE, 0.0))
+        mag = math.sqrt(float(spring @ spring))
+        return spring * (self.bound / mag) if mag > self.bound else spring

@@ -6,12 +6,16 @@ Per device sample (tissue frame, SI units)::
     x^, v^ <- estimator.update(x, dt)
     proxy, F <- coupling.render(x^, v^)      against the contact model
     F <- F + controller.damp(E_in, v^, dt)   only while E_in < 0, in contact
+    F <- bound.limit(F, E_in)                live timing only
     F <- clamp(F, force_limit); observer.hold(F)
 
 The proxy is where the solver should put its tool; after each solver step, :meth:`refresh` hands
 the reaction it found there to the contact model. How often that happens (every pose, every ``k``
 poses, or whenever a solver thread finishes) is the caller's choice; the renderer answers every
-sample at once either way.
+sample at once either way. A solver thread's model is late (live timing): its answers also pass
+the energy bound (:class:`~.passivity.EnergyBound`). Lockstep answers do not: a model refreshed at
+the proxy every pose or every few is passive as rendered (``benchmarks/haptic_quality.py``), and
+the goldens replay bit for bit.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from tissue_common.force import HARD_FORCE_LIMIT, clamp_norm
 
 from .coupling import ContactModel, VirtualCoupling
 from tissue_common.estimator import TrackingFilter
-from .passivity import PassivityController, PassivityObserver
+from .passivity import EnergyBound, PassivityController, PassivityObserver
 
 #: the contact model's stiffness may reach this many times the coupling's: it linearises the tissue
 #: for the proxy's implicit update (a stiffer solver than the model destabilises the proxy), while the
@@ -39,6 +43,7 @@ RENDERER_RANGES = {
     'coupling_damping': (0.0, 10.0),
     'proxy_damping': (0.01, 100.0),
     'passivity_max_damping': (0.0, 10.0),
+    'energy_bound_stiffness': (10.0, 3000.0),
     'force_limit': (0.0, math.inf),    # in the renderer's units: the device's clamp is the caller's
 }
 
@@ -58,6 +63,12 @@ class RendererConfig:
             covers the loop through the solver (see :mod:`.coupling`).
         proxy_damping: ``B_p`` on the simulated tool's offset from the device [N s/m].
         passivity_max_damping: the most damping the passivity controller may add [N s/m].
+        energy_bound_stiffness: the least ``k_b`` of the live energy bound [N/m]: in live timing
+            the force never gives back more than a spring of the contact's stiffness (at least
+            this) would from the energy the hand put in during the touch (see :mod:`.passivity`).
+            The floor is what a touch is felt as before the contact model has learned a stiffness,
+            and what a force held to the bound falls at: 100 N/m changes it by 5.5 mN per
+            encoder tick.
         force_limit: norm of the rendered force at most this [N] (set it to what the device
             receives, so that the passivity observer charges the force really held); also the
             most the coupling pushes the simulated tool into the tissue with (see :mod:`.coupling`).
@@ -68,6 +79,7 @@ class RendererConfig:
     coupling_damping: float = 1.5
     proxy_damping: float = 4.0
     passivity_max_damping: float = 2.0
+    energy_bound_stiffness: float = 100.0
     force_limit: float = HARD_FORCE_LIMIT
 
     def validate(self) -> 'RendererConfig':
@@ -103,6 +115,7 @@ class HapticRenderer:
                                         self.model, c.force_limit)
         self.observer = PassivityObserver()
         self.controller = PassivityController(c.passivity_max_damping)
+        self.bound = EnergyBound(c.energy_bound_stiffness)
         self.proxy = np.zeros(3)
 
     def reset(self) -> None:
@@ -112,14 +125,16 @@ class HapticRenderer:
         self.coupling.reset()
         self.observer.reset()
         self.controller.reset()
+        self.bound.reset()
 
     def set_force_limit(self, limit: float) -> None:
         """A new force limit [N]: the clamp and the most the coupling pulls the tool with."""
         self.config.force_limit = limit
         self.coupling.push_limit = limit
 
-    def answer(self, x, dt: float) -> Rendered:
-        """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one."""
+    def answer(self, x, dt: float, live: bool = False) -> Rendered:
+        """The force for the device sample ``x`` [m] taken ``dt`` [s] after the previous one;
+        ``live``: the contact model comes from a solver thread (the energy bound applies)."""
         energy = self.observer.observe(x)
         if dt > 0.0:
             self.model.advance()
@@ -132,6 +147,14 @@ class HapticRenderer:
             # coupling does not
             n = self.model.normal
             if not pushing or float(force @ n) <= 0.0:
+                force = np.zeros(3)
+        if live:
+            kc, k = self.config.coupling_stiffness, self.model.stiffness
+            self.bound.track(x_hat, self.observer.held, energy, kc * k / (kc + k), dt)
+            # only the spring gives energy back: the dampers' parts pass
+            spring = self.coupling.spring
+            force = force - spring + self.bound.limit(spring, pushing)
+            if pushing and float(force @ self.model.normal) <= 0.0:
                 force = np.zeros(3)
         force, _ = clamp_norm(force, self.config.force_limit)
         self.observer.hold(force)
