@@ -16,7 +16,8 @@ import rclpy
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sph_tissue_sim.sim_node import MULTIRATE_MIN_DEPTH, SWITCH_INTERVAL
+from sph_tissue_sim.runner import MULTIRATE_MIN_DEPTH
+from sph_tissue_sim.sim_node import SWITCH_INTERVAL
 from tissue_common.node_start import spin_until_stopped, stop_on_signals
 
 

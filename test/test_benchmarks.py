@@ -152,3 +152,16 @@ def test_pysph_comparison_says_clearly_when_pysph_is_missing():
                           capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode != 0
     assert 'PySPH run failed' in proc.stderr and 'pysph' in proc.stderr
+
+
+def test_the_latency_probe_times_the_echo_peer_that_answers_every_pose():
+    """``sim_latency.py --peer`` (the floor printed beside sim_node's round trip): the echo node
+    starts from the package's own constants and answers the probe's poses (a moved constant once
+    broke it unnoticed)."""
+    proc = subprocess.run([sys.executable, str(ROOT / 'benchmarks' / 'sim_latency.py'), '--peer',
+                           '--duration', '2', '--skip', '0.5', '--csv', ''],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    sent, replies = (int(v) for v in
+                     proc.stdout.split('poses sent / replies')[1].split('\n')[0].split('/'))
+    assert sent == 1500 and replies > 0
