@@ -21,6 +21,14 @@ is continuous and the new model holds alone well before its successor is due (bl
 
 A model refreshed every pose or nearly (lockstep, ``m < 4``) is taken at once, as before.
 
+A stale model's successor that finds no contact is not taken at once either: the model is kept for
+one more refresh and dropped when the next answer finds no contact too. A live solver 80 ms behind
+the hand can lose a sideways contact for one answer (its tool where the hand was, sliding across
+the surface), and taking that answer dropped the force to nothing and back (0.66 N -> 0 for 13
+frames -> 0.5 N in a demo). A hand that really left still loses the force with the model's
+stiffness about its anchor, and the energy bound (:mod:`.passivity`) caps what the kept model can
+give back.
+
 The simulated tool (the proxy ``x_t = x^ + a``) is held by a spring ``K_c`` to the filtered device
 point ``x^``, pushed by the contact model, and its offset ``a`` from the device point is damped by
 ``B_p``. Each sample updates the offset implicitly (a 3x3 solve, Sherman-Morrison)::
@@ -86,6 +94,7 @@ class ContactModel:
         self.lose()
         self.stiffness = 0.0          # k [N/m]
         self.refreshes = 0
+        self.kept = False             # the last answer found no contact and the model was kept
 
     def lose(self) -> None:
         """The contact ended: no force, but the tissue's stiffness is kept for the next touch (with
@@ -130,11 +139,16 @@ class ContactModel:
         point = np.array(point, dtype=float)
         force = np.array(force, dtype=float)
         mag = math.sqrt(float(force @ force))
+        blend = min(int(served) // 2, BLEND_POSES) if proxy is not None else 0
         if mag == 0.0:
+            if blend > 1 and self.magnitude > 0.0 and not self.kept:
+                self.kept = True
+                return
+            self.kept = False
             self.lose()
             self.point = point
             return
-        blend = min(int(served) // 2, BLEND_POSES) if proxy is not None else 0
+        self.kept = False
         before = self.at(proxy) if blend > 1 else None
         normal = force / mag
         if self.magnitude > 0.0:
