@@ -331,6 +331,21 @@ def test_the_default_far_field_is_the_organs_for_tlsph_and_the_half_space_otherw
         Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='organ'))
 
 
+def test_the_far_field_object_is_the_organs_the_half_spaces_or_none_and_follows_the_material():
+    from sph_tissue_sim.core.far_field import HalfSpace, Organ, make_far_field
+
+    assert make_far_field(False, 1.0, SOFT, None) is None
+    assert make_far_field(True, 0.0, SOFT, None) is None
+    organ = Solver(_block(5, 3), SOFT, SolverConfig(mode='local'))
+    assert isinstance(organ.far, Organ) and organ.far.compliance is organ.organ
+    half = Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='half_space'))
+    assert isinstance(half.far, HalfSpace) and (half.far.G, half.far.nu) == (SOFT.G, SOFT.nu)
+    stiff = Material.from_shear(3 * SOFT.G, 0.4, 3.0)
+    half.set_material(stiff)
+    assert (half.far.G, half.far.nu) == (stiff.G, stiff.nu)
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='global')).far is None
+
+
 def _organ(background: bool = False, material: Material = SOFT):
     return Solver(_block(), material, SolverConfig(mode='local', far_field_model='organ', far_field=1.0),
                   background=background).organ

@@ -14,8 +14,9 @@ displacement and speed are below tolerances, so the tissue recovers instead of f
 Everything here costs O(area + active): the area comes from the reference cell grid.
 
 Optionally (``SolverConfig.far_field``) the still particles that solved ones read are not held at
-rest: :func:`far_field_shell` places them at the elastic half-space response to the contact force
-(the paper's still region clamps the area and makes it too stiff).
+rest: a far field (:mod:`.far_field`) places them at the organ's or the elastic half-space's
+response to the contact force (the paper's still region clamps the area and makes it too stiff);
+:func:`far_field_shell` is the half-space's kernel.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ import math
 import numpy as np
 from numba import njit
 
-from .compliance import OrganCompliance, shell_and_ring
 from .contact import contact_vector, segment_distance2
 from .neighbours import append_new, query_ball
 from .state import Area, Body, Grid, Sets, Topology
@@ -451,13 +451,11 @@ class LocalArea:
                     self.cand, n_cand, self.touch, self.touch_w, self.n_touch, contact)
         return sets, n_inter, n_relax
 
-    def far_field(self, body: Body, x: np.ndarray, sets: Sets, react: np.ndarray, factor: float, G: float,
-                  nu: float, blend: float = 1.0, organ: OrganCompliance | None = None) -> None:
-        """Place the stress shell at the half-space response to the load ``-factor * react``
-        (:func:`far_field_shell`), or with ``organ`` the shell and its neighbours at the organ's
-        response to it, shared by the touched particles (:func:`~.compliance.shell_and_ring`),
-        low-passed: the load moves ``blend`` (0..1] of the way to it each frame; returns them to
-        rest once ``factor`` is 0.
+    def far_field(self, body: Body, x: np.ndarray, sets: Sets, react: np.ndarray, factor: float,
+                  blend: float, model) -> None:
+        """Move the load ``ff_load`` ``blend`` (0..1] of the way to ``-factor * react`` and let the
+        far field ``model`` (:mod:`.far_field`; None: none) place the still particles around the
+        solved ones at its response; they return to rest once ``factor`` is 0.
 
         Why the low pass: the shell's displacement follows the force, which follows the shell.
         Near the load (a small area: ``k1 h`` shrinks with the spacing) that loop's gain passes 1
@@ -465,7 +463,7 @@ class LocalArea:
         by up to 1 N); relaxing the load (a few ms, well below the organ's shear-wave time of tens
         of ms) damps it and leaves the quasi-static response as it was.
         """
-        if factor <= 0.0 and self.n_ff == 0:
+        if model is None or (factor <= 0.0 and self.n_ff == 0):
             return
         self.ff_load += blend * (-factor * react - self.ff_load)
         n = len(self.X)
@@ -473,16 +471,7 @@ class LocalArea:
             self.ff_list = np.zeros(n, dtype=np.int32)
             self.ff_mark = np.zeros(n, dtype=np.int8)
             self.ff_buf = np.zeros((n, 3))
-        if organ is None:
-            self.n_ff = far_field_shell(body, x, sets, self.ff_mark, self.ff_list, self.n_ff, self.centre,
-                                        self.ff_load, G, nu, self.buf_x, self.ff_buf)
-            return
-        if self.n_touch > 0:
-            self.ff_at = self.touch[:self.n_touch].copy()
-            self.ff_w = self.touch_w[:self.n_touch].copy()
-        self.n_ff = shell_and_ring(body, self.topo, sets, self.ff_mark, self.ff_list, self.n_ff, x)
-        if len(self.ff_at) and self.n_ff:
-            organ.place(x, self.X, self.ff_list[:self.n_ff], self.ff_at, self.ff_w, self.ff_load)
+        model.place(self, body, x, sets)
 
     def save(self, x: np.ndarray, v: np.ndarray, sets: Sets) -> None:
         """Keep the state of the particles a frame on ``sets`` moves."""

@@ -27,6 +27,7 @@ from .contact import contact_vector_py, deepest_contact
 from .contact_kinds import BallContact, make_contact
 from .surface_contact import nearest_sample_gap
 from .errors import ConfigError, ModelError, SimError
+from .far_field import make_far_field
 from .implicit_contact import contact_terms, make_touches
 from .backward_euler import BackwardSolve
 from .compliance import OrganCompliance
@@ -362,9 +363,9 @@ class Solver:
         """Stop the far field's worker thread, if any, waiting up to ``timeout`` [s] for it to
         finish the response it is solving; False if it has not (see
         :meth:`~.compliance.OrganCompliance.close`)."""
-        if getattr(self, 'organ', None) is None:
+        if getattr(self, 'far', None) is None:
             return True
-        return self.organ.close(timeout)
+        return self.far.close(timeout)
 
     def set_material(self, material: Material) -> None:
         """Change the material (takes effect at the next step): its constants, the organ's far field
@@ -383,6 +384,8 @@ class Solver:
         #: the organ's compliance for local mode's far field (None: the half-space's, or none)
         self.organ = organ_far_field(cfg, self.X, self.fixed, self.scheme, self.model.spacing, self.abort,
                                      self.background)
+        #: local mode's far field (:mod:`.far_field`; None in global mode or with ``far_field`` 0)
+        self.far = make_far_field(cfg.mode == 'local', cfg.far_field, material, self.organ)
         if self.backward is not None:
             self.backward.set_material(material)
         self.dt_bounds = frame_bounds(cfg, self.contact, self.h, self.scheme.wave_speed(material, self.mass),
@@ -458,9 +461,7 @@ class Solver:
     def far_field_in_use(self) -> str:
         """Local mode's far field as built: ``organ``, ``half_space`` or ``none`` (global mode,
         or ``far_field`` 0); ``far_field_model: auto`` resolves to one of the first two."""
-        if self.config.mode != 'local' or self.config.far_field <= 0.0:
-            return 'none'
-        return 'organ' if self.organ is not None else 'half_space'
+        return self.far.name if self.far is not None else 'none'
 
     @property
     def contact_reach(self) -> float:
@@ -683,8 +684,8 @@ class Solver:
         reach, Dr = self.contact.area(self.samples_push, self.organ is not None, k1 * self.h, self.h)
         sets, n_inter, n_relax = area.prepare(self.body, path.seg0 if path.on else None, path.seg1,
                                               reach, margin, contact, Dr, cfg.scheme == 'paper')
-        area.far_field(self.body, self.x, sets, self.react, cfg.far_field, self.material.G, self.material.nu,
-                       -math.expm1(-dt / FAR_FIELD_TAU), self.organ)
+        area.far_field(self.body, self.x, sets, self.react, cfg.far_field, -math.expm1(-dt / FAR_FIELD_TAU),
+                       self.far)
         overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
         push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
                                               self.samples, 0.0) < 0.0

@@ -1,0 +1,72 @@
+"""Local mode's far field: where the still particles around the solved ones are put each frame.
+
+The paper holds everything beyond the transmission layers at rest, which clamps the area a few h
+from the tool and makes it stiffer than the whole organ. A far field moves those particles with
+the tissue around instead, from the contact load (``LocalArea.ff_load``, low-passed by the area).
+Two kinds, chosen by :func:`make_far_field`:
+
+* :class:`Organ`: the organ's own linear response (:class:`~.compliance.OrganCompliance`, factored
+  once per organ and cached on disk) placed on the stress shell and the ring around it, the load
+  shared by the touched particles;
+* :class:`HalfSpace`: the elastic half-space's response (Boussinesq) on the stress shell, for
+  organs too large to factor or schemes without a stiffness matrix.
+
+A new kind is one class with ``name``, ``place(area, body, x, sets)`` and ``close(timeout)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .compliance import OrganCompliance, shell_and_ring
+from .local_area import LocalArea, far_field_shell
+from .material import Material
+from .state import Body, Sets
+
+
+class HalfSpace:
+    """The stress shell at the elastic half-space's response to the load (:func:`~.local_area.
+    far_field_shell`), for the material's shear modulus and Poisson ratio."""
+
+    name = 'half_space'
+
+    def __init__(self, material: Material) -> None:
+        self.G, self.nu = material.G, material.nu
+
+    def place(self, area: LocalArea, body: Body, x: np.ndarray, sets: Sets) -> None:
+        area.n_ff = far_field_shell(body, x, sets, area.ff_mark, area.ff_list, area.n_ff, area.centre,
+                                    area.ff_load, self.G, self.nu, area.buf_x, area.ff_buf)
+
+    def close(self, timeout: float = 0.0) -> bool:
+        return True
+
+
+class Organ:
+    """The stress shell and its ring at the organ's own response to the load, shared by the
+    particles the tool touched (:func:`~.compliance.shell_and_ring`,
+    :meth:`~.compliance.OrganCompliance.place`)."""
+
+    name = 'organ'
+
+    def __init__(self, compliance: OrganCompliance) -> None:
+        self.compliance = compliance
+
+    def place(self, area: LocalArea, body: Body, x: np.ndarray, sets: Sets) -> None:
+        if area.n_touch > 0:
+            area.ff_at = area.touch[:area.n_touch].copy()
+            area.ff_w = area.touch_w[:area.n_touch].copy()
+        area.n_ff = shell_and_ring(body, area.topo, sets, area.ff_mark, area.ff_list, area.n_ff, x)
+        if len(area.ff_at) and area.n_ff:
+            self.compliance.place(x, area.X, area.ff_list[:area.n_ff], area.ff_at, area.ff_w, area.ff_load)
+
+    def close(self, timeout: float = 0.0) -> bool:
+        return self.compliance.close(timeout)
+
+
+def make_far_field(local: bool, gain: float, material: Material,
+                   organ: OrganCompliance | None) -> HalfSpace | Organ | None:
+    """The far field of a solver: none in global mode or with ``gain`` 0, the organ's where its
+    compliance was built, else the half-space's."""
+    if not local or gain <= 0.0:
+        return None
+    return Organ(organ) if organ is not None else HalfSpace(material)
