@@ -131,9 +131,12 @@ def cantilever_frequency(n_across: int, slenderness: float, n_wide: int | None =
     wide (default square): (measured, Euler-Bernoulli, Timoshenko) [Hz].
 
     The beam is clamped by two fixed particle layers, set swinging in its first mode shape with a
-    tip amplitude of 1 % of L; the period is the mean spacing of the tip displacement's zero
-    crossings. No tool, so the sub-steps follow the material's CFL bound only. ``config``: further
-    :class:`SolverConfig` fields (e.g. ``integrator``).
+    tip amplitude of 1 % of L; the period is twice the time between the tip displacement's first
+    two zero crossings (half a period and a whole one after the release: one more half swing cost
+    half the run again and moved the 10-tall beam's f1 by under 0.05 %, -6.27 % from
+    Euler-Bernoulli either way explicit, -6.13 / -6.16 % from Timoshenko implicit). No tool, so the
+    sub-steps follow the material's CFL bound only. ``config``: further :class:`SolverConfig` fields (e.g.
+    ``integrator``).
     """
     length = slenderness * n_across * BEAM_SPACING
     model = make_beam(length, (n_wide or n_across) * BEAM_SPACING, n_across * BEAM_SPACING,
@@ -154,7 +157,7 @@ def cantilever_frequency(n_across: int, slenderness: float, n_wide: int | None =
     tip = X[:, 0] > X[:, 0].max() - 1e-9
     t, z = [], []
     frame = 1.0 / (200.0 * f_eb)
-    while len(t) < 2 or crossings(np.array(t), np.array(z)).size < 3:
+    while len(t) < 2 or crossings(np.array(t), np.array(z)).size < 2:
         solver.step(None, frame)
         t.append(solver.sim_time)
         z.append(float(np.mean(solver.positions[tip, 2] - X[tip, 2])))
