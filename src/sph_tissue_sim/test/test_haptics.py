@@ -289,25 +289,21 @@ class VoigtWall(Wall):
         return max(0.0, self.k * d + self.c * rate) * Z if d > 0.0 else np.zeros(3)
 
 
-def press_and_hold_live(delay: int, blend: bool = True, bound: bool = True) -> dict:
-    """Press 5 mm at 20 mm/s into a :class:`VoigtWall` (300 N/m, 3 N s/m), hold 1 s, withdraw, on
-    the live schedule made repeatable: the solver takes the newest proxy whenever it is free and
-    its answer arrives ``delay`` poses later (``blend=False``: each answer is taken at once, as a
-    model refreshed every pose is; ``bound=False``: without the live energy bound). Returns
-    :func:`tissue_common.feel.feel` of it."""
+def live_schedule(path: np.ndarray, wall: Wall, delay: int, bound: bool = True, blend: bool = True,
+                  lost: tuple[int, ...] = ()) -> np.ndarray:
+    """Drive ``path`` (device samples) through the renderer on the live schedule made repeatable:
+    the solver takes the newest proxy whenever it is free and ``wall.answer`` reaches the
+    renderer ``delay`` poses later. ``bound=False``: without the live energy bound; ``blend=False``:
+    each answer taken at once, as a model refreshed every pose is; ``lost``: the jobs (numbered
+    from 1) whose answers find no contact. Returns the forces."""
     from types import SimpleNamespace
 
     from sph_tissue_sim.haptics.multirate import MultiRate
-    from tissue_common.feel import feel
 
     handoff = MultiRate(HapticRenderer(RendererConfig()), every=0, max_dt=0.02)
     if not bound:
         handoff.renderer.bound.limit = lambda spring, touching: spring
-    wall = VoigtWall(300.0, 3.0)
-    z = quantised(np.r_[np.linspace(0.001, -0.004, 250), np.full(1000, -0.004),
-                        np.linspace(-0.004, 0.001, 250)])
-    path = np.stack([0 * z, 0 * z, z], axis=1)
-    forces, pending, due, last = [], None, 0, 0
+    forces, pending, due, last, jobs = [], None, 0, 0, 0
     for k, x in enumerate(path):
         if pending is not None and k >= due:
             if blend:
@@ -319,9 +315,26 @@ def press_and_hold_live(delay: int, blend: bool = True, bound: bool = True) -> d
         if pending is None:
             job = handoff.take()
             if job is not None:
-                reaction = wall.answer(job.point, job.dt)
+                jobs += 1
+                reaction = np.zeros(3) if jobs in lost else wall.answer(job.point, job.dt)
                 pending, due = (job, SimpleNamespace(tool_segment=None, force_raw=reaction)), k + delay
-    return feel(path, np.array(forces))
+    return np.array(forces)
+
+
+def along_z(z: np.ndarray) -> np.ndarray:
+    """Device samples moving along z only, in encoder ticks."""
+    z = quantised(z)
+    return np.stack([0 * z, 0 * z, z], axis=1)
+
+
+def press_and_hold_live(delay: int, blend: bool = True, bound: bool = True) -> dict:
+    """Press 5 mm at 20 mm/s into a :class:`VoigtWall` (300 N/m, 3 N s/m), hold 1 s, withdraw, on
+    the live schedule (:func:`live_schedule`). Returns :func:`tissue_common.feel.feel` of it."""
+    from tissue_common.feel import feel
+
+    path = along_z(np.r_[np.linspace(0.001, -0.004, 250), np.full(1000, -0.004),
+                         np.linspace(-0.004, 0.001, 250)])
+    return feel(path, live_schedule(path, VoigtWall(300.0, 3.0), delay, bound, blend))
 
 
 def test_a_solver_forty_poses_late_steps_the_force_by_half_what_its_answer_taken_at_once_did():
@@ -510,31 +523,12 @@ def poke_live(delay: int, bound: bool = True) -> dict:
     """Five quick 3 mm pokes (50 mm/s in, 40 ms held, out) into a :class:`VoigtWall` (100 N/m,
     1 N s/m, the liver's stiffness as felt) on the live schedule with the solver's answer
     ``delay`` poses late (``bound=False``: without the live energy bound)."""
-    from types import SimpleNamespace
-
-    from sph_tissue_sim.haptics.multirate import MultiRate
     from tissue_common.feel import feel
 
-    handoff = MultiRate(HapticRenderer(RendererConfig()), every=0, max_dt=0.02)
-    if not bound:
-        handoff.renderer.bound.limit = lambda spring, touching: spring
-    wall = VoigtWall(100.0, 1.0)
     one = np.r_[np.linspace(0.001, -0.003, 80), np.full(40, -0.003), np.linspace(-0.003, 0.001, 80),
                 np.full(150, 0.001)]
-    z = quantised(np.tile(one, 5))
-    path = np.stack([0 * z, 0 * z, z], axis=1)
-    forces, pending, due = [], None, 0
-    for k, x in enumerate(path):
-        if pending is not None and k >= due:
-            handoff.refresh(*pending)
-            pending = None
-        forces.append(handoff.answer(x, T).force)
-        if pending is None:
-            job = handoff.take()
-            if job is not None:
-                reaction = wall.answer(job.point, job.dt)
-                pending, due = (job, SimpleNamespace(tool_segment=None, force_raw=reaction)), k + delay
-    return feel(path, np.array(forces))
+    path = along_z(np.tile(one, 5))
+    return feel(path, live_schedule(path, VoigtWall(100.0, 1.0), delay, bound))
 
 
 def test_a_solver_forty_poses_late_gives_no_energy_back_on_quick_pokes():
@@ -552,26 +546,8 @@ def press_and_hold_with_a_lost_answer(delay: int, lost: tuple[int, ...]) -> np.n
     """Press 5 mm into a :class:`VoigtWall` (100 N/m, 1 N s/m) and hold, on the live schedule with
     the solver's answer ``delay`` poses late, the answers to the jobs numbered in ``lost`` finding
     no contact (a live solver losing a sideways contact). Returns the forces."""
-    from types import SimpleNamespace
-
-    from sph_tissue_sim.haptics.multirate import MultiRate
-
-    handoff = MultiRate(HapticRenderer(RendererConfig()), every=0, max_dt=0.02)
-    wall = VoigtWall(100.0, 1.0)
-    z = quantised(np.r_[np.linspace(0.001, -0.004, 250), np.full(1000, -0.004)])
-    forces, pending, due, jobs = [], None, 0, 0
-    for k, x in enumerate(np.stack([0 * z, 0 * z, z], axis=1)):
-        if pending is not None and k >= due:
-            handoff.refresh(*pending)
-            pending = None
-        forces.append(handoff.answer(x, T).force)
-        if pending is None:
-            job = handoff.take()
-            if job is not None:
-                jobs += 1
-                reaction = np.zeros(3) if jobs in lost else wall.answer(job.point, job.dt)
-                pending, due = (job, SimpleNamespace(tool_segment=None, force_raw=reaction)), k + delay
-    return np.array(forces)
+    path = along_z(np.r_[np.linspace(0.001, -0.004, 250), np.full(1000, -0.004)])
+    return live_schedule(path, VoigtWall(100.0, 1.0), delay, lost=lost)
 
 
 def test_one_late_answer_without_contact_does_not_drop_the_force():
