@@ -96,7 +96,7 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                               'renderer'),
     'energy_bound_stiffness': (RendererConfig.energy_bound_stiffness, '[N/m] live timing: the force '
                                'never gives back more than a spring this stiff would from the energy '
-                               'the hand put in during the touch (a late solver is felt softer, not '
+                               'the hand put in (a late solver is felt softer, not '
                                'active; stiffer tissue is felt this stiff)',
                                RENDERER_RANGES['energy_bound_stiffness'], False, 'renderer'),
     # -- device -> tissue -------------------------------------------------------------------------

@@ -561,8 +561,17 @@ def test_one_late_answer_without_contact_does_not_drop_the_force():
     assert (lost[300:] == 0.0).any()
 
 
-def test_a_model_refreshed_every_pose_loses_the_contact_at_once():
+@pytest.mark.parametrize('served', [1, 8])
+def test_a_lockstep_answer_without_contact_ends_the_contact_at_once(served):
+    """Lockstep (a model refreshed every pose, or every 8th): an answer without contact is taken
+    as it comes, so a replay is the same whatever the schedule; a live one is kept over once."""
     m = ContactModel(k_max=7000.0)
-    m.refresh([0.0, 0.0, 0.0], 0.2 * Z, served=1, proxy=np.zeros(3))
-    m.refresh([0.0, 0.0, 0.0], np.zeros(3), served=1, proxy=np.zeros(3))
+    m.refresh([0.0, 0.0, 0.0], 0.2 * Z, served=served, proxy=np.zeros(3))
+    assert m.refresh([0.0, 0.0, 0.0], np.zeros(3), served=served, proxy=np.zeros(3))
     assert m.magnitude == 0.0 and not m.at(np.zeros(3)).any()
+    live = ContactModel(k_max=7000.0)
+    live.refresh([0.0, 0.0, 0.0], 0.2 * Z, served=served, proxy=np.zeros(3), live=True)
+    assert not live.refresh([0.0, 0.0, 0.0], np.zeros(3), served=served, proxy=np.zeros(3), live=True)
+    assert live.magnitude == pytest.approx(0.2)
+    assert live.refresh([0.0, 0.0, 0.0], np.zeros(3), served=served, proxy=np.zeros(3), live=True)
+    assert live.magnitude == 0.0

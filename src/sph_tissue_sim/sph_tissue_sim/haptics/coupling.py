@@ -21,13 +21,14 @@ is continuous and the new model holds alone well before its successor is due (bl
 
 A model refreshed every pose or nearly (lockstep, ``m < 4``) is taken at once, as before.
 
-A stale model's successor that finds no contact is not taken at once either: the model is kept for
-one more refresh and dropped when the next answer finds no contact too. A live solver 80 ms behind
-the hand can lose a sideways contact for one answer (its tool where the hand was, sliding across
-the surface), and taking that answer dropped the force to nothing and back (0.66 N -> 0 for 13
-frames -> 0.5 N in a demo). A hand that really left still loses the force with the model's
-stiffness about its anchor, and the energy bound (:mod:`.passivity`) caps what the kept model can
-give back.
+A live solver's answer that finds no contact is not taken at once either: the model is kept for
+one more answer and dropped when that one finds no contact too. A live solver 80 ms behind the
+hand can lose a sideways contact for one answer (its tool where the hand was, sliding across the
+surface), and taking that answer dropped the force to nothing and back (0.66 N -> 0 for 13 frames
+-> 0.5 N in a demo). A hand that really left along the normal still loses the force with the
+model's stiffness about its anchor (one that slid off sideways keeps it until the next answer), and
+the energy bound (:mod:`.passivity`) caps what the kept model can give back. Lockstep answers
+(``live`` False, any ``solver_every``) are taken as they come.
 
 The simulated tool (the proxy ``x_t = x^ + a``) is held by a spring ``K_c`` to the filtered device
 point ``x^``, pushed by the contact model, and its offset ``a`` from the device point is damped by
@@ -126,11 +127,13 @@ class ContactModel:
             self._carry_left -= 1
             self.carry = self.carry - self._carry_step if self._carry_left else np.zeros(3)
 
-    def refresh(self, point, force, served: int = 1, proxy=None) -> None:
+    def refresh(self, point, force, served: int = 1, proxy=None, live: bool = False) -> bool:
         """The solver found reaction ``force`` [N] with the tool at ``point`` [m]; the model it
         replaces answered ``served`` poses. With ``proxy`` [m] (where the simulated tool is now)
         and ``served >= 4``, the force there stays what it was and the change comes over the next
-        ``served // 2`` poses (see the module docstring).
+        ``served // 2`` poses (see the module docstring). ``live``: a solver thread's answer, which
+        is kept over once when it finds no contact. Returns False for an answer kept over (the
+        model in use goes on serving).
 
         The stiffness's memory is counted in poses, not refreshes: a live solver refreshes every
         15-30 poses, and with a per-refresh memory of 20 the first touch rendered a flat force
@@ -141,13 +144,13 @@ class ContactModel:
         mag = math.sqrt(float(force @ force))
         blend = min(int(served) // 2, BLEND_POSES) if proxy is not None else 0
         if mag == 0.0:
-            if blend > 1 and self.magnitude > 0.0 and not self.kept:
+            if live and self.magnitude > 0.0 and not self.kept:
                 self.kept = True
-                return
+                return False
             self.kept = False
             self.lose()
             self.point = point
-            return
+            return True
         self.kept = False
         before = self.at(proxy) if blend > 1 else None
         normal = force / mag
@@ -166,6 +169,7 @@ class ContactModel:
             self.carry = before - self.at(proxy)
             self._carry_step = self.carry / blend
             self._carry_left = blend
+        return True
 
 
 class VirtualCoupling:

@@ -127,9 +127,9 @@ class MultiRate:
         reaction before clamping, found with the tool where the step left it)."""
         point = result.tool_segment[0] if result.tool_segment is not None else job.point
         with self._lock:
-            self.renderer.refresh(point, result.force_raw, self._served)
+            if self.renderer.refresh(point, result.force_raw, self._served, live=self.every == 0):
+                self._served = 0
             self._age = job.age
-            self._served = 0
             self._refreshes.append(self._clock())
 
     def rate(self) -> float:

@@ -6,7 +6,7 @@ Per device sample (tissue frame, SI units)::
     x^, v^ <- estimator.update(x, dt)
     proxy, F <- coupling.render(x^, v^)      against the contact model
     F <- F + controller.damp(E_in, v^, dt)   only while E_in < 0, in contact
-    F <- bound.limit(F, E_in)                live timing only
+    F <- F - spring + bound.limit(spring)    live timing only: the coupling's spring held to E_in
     F <- clamp(F, force_limit); observer.hold(F)
 
 The proxy is where the solver should put its tool; after each solver step, :meth:`refresh` hands
@@ -65,7 +65,7 @@ class RendererConfig:
         passivity_max_damping: the most damping the passivity controller may add [N s/m].
         energy_bound_stiffness: the least ``k_b`` of the live energy bound [N/m]: in live timing
             the force never gives back more than a spring of the contact's stiffness (at least
-            this) would from the energy the hand put in during the touch (see :mod:`.passivity`).
+            this) would from the energy the hand put in (see :mod:`.passivity`).
             The floor is what a touch is felt as before the contact model has learned a stiffness,
             and what a force held to the bound falls at: 100 N/m changes it by 5.5 mN per
             encoder tick.
@@ -161,8 +161,9 @@ class HapticRenderer:
         self.proxy = proxy
         return Rendered(force, proxy, energy, self.controller.alpha, self.coupling.stretch)
 
-    def refresh(self, point, force, served: int = 1) -> None:
+    def refresh(self, point, force, served: int = 1, live: bool = False) -> bool:
         """The solver found the reaction ``force`` [N] with its tool at ``point`` [m]; the contact
         model it replaces answered ``served`` poses: a stale one's successor is blended in from the
-        force at the proxy (:class:`~.coupling.ContactModel`)."""
-        self.model.refresh(point, force, served, self.proxy)
+        force at the proxy, and a solver thread's (``live``) first answer without contact is kept
+        over (:class:`~.coupling.ContactModel`; returns False then)."""
+        return self.model.refresh(point, force, served, self.proxy, live)
