@@ -131,7 +131,6 @@ class Case:
     paper_s: float | None = None
     parallel_min: int = 0                # SolverConfig.parallel_min_particles (0: serial)
     # None: SolverConfig's default (what the product runs), else that choice
-    contact_integration: str | None = None  # SolverConfig.contact_integration
     integrator: str | None = None        # SolverConfig.integrator
     frame_dt: float = FRAME_DT           # [s] simulated time per frame (the implicit integrator: 16 ms)
 
@@ -199,8 +198,7 @@ class PressScript:
 
 def case_config(case: Case) -> SolverConfig:
     """The solver settings a case times: SolverConfig's defaults with the case's choices."""
-    chosen = {k: v for k, v in (('contact_integration', case.contact_integration),
-                                ('integrator', case.integrator)) if v is not None}
+    chosen = {'integrator': case.integrator} if case.integrator is not None else {}
     return SolverConfig(scheme=case.scheme, mode=case.mode, n_layers=case.n_layers, k1_gain=case.k1_gain,
                         parallel_min_particles=case.parallel_min, **chosen)
 

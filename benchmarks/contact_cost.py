@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """What each contact model costs the local step: a press and a palpation, the models interleaved.
 
-    python benchmarks/contact_cost.py                          # balls, samples, backstop at 3 / 6 / 12 mm
+    python benchmarks/contact_cost.py                          # balls and backstop at 3 / 6 / 12 mm
     python benchmarks/contact_cost.py --contacts balls,backstop --depths 0.003 --frames 2000
 
 For each depth, one solver per contact model (``press_depth.CONTACTS``) on the same liver (local
@@ -85,7 +85,7 @@ def table(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--particles', type=int, default=3670, help='liver size')
-    ap.add_argument('--contacts', default='balls,samples,backstop',
+    ap.add_argument('--contacts', default='balls,backstop',
                     help='of ' + ','.join(CONTACTS) + ' (ratios are against the first)')
     ap.add_argument('--depths', default='0.003,0.006,0.012', help='press depths [m], comma-separated')
     ap.add_argument('--frames', type=int, default=1000, help='palpation frames timed per depth')

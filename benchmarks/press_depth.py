@@ -9,10 +9,10 @@ at 10 mm/s from first touch, one 1 ms frame at a time (``cases.press_curve``), f
 combination of
 
 * ``--particles``: the liver's resolution (3670 is the default model; 12k and 30k the finer ones);
-* ``--contacts``: ``balls`` (particles as balls: ``solver.BALL_CONTACT``) and ``backstop`` (the
-  surface samples behind the balls: ``contact_samples: 3`` with ``contact_integration:
-  implicit``), both with the half-space far field, and ``backstop_organ`` (those with the organ's own far field, ``far_field_model: organ``
-  with ``far_field: 1``: the defaults);
+* ``--contacts``: ``balls`` (particles as balls, the paper's contact: ``solver.BALL_CONTACT``) and
+  ``backstop`` (the surface samples behind the balls: ``contact_samples: 3``, the default), each
+  with the far field the model gets (the organ's own up to ``solver.ORGAN_MAX_FREE`` free
+  particles, else the elastic half-space's);
 * ``--tools``: ``sphere`` (the default 5 mm probe tip) and ``capsule`` (the same tip on a 60 mm
   shaft along +z: an instrument, whose shaft fills the pit above the tip).
 
@@ -49,11 +49,7 @@ from sph_tissue_sim.validation import cases
 ROOT = Path(__file__).resolve().parents[1]
 #: (x, y) [m] of the press: the top of the right lobe's dome (validate.py's LIVER_TOP)
 LIVER_TOP = (-0.034, 0.0)
-CONTACTS = {'balls': dict(BALL_CONTACT),
-            'backstop': {**BALL_CONTACT, 'contact_samples': 3, 'contact_integration': 'implicit'},
-            # the same with the organ's own far field, whose area needs no widening (the defaults)
-            'backstop_organ': {'contact_samples': 3, 'contact_integration': 'implicit',
-                               'far_field_model': 'organ', 'far_field': 1.0}}
+CONTACTS = {'balls': dict(BALL_CONTACT), 'backstop': {'contact_samples': 3}}
 TOOLS = {'sphere': {}, 'capsule': {'tool_shape': 'capsule', 'tool_length': 0.06}}
 REPORT_DEPTHS = (0.010, 0.020, 0.030, 0.040)
 COLUMNS = ('particles', 'spacing_mm', 'contact', 'tool', 'status', 'peak_n', 'peak_mm', 'gives_way_mm',

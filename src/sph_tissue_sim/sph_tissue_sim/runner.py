@@ -624,9 +624,8 @@ class Runner:
     def _describe_contact(self) -> str:
         s = self.solver
         c = s.config
-        what = (f'contact {c.contact_samples}x{c.contact_samples} samples per surface particle '
-                f'(backstop), {c.contact_integration}' if c.contact_samples else
-                f'contact particle balls, {c.contact_integration}')
+        what = (f'contact {c.contact_samples}x{c.contact_samples} samples per surface particle (backstop)'
+                if c.contact_samples else 'contact particle balls')
         ff = s.far_field_in_use
         if ff == 'organ':
             how = (f'{len(s.organ.disk)} responses on disk, '

@@ -64,7 +64,7 @@ class SimNode(Node):
             log.info('numba warm-up: the SPH kernels load from numba\'s cache, or compile (about 30 s '
                      'on 2 cores) at the first start after a change of the core')
             try:
-                warmup(config.scheme, config.contact_integration, config.integrator)
+                warmup(config.scheme, config.integrator)
             except SimError as exc:  # the probe step below still compiles what this model needs
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
         solver = make_solver(self.model, build_material(p), config, p['nominal_dt'],

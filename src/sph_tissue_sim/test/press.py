@@ -1,4 +1,5 @@
-"""Shared test motions: lower the tool onto the top centre of a block, tilt a shaft, run free."""
+"""Shared test motions (lower the tool onto the top centre of a block, tilt a shaft, run free) and
+settings."""
 
 import numpy as np
 
@@ -52,3 +53,10 @@ def momentum_drift(solver, velocities, frames: int = 200, dt: float = 1e-3) -> t
         solver.step(None, dt)
     p1 = solver.velocities.sum(axis=0) * solver.mass
     return float(np.abs(p1 - p0).max()), scale
+
+
+def organ_too_large(monkeypatch) -> None:
+    """Make every organ too large for its own far field (``solver.ORGAN_MAX_FREE`` 0), so local mode
+    takes the half-space's, as on the 30k and 100k livers."""
+    from sph_tissue_sim.core import solver
+    monkeypatch.setattr(solver, 'ORGAN_MAX_FREE', 0)

@@ -1,4 +1,5 @@
-"""The organ's linear compliance as local mode's far field (``far_field_model: organ``, :mod:`.core.compliance`)."""
+"""The organ's linear compliance as local mode's far field (tlsph up to ``ORGAN_MAX_FREE`` free particles,
+:mod:`.core.compliance`)."""
 
 import os
 import signal
@@ -12,7 +13,7 @@ import pytest
 
 from sph_tissue_sim.core import compliance, response_store
 from sph_tissue_sim.core.compliance import linear_stiffness, shell_and_ring
-from sph_tissue_sim.core.errors import ConfigError, OrganFactorError
+from sph_tissue_sim.core.errors import OrganFactorError
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core import solver as solver_module
@@ -73,7 +74,7 @@ def test_rigid_motions_cost_no_force():
 
 
 def test_a_particles_column_is_the_organs_displacement_under_a_unit_force_on_it():
-    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
+    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field=1.0))
     organ = solver.organ
     X = solver.X
     top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
@@ -111,7 +112,7 @@ def test_a_particles_column_is_the_organs_displacement_under_a_unit_force_on_it(
 def test_an_interrupt_stops_placing_between_two_response_solves_and_moves_nothing():
     """A first touch solves a response per touched particle (tens of ms each on the liver); the
     solver's interrupt (a shutdown, a reset) is seen between two of them, not after all."""
-    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
+    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field=1.0))
     organ = solver.organ
     X = solver.X
     top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
@@ -165,7 +166,7 @@ def test_in_the_background_a_touch_never_waits_for_a_response_and_shares_the_loa
     ``background`` the frame goes on without them: the load is shared by the touched
     particles whose responses are ready (none: the shell stays at rest), and once the worker has
     solved them (and the shell has come in from rest) the placement is the waiting one's."""
-    cfg = SolverConfig(mode='local', far_field_model='organ', far_field=1.0)
+    cfg = SolverConfig(mode='local', far_field=1.0)
     waiting = Solver(_block(), SOFT, cfg).organ
     organ = Solver(_block(), SOFT, cfg, background=True).organ
     assert organ.background and not waiting.background
@@ -232,7 +233,7 @@ def test_a_killed_factoring_process_is_a_clear_error_and_the_next_ask_starts_ano
 def test_closing_a_solver_stops_its_far_fields_worker():
     """sim_node replaces its solver on a parameter change: the old worker must not stay behind
     holding the old factor."""
-    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0),
+    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field=1.0),
                     background=True)
     X = solver.X
     top = np.flatnonzero(np.isclose(X[:, 2], X[:, 2].max()))
@@ -248,7 +249,7 @@ def test_a_solver_rebuilt_on_the_same_organ_reuses_its_factor_and_another_materi
     """A rebuild (a parameter change in sim_node, each press of the validation) would pay the
     factorisation again (5 s on the liver); the same stiffness reuses the last factor and solves
     bit-identical responses."""
-    cfg = SolverConfig(mode='local', far_field_model='organ', far_field=1.0)
+    cfg = SolverConfig(mode='local', far_field=1.0)
     first = Solver(_block(), SOFT, cfg)
     c = int(np.argmax(first.X[:, 2]))
     again = Solver(_block(), SOFT, cfg)
@@ -261,7 +262,7 @@ def test_a_solver_rebuilt_on_the_same_organ_reuses_its_factor_and_another_materi
 
 
 def test_the_far_field_moves_the_shell_and_the_shells_neighbours_and_nothing_solved():
-    solver = Solver(_block(12, 5), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
+    solver = Solver(_block(12, 5), SOFT, SolverConfig(mode='local', far_field=1.0))
     X = solver.X
     tip = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean(), X[:, 2].max() + solver.contact_reach - 0.003])
     for _ in range(5):
@@ -294,51 +295,34 @@ def test_local_mode_with_the_organs_far_field_gives_the_global_force():
     block = _block(9, 5)
     f = {}
     for mode in ('global', 'local'):
-        cfg = SolverConfig(mode=mode, far_field_model='organ', far_field=1.0)
+        cfg = SolverConfig(mode=mode, far_field=1.0)
         f[mode] = press_and_hold(block, SOFT, cfg, 0.004, ramp=300, hold=200)[2]
     print(f)
     assert f['global'] > 0.05
     assert abs(f['local'] / f['global'] - 1.0) <= 0.05
 
 
-def test_a_model_too_large_to_factor_is_refused_with_a_clear_error(monkeypatch):
-    monkeypatch.setattr(solver_module, 'ORGAN_MAX_FREE', 40)
-    with pytest.raises(ConfigError, match='free particles are more than 40.*use far_field_model half_space'):
-        Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='organ'))
-    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='global', far_field_model='organ')).organ is None
-
-
-def test_the_organ_far_field_needs_tlsph_and_is_built_only_for_local_mode():
-    with pytest.raises(ConfigError, match='far_field_model'):
-        SolverConfig(far_field_model='whole').validate()
-    with pytest.raises(ConfigError, match='needs scheme tlsph'):
-        SolverConfig(scheme='paper', far_field_model='organ').validate()
-    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='global', far_field_model='organ')).organ is None
-    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field=0.0, far_field_model='organ')).organ is None
-    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='half_space')).organ is None
-
-
-def test_the_default_far_field_is_the_organs_for_tlsph_and_the_half_space_otherwise(monkeypatch):
-    assert SolverConfig().far_field_model == 'auto'
+def test_the_organs_far_field_is_built_for_tlsph_in_local_mode_up_to_organ_max_free(monkeypatch):
     default = Solver(_block(5, 3), SOFT, SolverConfig(mode='local'))
     assert default.organ is not None and default.far_field_in_use == 'organ'
     assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', scheme='mass_spring')).far_field_in_use == 'half_space'
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', scheme='paper')).far_field_in_use == 'half_space'
     assert Solver(_block(5, 3), SOFT, SolverConfig(mode='global')).far_field_in_use == 'none'
-    # beyond the size guard auto falls back to the half-space instead of refusing the model
+    assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field=0.0)).far_field_in_use == 'none'
+    # an organ too large to factor (the 30k and 100k livers) takes the half-space's
     monkeypatch.setattr(solver_module, 'ORGAN_MAX_FREE', 10)
     assert Solver(_block(5, 3), SOFT, SolverConfig(mode='local')).far_field_in_use == 'half_space'
-    with pytest.raises(ConfigError, match='half_space'):
-        Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='organ'))
 
 
-def test_the_far_field_object_is_the_organs_the_half_spaces_or_none_and_follows_the_material():
+def test_the_far_field_object_is_the_organs_the_half_spaces_or_none_and_follows_the_material(monkeypatch):
     from sph_tissue_sim.core.far_field import HalfSpace, Organ, make_far_field
 
     assert make_far_field(False, 1.0, SOFT, None) is None
     assert make_far_field(True, 0.0, SOFT, None) is None
     organ = Solver(_block(5, 3), SOFT, SolverConfig(mode='local'))
     assert isinstance(organ.far, Organ) and organ.far.compliance is organ.organ
-    half = Solver(_block(5, 3), SOFT, SolverConfig(mode='local', far_field_model='half_space'))
+    monkeypatch.setattr(solver_module, 'ORGAN_MAX_FREE', 10)
+    half = Solver(_block(5, 3), SOFT, SolverConfig(mode='local'))
     assert isinstance(half.far, HalfSpace) and (half.far.G, half.far.nu) == (SOFT.G, SOFT.nu)
     stiff = Material.from_shear(3 * SOFT.G, 0.4, 3.0)
     half.set_material(stiff)
@@ -347,7 +331,7 @@ def test_the_far_field_object_is_the_organs_the_half_spaces_or_none_and_follows_
 
 
 def _organ(background: bool = False, material: Material = SOFT):
-    return Solver(_block(), material, SolverConfig(mode='local', far_field_model='organ', far_field=1.0),
+    return Solver(_block(), material, SolverConfig(mode='local', far_field=1.0),
                   background=background).organ
 
 
@@ -391,7 +375,7 @@ np.save(sys.argv[3], sla.splu(k.astype(np.float32).tocsc(), permc_spec='MMD_AT_P
 def test_the_factoring_process_solves_what_sim_node_solved_in_process_bit_for_bit(tmp_path):
     import scipy.sparse as sp
 
-    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field_model='organ', far_field=1.0))
+    solver = Solver(_block(), SOFT, SolverConfig(mode='local', far_field=1.0))
     organ = solver.organ
     c = _top(organ)
     free = organ.free_dofs
@@ -453,7 +437,7 @@ from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
 organ = Solver(make_block(7, 7, 4, spacing=0.0075, fix='bottom'), Material.from_shear(1800.0, 0.45, 3.0),
-               SolverConfig(mode='local', far_field_model='organ', far_field=1.0)).organ
+               SolverConfig(mode='local', far_field=1.0)).organ
 organ.factor.start_soon()
 while not organ.factor.started:
     time.sleep(0.01)

@@ -71,12 +71,14 @@ def test_frame_state_check_sees_non_finite_and_too_fast_states(bad):
     assert frame_state_ok(np.zeros((4, 3)), np.zeros((4, 3)), sph, 2, layer, 0, 50.0, np.zeros(3))
 
 
-@pytest.mark.parametrize('mode', ['local', 'global'])
-def test_a_jump_that_tears_the_liver_apart_raises_sim_error_and_leaves_a_finite_state(liver, mode):
+@pytest.mark.parametrize('mode, scheme', [('local', 'tlsph'), ('global', 'paper')])
+def test_a_jump_that_tears_the_liver_apart_raises_sim_error_and_leaves_a_finite_state(liver, mode, scheme):
     # without a bound on the tool's travel the jump drives particles through their neighbours; the
     # non-finite state must be seen (it went unnoticed inside the fast-math frame loop) and undone;
-    # the balls' contact tears (the samples behind them held the global liver together)
-    solver = Solver(liver, liver_default(), SolverConfig(mode=mode, max_tool_speed=1e3, **BALL_CONTACT))
+    # the balls' contact tears the local area and the paper scheme's whole liver (the global tlsph
+    # liver holds together)
+    solver = Solver(liver, liver_default(), SolverConfig(mode=mode, scheme=scheme, max_tool_speed=1e3,
+                                                         **BALL_CONTACT))
     errors = 0
     for out in _jump_session(solver):
         if isinstance(out, SimError):

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from press import press
+from press import organ_too_large, press
 
 from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.factory import make_model
@@ -16,9 +16,15 @@ from sph_tissue_sim.validation.cases import gives_way, press_and_hold, press_cur
 LIVER = Material.from_shear(1800.0, 0.45, 3.0)
 LIVER_DEFAULT = liver_default()
 SPACING = 0.0075
-#: the samples as the surface (explicit, with the half-space far field, as these tests were measured;
-#: with the fixture samples_alone)
-SURFACE = {**BALL_CONTACT, 'contact_samples': 3}
+#: the samples as the surface (with the fixture samples_alone)
+SURFACE = {'contact_samples': 3}
+
+
+@pytest.fixture(autouse=True)
+def half_space(monkeypatch):
+    """These tests were measured with the half-space far field (the organ's, the default up to
+    ORGAN_MAX_FREE free particles, is test_core_compliance.py's)."""
+    organ_too_large(monkeypatch)
 @pytest.fixture
 def samples_alone(monkeypatch):
     """The particles' balls shrunk to a point, so the tool meets the surface samples alone."""
@@ -189,15 +195,14 @@ def test_the_far_field_does_not_ring_when_a_fine_liver_is_pressed_deep():
 
 
 # ----------------------------------------------------------------------------- samples as a backstop
-#: with the half-space far field (the organ's is the default on the liver: test_core_compliance.py)
-BACKSTOP = {**BALL_CONTACT, 'contact_samples': 3, 'contact_integration': 'implicit'}
+BACKSTOP = {'contact_samples': 3}
 
 
 def test_backstop_samples_leave_a_shallow_press_to_the_balls():
     """The balls reach half a spacing farther than the samples: until the tool is that deep, the
     press is exactly the ball contact's (same sub-steps, same forces)."""
     model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
-    balls = Solver(model, LIVER, SolverConfig(mode='global', **{**BALL_CONTACT, 'contact_integration': 'implicit'}))
+    balls = Solver(model, LIVER, SolverConfig(mode='global', **BALL_CONTACT))
     backstop = Solver(model, LIVER, SolverConfig(mode='global', **BACKSTOP))
     assert backstop.contact_reach == balls.contact_reach
     X = model.positions

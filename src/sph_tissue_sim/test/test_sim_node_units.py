@@ -267,11 +267,11 @@ def test_the_threads_parameter_reaches_the_solver_config():
 
 
 def test_the_contact_parameters_reach_the_solver_config_and_bad_ones_are_refused():
-    assert build_config(defaults(contact_integration='implicit')).contact_integration == 'implicit'
+    assert build_config(defaults(contact_samples=0)).contact_samples == 0
     assert (build_config(defaults()).friction, build_config(defaults(friction=0.3)).friction) == (0.0, 0.3)
     with pytest.raises(ConfigError, match='friction'):
         build_config(defaults(friction=-0.1))
-    assert 'must be one of' in check_value('contact_integration', 'semi')
+    assert 'must be one of' in check_value('tool_shape', 'blade')
 
 
 

@@ -1,6 +1,6 @@
 """Backward Euler for the implicit integrator of ``tlsph`` (``SolverConfig.integrator =
 'implicit'``: the Kelvin-Voigt dashpots and the elastic forces) and for the pushing contacts
-(``contact_integration = 'implicit'``, the terms of :mod:`.implicit_contact`), one
+(always: the terms of :mod:`.implicit_contact`), one
 conjugate-gradient solve per sub-step (:class:`BackwardEuler`). The dashpots' part first:
 
 An explicit sub-step must resolve the dashpots' fastest mode, ``dt <= C rho h^2 / eta``, which

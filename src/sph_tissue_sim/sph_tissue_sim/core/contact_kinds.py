@@ -1,7 +1,8 @@
 """Contact kinds: where the tool meets the tissue, as the solver needs it.
 
-A kind owns its reach radii, its surface samples (if any), what it adds to the sub-step bounds and
-how it grows the local area. Two kinds today, chosen by ``SolverConfig.contact_samples``:
+A kind owns its reach radii, its surface samples (if any) and how it grows the local area (the
+pushing contacts are integrated backward and bound no sub-step). Two kinds today, chosen by
+``SolverConfig.contact_samples``:
 
 - :class:`BallContact` (0): the tool against the particles' balls of ``BALL_RADIUS`` spacings; the
   tool slips between them.
@@ -16,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from .state import Samples
-from .surface_contact import SURFACE_OFFSET, no_samples, sample_stiffness_factor, surface_samples
+from .surface_contact import SURFACE_OFFSET, no_samples, surface_samples
 
 #: [spacings] radius of a particle's contact ball
 BALL_RADIUS = 1.0
@@ -32,8 +33,6 @@ class BallContact:
     push the tool)."""
 
     per_side = 0
-    #: a sample's stiffness over a ball's in the stiffest direction (the contact sub-step bound)
-    stiffness_factor = 1.0
 
     def __init__(self, tool_radius: float, spacing: float) -> None:
         self.ball_reach = tool_radius + BALL_RADIUS * spacing
@@ -46,10 +45,6 @@ class BallContact:
     def samples(self, n: int, tool_radius: float, stiffness: float, damping: float) -> Samples:
         """The frame's samples (none) for ``n`` particles and a ball dashpot of ``damping`` [N s/m]."""
         return no_samples(n)
-
-    def damping_bound(self, mass: float, damping: float) -> float:
-        """[s] explicit contact dashpot: dt < 2 m / c; a factor 2 margin."""
-        return mass / damping
 
     def area(self, pushing: bool, organ: bool, Dr: float, h: float) -> tuple[float, float]:
         """(candidate reach [m], area radius [m]) of the local area: the balls' whatever happens."""
@@ -73,7 +68,6 @@ class SampledContact(BallContact):
         # a sample reads particles within `support` of it: farther than this from its owner, the
         # material around it is torn apart
         self.margin = reach + support + spacing
-        self.stiffness_factor = sample_stiffness_factor(*self.arrays[1:4])
         # touch detection (the local area's centre) sees a particle where its samples may touch,
         # and local mode solves every particle a touching sample reads
         self.detect_reach = max(tool_radius + reach, self.ball_reach)
@@ -90,9 +84,6 @@ class SampledContact(BallContact):
         # a sample carries 1/per**2 of its particle's mass: the same damping ratio per sample
         return Samples(*self.arrays[:5], tool_radius, stiffness, damping / self.per_side, self.margin,
                        *self.arrays[5:])
-
-    def damping_bound(self, mass: float, damping: float) -> float:
-        return mass / (damping / self.per_side * self.stiffness_factor)
 
     def area(self, pushing: bool, organ: bool, Dr: float, h: float) -> tuple[float, float]:
         """Once a sample pushes the tool: every particle a touching sample reads is solved, and with

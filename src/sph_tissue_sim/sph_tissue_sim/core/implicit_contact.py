@@ -1,4 +1,4 @@
-"""Linearly implicit contact (``SolverConfig.contact_integration = 'implicit'``).
+"""Linearly implicit contact: every pushing contact, with or without the surface samples.
 
 An explicit penalty contact must resolve the spring and dashpot of every pushing contact:
 ``dt <= C 2 sqrt(m / k)`` and ``dt <= m / c``. With the surface samples (9 per surface particle, each

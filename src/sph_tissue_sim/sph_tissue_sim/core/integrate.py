@@ -1,48 +1,18 @@
-"""Time integration: the sub-step bounds, the symplectic Euler integrator (paper eq. 22), the
-transmission layers' kinematics (eqs. 20-21) and the check of a frame's result.
+"""Time integration: the sub-step bounds, the transmission layers' kinematics (paper eqs. 20-21)
+and the check of a frame's result.
 
 An integrator is a ``NamedTuple`` with an ``@overload`` of :func:`~.protocols.advance`; the frame
-loop (:mod:`.frame`) calls it once per sub-step after the forces. :class:`SymplecticEuler`::
-
-    v <- v + dt a,    x <- x + dt v
-
-for every fully solved free particle.
+loop (:mod:`.frame`) calls it once per sub-step after the forces. The one integrator,
+:class:`~.backward_euler.BackwardEuler`, is the paper's symplectic Euler (eq. 22)
+``v <- v + dt a, x <- x + dt v`` with the pushing contacts (and, as an option, the dashpots and
+the elastic forces) taken backward in time.
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 from numba import njit
-from numba.extending import overload
-
-from .protocols import advance, is_state
-
-
-class SymplecticEuler(NamedTuple):
-    """Explicit symplectic Euler with sub-step ``dt`` [s] (stable below :func:`substep_bounds`)."""
-
-    dt: float
-
-
-@njit(cache=True, fastmath=True)
-def symplectic_euler(x, v, acc, sph, n_sph, dt):
-    for t in range(n_sph):
-        i = sph[t]
-        for a in range(3):
-            v[i, a] += dt * acc[i, a]
-            x[i, a] += dt * v[i, a]
-
-
-@overload(advance)
-def _advance_symplectic_euler(integrator, body, motion, sets):
-    if not is_state(integrator, SymplecticEuler):
-        return None
-
-    def impl(integrator, body, motion, sets):
-        symplectic_euler(motion.x, motion.v, motion.acc, sets.sph, sets.n_sph, integrator.dt)
-    return impl
 
 
 @njit(cache=True, fastmath=True)
@@ -104,14 +74,12 @@ def frame_state_ok(x, v, sph, n_sph, layer, n_layer, v_limit, react):
     return math.isfinite(react[0]) and math.isfinite(react[1]) and math.isfinite(react[2])
 
 
-def substep_bounds(h: float, wave_speed: float, rho: float, eta_long: float, mass: float,
-                   contact_stiffness: float, cfl: float) -> dict:
-    """Stable sub-step sizes [s]: CFL ``C h / c``, viscous ``C rho h^2 / eta`` and contact ``C 2 sqrt(m/k)``."""
+def substep_bounds(h: float, wave_speed: float, rho: float, eta_long: float, cfl: float) -> dict:
+    """Stable sub-step sizes [s] of the explicit material forces: CFL ``C h / c`` and viscous
+    ``C rho h^2 / eta``."""
     bounds = {'cfl': cfl * h / wave_speed}
     if eta_long > 0.0:
         bounds['viscous'] = cfl * rho * h * h / eta_long
-    if contact_stiffness > 0.0:
-        bounds['contact'] = cfl * 2.0 * math.sqrt(mass / contact_stiffness)
     return bounds
 
 

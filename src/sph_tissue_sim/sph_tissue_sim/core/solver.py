@@ -31,7 +31,7 @@ from .far_field import make_far_field
 from .implicit_contact import contact_terms, make_touches
 from .backward_euler import BackwardSolve
 from .compliance import OrganCompliance
-from .integrate import SymplecticEuler, frame_state_ok, substep_bounds, substeps_for
+from .integrate import frame_state_ok, substep_bounds, substeps_for
 from .kernel import SUPPORT
 from .local_area import LocalArea, active_stats
 from .material import Material
@@ -41,7 +41,7 @@ from .paper import PaperScheme
 from .protocols import STATUS_OK
 from .springs import MassSpringScheme
 from .stability import DASHPOT_RATE_EVERY, DashpotRate
-from .state import Body, Loads, Motion, Sets, ToolPath, Topology, no_touches
+from .state import Body, Loads, Motion, Sets, ToolPath, Topology
 from .tlsph import TlsphScheme
 from .tools import NO_ROTATION, TOOLS, make_tool
 
@@ -51,8 +51,6 @@ CONTACT_MAX_ITER = 200
 #: the implicit integrator's solve (stiffer: its condition number grows with (dt / CFL step)^2)
 IMPLICIT_MAX_ITER = 2000
 MODES = ('global', 'local')
-CONTACT_INTEGRATIONS = ('explicit', 'implicit')
-FAR_FIELD_MODELS = ('auto', 'half_space', 'organ')
 #: the organ's far field lends a particle's response to the particles within this many spacings
 #: (a response costs a back-substitution, about 45 ms on the 3670 liver)
 ORGAN_SHARE = 1.01
@@ -60,10 +58,9 @@ ORGAN_SHARE = 1.01
 #: and its responses cost too much (the 12k liver, 11149 free: 66 s, 4.6 GB, 0.3 s per response)
 ORGAN_MAX_FREE = 5000
 INTEGRATORS = ('explicit', 'implicit')
-#: the tool against the particles' balls alone, explicitly integrated, with the half-space far
-#: field (SolverConfig(**BALL_CONTACT)): the contact before the surface samples, for comparisons
-BALL_CONTACT = {'contact_samples': 0, 'contact_integration': 'explicit', 'far_field_model': 'half_space',
-                'far_field': 0.9}
+#: the tool against the particles' balls alone (SolverConfig(**BALL_CONTACT)): the paper's contact,
+#: for comparisons with the surface samples
+BALL_CONTACT = {'contact_samples': 0}
 #: relative residual of the implicit contact's solve (cheap: it spans the particles under the tool)
 CONTACT_TOL = 1e-8
 #: the implicit integrator's solve stops at this velocity error relative to the velocities: holds a
@@ -126,9 +123,6 @@ class SolverConfig:
     contact_samples: int = setting(3, 'samples per side of a surface particle behind the balls, which hold '
                                    'the tool out of the gaps between particles (0: the balls alone, the '
                                    'tool slips between them; 3 costs 1.3-1.4x the balls\' step)', (0, 5))
-    contact_integration: str = setting('implicit', 'implicit (the pushing contacts backward along their '
-                                       'normals: no contact sub-step bound) | explicit (4x the sub-steps '
-                                       'with the samples)', CONTACT_INTEGRATIONS)
     friction: float = setting(0.0, '[-] Coulomb coefficient of stick-slip friction between the tool and '
                               'the balls (0: frictionless)', (0.0, 2.0), rebuild=None)
     max_tool_speed: float = setting(1.0, '[m/s] the simulated tool follows the request at most this fast '
@@ -136,8 +130,9 @@ class SolverConfig:
     force_limit: float = setting(HARD_FORCE_LIMIT, '[N] norm clamp of the force sent to the device (Omni '
                                  'peak 3.3 N, continuous 0.88 N)', (0.001, HARD_FORCE_LIMIT), rebuild=None)
     # -- integration ------------------------------------------------------------------------------
-    integrator: str = setting('explicit', 'explicit (symplectic Euler, the CFL, viscous and contact bounds) '
-                              '| implicit (tlsph: backward Euler on everything, for large visual frames)',
+    integrator: str = setting('explicit', 'explicit (symplectic Euler within the CFL and viscous bounds, '
+                              'the pushing contacts backward) | implicit (tlsph: backward Euler on everything, '
+                              'for large visual frames)',
                               INTEGRATORS)
     cfl: float = setting(0.3, '[-] Courant number of the sub-step bounds', (0.01, 1.0))
     max_substeps: int = setting(64, 'sub-steps per frame at most (beyond it simulated time lags; reported)',
@@ -148,11 +143,9 @@ class SolverConfig:
                                           (0, 10_000_000))
     # -- far field --------------------------------------------------------------------------------
     far_field: float = setting(1.0, '[-] local mode: the still particles next to the solved ones follow this '
-                               'times the far field\'s response to the contact force (0: held still, the '
-                               'paper)', (0.0, 2.0))
-    far_field_model: str = setting('auto', 'auto (organ for tlsph up to ORGAN_MAX_FREE free particles, else '
-                                   'half_space) | organ (the organ\'s own linear response, factored when first needed) '
-                                   '| half_space (Boussinesq)', FAR_FIELD_MODELS)
+                               'times the far field\'s response to the contact force (the organ\'s own for '
+                               f'tlsph up to {ORGAN_MAX_FREE} free particles, else an elastic half-space\'s; 0: '
+                               'held still, the paper)', (0.0, 2.0))
 
     def validate(self) -> 'SolverConfig':
         """Check every field against its limits; raises :class:`ConfigError` naming the bad field.
@@ -174,8 +167,6 @@ class SolverConfig:
                     setattr(self, f.name, int(val))
         if self.k1_min > self.k1_max:
             raise ConfigError(f'k1_min ({self.k1_min}) must be <= k1_max ({self.k1_max})')
-        if self.far_field_model == 'organ' and self.scheme != 'tlsph':
-            raise ConfigError(f'far_field_model organ needs scheme tlsph, got {self.scheme!r}')
         if self.integrator == 'implicit' and self.scheme != 'tlsph':
             raise ConfigError(f'integrator implicit needs scheme tlsph, got {self.scheme!r}')
         return self
@@ -215,38 +206,24 @@ class StepResult:
 
 def organ_far_field(cfg: SolverConfig, X: np.ndarray, fixed: np.ndarray, scheme, spacing: float,
                     abort: np.ndarray, background: bool) -> OrganCompliance | None:
-    """Local mode's far field from the organ's own linear response (``far_field_model`` organ, or
-    auto for tlsph up to :data:`ORGAN_MAX_FREE` free particles), or None (the half-space's; or no
-    far field: global mode, ``far_field`` 0)."""
+    """Local mode's far field from the organ's own linear response (tlsph, up to
+    :data:`ORGAN_MAX_FREE` free particles), or None (the half-space's: larger organs and the other
+    schemes; or no far field: global mode, ``far_field`` 0)."""
     n_free = int(np.count_nonzero(~fixed))
-    organ = cfg.far_field_model == 'organ' or (cfg.far_field_model == 'auto' and cfg.scheme == 'tlsph'
-                                                and n_free <= ORGAN_MAX_FREE)
-    if not (organ and cfg.mode == 'local' and cfg.far_field > 0.0):
+    if not (cfg.scheme == 'tlsph' and n_free <= ORGAN_MAX_FREE and cfg.mode == 'local'
+            and cfg.far_field > 0.0):
         return None
-    if n_free > ORGAN_MAX_FREE:
-        raise ConfigError(
-            f'far_field_model organ factors the whole model\'s stiffness; {n_free} free particles '
-            f'are more than {ORGAN_MAX_FREE} (3276 free: 5 s, 0.8 GB, 45 ms per response; 11149: '
-            f'66 s, 4.6 GB, 0.3 s per response): use far_field_model half_space')
     return OrganCompliance(X, fixed, scheme.state(None, None, 0), ORGAN_SHARE * spacing, abort,
                            background=background)
 
 
-def frame_bounds(cfg: SolverConfig, contact: BallContact, h: float, wave_speed: float, material: Material,
-                 mass: float, contact_damping: float, implicit_contacts: bool) -> dict:
-    """[s] the largest stable sub-step of each bound (:func:`~.integrate.substep_bounds`, the
-    contact's dashpot), by name. Backward-Euler contacts drop the contact's bounds; the implicit
-    integrator has one, the accuracy the caller asks for."""
+def frame_bounds(cfg: SolverConfig, h: float, wave_speed: float, material: Material) -> dict:
+    """[s] the largest stable sub-step of each bound (:func:`~.integrate.substep_bounds`), by name.
+    The contacts that push are integrated backward (:mod:`.implicit_contact`) and bound nothing; the
+    implicit integrator has one bound, the accuracy the caller asks for."""
     if cfg.integrator == 'implicit':
         return {'implicit': cfg.implicit_max_dt}
-    bounds = substep_bounds(h, wave_speed, material.rho, material.eta_longitudinal, mass,
-                            cfg.contact_stiffness * contact.stiffness_factor, cfg.cfl)
-    if cfg.contact_damping_ratio > 0.0:
-        bounds['contact_damping'] = contact.damping_bound(mass, contact_damping)
-    if implicit_contacts:
-        bounds.pop('contact', None)
-        bounds.pop('contact_damping', None)
-    return bounds
+    return substep_bounds(h, wave_speed, material.rho, material.eta_longitudinal, cfg.cfl)
 
 
 class Solver:
@@ -302,14 +279,12 @@ class Solver:
         pm = cfg.parallel_min_particles
         self.par_min = pm if pm > 0 and numba.get_num_threads() > 1 else self.n + 1
         self.scheme = self._make_scheme()
-        # backward Euler for everything or for the pushing contacts alone (one solve), or None
+        # backward Euler for everything or for the pushing contacts alone (one solve)
         stiffness = cfg.integrator == 'implicit'
-        contacts = stiffness or cfg.contact_integration == 'implicit'
-        self.backward = (BackwardSolve(self.scheme if stiffness else None, self.n,
-                                       IMPLICIT_TOL if stiffness else CONTACT_TOL,
-                                       IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER)
-                         if contacts else None)
-        self.touches = make_touches(self.n + self.contact.n_samples) if contacts else no_touches()
+        self.backward = BackwardSolve(self.scheme if stiffness else None, self.n,
+                                      IMPLICIT_TOL if stiffness else CONTACT_TOL,
+                                      IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER)
+        self.touches = make_touches(self.n + self.contact.n_samples)
         #: friction's anchors (contact.stick_slip)
         self.anchor = np.zeros((self.n, 3))
         self.stuck = np.zeros(self.n, dtype=np.bool_)
@@ -386,16 +361,12 @@ class Solver:
                                      self.background)
         #: local mode's far field (:mod:`.far_field`; None in global mode or with ``far_field`` 0)
         self.far = make_far_field(cfg.mode == 'local', cfg.far_field, material, self.organ)
-        if self.backward is not None:
-            self.backward.set_material(material)
-        self.dt_bounds = frame_bounds(cfg, self.contact, self.h, self.scheme.wave_speed(material, self.mass),
-                                      material, self.mass, self.contact_damping, self.touches.on)
+        self.backward.set_material(material)
+        self.dt_bounds = frame_bounds(cfg, self.h, self.scheme.wave_speed(material, self.mass), material)
         dashpots = self.scheme.dashpots_only() if isinstance(self.scheme, TlsphScheme) else None
         #: follows the explicit dashpots' rate as the tissue deforms (None: no explicit dashpots)
         self.dashpot_rate = DashpotRate(dashpots, self.n, DASHPOT_RATE_EVERY) if dashpots is not None else None
         self.dt_max = min(self.dt_bounds.values())
-        # without a tool no contact spring or dashpot acts, so only the material bounds apply
-        self.dt_max_free = min(v for k, v in self.dt_bounds.items() if not k.startswith('contact'))
 
     def reset(self) -> None:
         """Back to the reference configuration at rest, sim time 0, no active area."""
@@ -460,7 +431,7 @@ class Solver:
     @property
     def far_field_in_use(self) -> str:
         """Local mode's far field as built: ``organ``, ``half_space`` or ``none`` (global mode,
-        or ``far_field`` 0); ``far_field_model: auto`` resolves to one of the first two."""
+        or ``far_field`` 0): :func:`organ_far_field` decides between the first two."""
         return self.far.name if self.far is not None else 'none'
 
     @property
@@ -550,7 +521,7 @@ class Solver:
         dt = float(dt)
         cfg = self.config
         tool_on = tool is not None
-        dt_max = self.dt_max if tool_on else self.dt_max_free
+        dt_max = self.dt_max
         if self.dashpot_rate is not None:
             dt_max = min(dt_max, self.dashpot_rate.bound())
         n_sub, sub_dt, capped = substeps_for(dt, dt_max, cfg.max_substeps)
@@ -621,10 +592,8 @@ class Solver:
         return -1
 
     def substep_integrator(self, sub_dt: float):
-        """The integrator of a sub-step of ``sub_dt`` [s]: symplectic Euler, or backward Euler for
-        the implicit dashpots and contacts (:mod:`.backward_euler`)."""
-        if self.backward is None:
-            return SymplecticEuler(sub_dt)
+        """The integrator of a sub-step of ``sub_dt`` [s]: symplectic Euler with the pushing contacts
+        (and with ``integrator: implicit`` everything) backward in time (:mod:`.backward_euler`)."""
         return self.backward.integrator(sub_dt, contact_terms(
             self.touches, self.samples, self.config.contact_stiffness, self.contact_damping, self.react,
             self._touch_vn))
@@ -701,11 +670,9 @@ class Solver:
                     k1=float(k1), n_active=int(n_active_frame))
 
 
-def warmup(scheme: str | None = None, contact_integration: str = 'explicit',
-           integrator: str = 'explicit') -> float:
+def warmup(scheme: str | None = None, integrator: str = 'explicit') -> float:
     """Compile every numba kernel on a tiny block (numba caches to disk); returns seconds taken.
-    ``contact_integration`` and ``integrator`` pick the integrator's specialisation of the frame
-    loop."""
+    ``integrator`` picks the integrator's specialisation of the frame loop."""
     from .models import make_block
 
     t0 = time.perf_counter()
@@ -716,9 +683,7 @@ def warmup(scheme: str | None = None, contact_integration: str = 'explicit',
         for mode in MODES:
             try:
                 integ = integrator if sch == 'tlsph' else 'explicit'
-                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode,
-                                                         contact_integration=contact_integration,
-                                                         integrator=integ))
+                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode, integrator=integ))
             except ConfigError:
                 continue
             top = model.positions[:, 2].max()
@@ -730,7 +695,6 @@ def warmup(scheme: str | None = None, contact_integration: str = 'explicit',
             solver.von_mises()
     if 'tlsph' in schemes:
         # the backstop samples' nearness test runs outside the frame kernel
-        solver = Solver(model, mat, SolverConfig(contact_samples=1,
-                                                 contact_integration=contact_integration))
+        solver = Solver(model, mat, SolverConfig(contact_samples=1))
         solver.step(np.array([0.01, 0.01, model.positions[:, 2].max() + 0.005]), 1e-3)
     return time.perf_counter() - t0

@@ -140,18 +140,6 @@ def surface_samples(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: 
             (keys % n).astype(np.int32), own_reach, reach, 2.0 * h)
 
 
-def sample_stiffness_factor(w_start: np.ndarray, w_idx: np.ndarray, w_val: np.ndarray) -> float:
-    """The largest stiffness a particle can feel through the samples, as a multiple of one
-    sample's: a Gershgorin bound of ``Phi^T Phi`` (for the explicit sub-step's bound)."""
-    if len(w_val) == 0:
-        return 1.0
-    per = np.diff(w_start)
-    rows = np.repeat(np.arange(len(per)), per)
-    l1 = np.bincount(rows, weights=np.abs(w_val), minlength=len(per))
-    load = np.bincount(w_idx, weights=np.abs(w_val) * l1[rows])
-    return float(load.max())
-
-
 def no_samples(n: int) -> Samples:
     """The ball model's :class:`~.state.Samples`: no particle owns a sample."""
     return Samples(np.zeros(n + 1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int32),
