@@ -115,8 +115,7 @@ def plot(curves: dict, rows: list[dict], limit: float, path: Path) -> None:
 
     sizes = sorted({r['particles'] for r in rows})
     fig, axes = plt.subplots(1, len(sizes), figsize=(5.0 * len(sizes), 3.8), sharey=True, squeeze=False)
-    colours = {'balls': '#d62728', 'backstop': '#9467bd',
-               'backstop_organ': '#8c564b'}
+    colours = {'balls': '#d62728', 'backstop': '#9467bd'}
     for ax, n in zip(axes[0], sizes):
         for r in rows:
             if r['particles'] != n:

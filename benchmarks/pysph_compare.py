@@ -88,7 +88,7 @@ def our_solver(layers: int) -> Solver:
     material = Material.from_shear(G, NU, G * 1e-5, None, rho=RHO)
     probe = Solver(model, material, SolverConfig(mode='global'))
     # the sub-step bound scales with cfl: choose cfl so that a 1 ms frame takes 1e-5 s sub-steps
-    cfl = probe.config.cfl * DT / probe.dt_max_free * (1.0 + 1e-9)
+    cfl = probe.config.cfl * DT / probe.dt_max * (1.0 + 1e-9)
     return Solver(model, material, SolverConfig(mode='global', cfl=min(cfl, 0.99), max_substeps=100000))
 
 

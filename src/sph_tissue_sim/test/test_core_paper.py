@@ -228,7 +228,7 @@ def test_a_forced_too_large_substep_raises_sim_error_and_restores_the_state():
     solver = Solver(make_block(6, 6, 4, spacing=0.0075), stiff,
                     SolverConfig(scheme='paper', mode='global', cfl=1.0, max_substeps=1))
     # the solver never exceeds its bounds itself; force one sub-step of ~50 x the CFL bound
-    solver.dt_max = solver.dt_max_free = 50.0 * solver.dt_bounds['cfl']
+    solver.dt_max = 50.0 * solver.dt_bounds['cfl']
     free = ~solver.model.fixed
     solver.positions[free] += np.random.default_rng(1).normal(0.0, 1e-5, (free.sum(), 3))
     dt = solver.dt_max

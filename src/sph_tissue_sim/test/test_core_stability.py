@@ -87,7 +87,7 @@ def _creep(every: int, cfl: float = 0.3, frames: int = 800) -> tuple[np.ndarray,
     rest length and the sub-steps, per frame."""
     model = make_block(6, 5, 5, spacing=0.005, fix='left')
     material = LIVER.with_viscosity_scale(10.0)
-    dt = 2.0 * Solver(model, material, SolverConfig(mode='global')).dt_max_free
+    dt = 2.0 * Solver(model, material, SolverConfig(mode='global')).dt_max
     s = _tracked(Solver(model, material, SolverConfig(mode='global', cfl=cfl)), every)
     X = model.positions
     face = np.flatnonzero(X[:, 0] >= X[:, 0].max() - 1e-9)
