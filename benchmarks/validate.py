@@ -6,6 +6,9 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
 
 * ``creep``: a free Kelvin-Voigt bar under constant end traction, eps(t) = sigma0/E (1 - exp(-t/tau));
 * ``uniaxial``: the same bar at rest, E and nu from Hooke's law;
+* ``relaxation``: a relaxing spring (a Prony series, ``Material.prony``): a block held at a step
+  stretch against the relaxation function g(t), and the creep bar with the spring relaxing against
+  the linear viscoelastic closed form (the dashpot in parallel with the relaxing spring);
 * ``cantilever``: first bending frequency of a clamped beam 4 / 8 / 10 particles tall (L/H = 8)
   against Timoshenko (the target; Euler-Bernoulli printed);
 * ``hertz``: a rigid 15 mm sphere pressed 1.5 mm into a bottom-fixed block 80 x 80 x 40 mm at
@@ -48,7 +51,7 @@ import numpy as np
 
 from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.factory import make_model
-from sph_tissue_sim.core.material import liver_default
+from sph_tissue_sim.core.material import Material, liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import SolverConfig
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
@@ -57,7 +60,7 @@ from sph_tissue_sim.validation.analytic import hertz_force
 from tissue_common.force import HARD_FORCE_LIMIT
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKS = ('creep', 'uniaxial', 'cantilever', 'hertz', 'local_global', 'drag', 'press')
+CHECKS = ('creep', 'uniaxial', 'relaxation', 'cantilever', 'hertz', 'local_global', 'drag', 'press')
 COLUMNS = ('check', 'case', 'measured', 'reference', 'unit', 'error_pct', 'target', 'met')
 
 #: places on the liver's top (x, y) [m] and depths [m] of the local-vs-global presses
@@ -101,6 +104,39 @@ def check_creep(quick: bool, out: Path) -> list[dict]:
     ax.set_ylabel('axial strain')
     ax.set_title('creep of a free bar under constant traction')
     _save(fig, ax, out / 'validate_creep.png')
+    return rows
+
+
+#: the relaxation check's Prony series: on the liver's spring, and in units of the creep bar's tau_v
+RELAX_PRONY = ((0.4, 0.05), (0.2, 0.5))
+CREEP_PRONY = ((0.3, 4.0), (0.2, 20.0))
+
+
+def check_relaxation(quick: bool, out: Path) -> list[dict]:
+    liver = liver_default()
+    material = Material(liver.E, liver.nu, liver.eta_shear, liver.eta_bulk, liver.rho, 'relaxing', RELAX_PRONY)
+    held = cases.held_stretch(material, times=(0.0, 0.05, 0.5) if quick else (0.0, 0.05, 0.5, 2.0))
+    creep = cases.relaxing_creep(prony=CREEP_PRONY, times=(0.5, 2.0) if quick else (0.5, 2.0, 8.0, 30.0, 80.0))
+    rows = [row('relaxation', f'step stretch held, t = {t:g} s', m, e, 'P/P0', '|error| <= 2 %',
+                abs(m / e - 1.0) <= 0.02) for t, m, e in held]
+    rows += [row('relaxation', f'creep, t = {t:g} tau_v', m, e, 'strain', '|error| <= 2 %', abs(m / e - 1.0) <= 0.02)
+             for t, m, e in creep]
+    fig, (a1, a2) = _figure(cols=2)
+    tt = np.linspace(0.0, max(t for t, _, _ in held), 300)
+    a1.plot(tt, [material.relaxation(t) for t in tt], 'k-', lw=1, label='g(t)')
+    a1.plot([t for t, _, _ in held], [m for _, m, _ in held], 'o', color='#1f77b4', label='tlsph')
+    a1.set_xlabel('t [s]')
+    a1.set_ylabel('stress / instantaneous stress')
+    a1.set_title('a step stretch held')
+    a1.legend(fontsize=8)
+    a1.grid(alpha=0.3)
+    a2.plot([t for t, _, _ in creep], [e for _, _, e in creep], 'kx', ms=9, label='closed form')
+    a2.plot([t for t, _, _ in creep], [m for _, m, _ in creep], 'o', color='#1f77b4', label='tlsph')
+    a2.set_xscale('log')
+    a2.set_xlabel('t / tau_v')
+    a2.set_ylabel('axial strain')
+    a2.set_title('creep with a relaxing spring')
+    _save(fig, a2, out / 'validate_relaxation.png')
     return rows
 
 
@@ -354,11 +390,11 @@ def _plot_hertz(ax, material, radius: float, depth: float, label: str) -> None:
     ax.plot(dh * 1e3, hertz_force(material.E, material.nu, radius, dh), 'k:', lw=1.3, label=label)
 
 
-def _figure(height: float = 3.6):
+def _figure(height: float = 3.6, cols: int = 1):
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    return plt.subplots(figsize=(7, height))
+    return plt.subplots(1, cols, figsize=(7 if cols == 1 else 10, height))
 
 
 def _save(fig, ax, path: Path, legend: bool = True) -> None:
@@ -380,7 +416,7 @@ def _fmt(v) -> str:
 
 
 def report(rows: list[dict], path: Path, header: str, pngs: list[str]) -> None:
-    lines = [f'# Validation report', '', header, '',
+    lines = ['# Validation report', '', header, '',
              '| check | case | measured | reference | unit | error [%] | target | met |',
              '|---|---|---|---|---|---|---|---|']
     for r in rows:
@@ -419,7 +455,7 @@ def main(argv=None) -> int:
     if unknown:
         ap.error(f'unknown checks {unknown}; choose from {",".join(CHECKS)}')
     args.out.mkdir(parents=True, exist_ok=True)
-    runners = {'creep': check_creep, 'uniaxial': check_uniaxial, 'cantilever': check_cantilever,
+    runners = {'creep': check_creep, 'uniaxial': check_uniaxial, 'relaxation': check_relaxation, 'cantilever': check_cantilever,
                'hertz': check_hertz, 'local_global': check_local_global, 'drag': check_drag,
                'press': check_press}
     rows, pngs = [], []

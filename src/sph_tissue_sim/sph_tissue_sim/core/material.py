@@ -1,4 +1,5 @@
-"""Kelvin-Voigt viscoelastic material (paper eqs. 1-3, generalised to E, nu).
+"""Viscoelastic material: Kelvin-Voigt (paper eqs. 1-3, generalised to E, nu), optionally with
+stress relaxation (a Prony series).
 
 Deviatoric and volumetric parts each have a spring and a dashpot in parallel:
 
@@ -7,6 +8,14 @@ Deviatoric and volumetric parts each have a spring and a dashpot in parallel:
 
 The paper writes ``S = E e + eta de/dt`` and ``sigma_kk = E eps_kk + eta deps_kk/dt``, which is the
 special case ``2G = 3K = E`` (nu = 0), ``2 eta_shear = 3 eta_bulk = eta``: :meth:`Material.paper_preset`.
+
+With ``prony`` terms ``(g_k, tau_k)`` the spring relaxes (quasi-linear viscoelasticity, Fung): its
+stress is the elastic stress of the instantaneous moduli ``G, K`` convolved with the reduced
+relaxation function
+
+    g(t) = g_inf + sum_k g_k exp(-t / tau_k),    g_inf = 1 - sum_k g_k > 0,
+
+so a held strain's stress falls from ``G`` to ``g_inf G`` (:meth:`Material.relaxation`).
 """
 
 from __future__ import annotations
@@ -20,15 +29,17 @@ from .errors import ConfigError
 
 @dataclass(frozen=True)
 class Material:
-    """Isotropic Kelvin-Voigt solid.
+    """Isotropic Kelvin-Voigt solid, its spring optionally relaxing.
 
     Attributes:
-        E: Young's modulus [Pa] (> 0).
+        E: Young's modulus [Pa] (> 0); with ``prony`` the instantaneous one.
         nu: Poisson's ratio [-], 0 <= nu < 0.5 (explicit time steps shrink as nu -> 0.5).
         eta_shear: shear viscosity [Pa s] (>= 0), the dashpot of the deviatoric part.
         eta_bulk: volumetric viscosity [Pa s] (>= 0), the dashpot of the trace part.
         rho: density [kg/m^3] (> 0).
         name: label for logs.
+        prony: ``((g_1, tau_1), ...)``: the spring's relaxation, weights ``g_k > 0`` of the
+            instantaneous moduli (summing below 1) and time constants ``tau_k > 0`` [s]; empty: none.
     """
 
     E: float
@@ -37,6 +48,7 @@ class Material:
     eta_bulk: float
     rho: float
     name: str = 'custom'
+    prony: tuple = ()
 
     def __post_init__(self) -> None:
         for key in ('E', 'nu', 'eta_shear', 'eta_bulk', 'rho'):
@@ -52,6 +64,21 @@ class Material:
         if self.eta_shear < 0.0 or self.eta_bulk < 0.0:
             raise ConfigError(f'material {self.name}: viscosities must be >= 0 Pa s, got '
                               f'eta_shear={self.eta_shear}, eta_bulk={self.eta_bulk}')
+        terms = []
+        for term in self.prony:
+            try:
+                g, tau = (float(v) for v in term)
+            except (TypeError, ValueError):
+                raise ConfigError(f'material {self.name}: a prony term is a pair (g, tau), got {term!r}') from None
+            if not (math.isfinite(g) and g > 0.0):
+                raise ConfigError(f'material {self.name}: a prony weight g must be > 0, got {g}')
+            if not (math.isfinite(tau) and tau > 0.0):
+                raise ConfigError(f'material {self.name}: a prony time constant tau must be > 0 s, got {tau}')
+            terms.append((g, tau))
+        if sum(g for g, _ in terms) >= 1.0:
+            raise ConfigError(f'material {self.name}: the prony weights must sum below 1 (the spring '
+                              f'keeps g_inf = 1 - sum g > 0 of its stiffness), got {sum(g for g, _ in terms):g}')
+        object.__setattr__(self, 'prony', tuple(terms))
 
     @property
     def G(self) -> float:
@@ -77,6 +104,16 @@ class Material:
     def eta_longitudinal(self) -> float:
         """Viscosity of a 1D longitudinal motion [Pa s]: eta_bulk + 4/3 eta_shear (viscous dt bound)."""
         return self.eta_bulk + 4.0 * self.eta_shear / 3.0
+
+    @property
+    def g_inf(self) -> float:
+        """[-] the fraction of the instantaneous stiffness a held strain keeps: 1 - sum g_k."""
+        return 1.0 - sum(g for g, _ in self.prony)
+
+    def relaxation(self, t: float) -> float:
+        """[-] the reduced relaxation function g(t): a strain applied at 0 and held has g(t) of
+        its instantaneous elastic stress at t >= 0."""
+        return self.g_inf + sum(g * math.exp(-t / tau) for g, tau in self.prony)
 
     @property
     def retardation_time(self) -> float:
@@ -107,7 +144,7 @@ class Material:
     def with_viscosity_scale(self, factor: float) -> 'Material':
         """A copy with both viscosities multiplied by ``factor``."""
         return Material(self.E, self.nu, self.eta_shear * factor, self.eta_bulk * factor, self.rho,
-                        self.name)
+                        self.name, self.prony)
 
 
 DEFAULT_MATERIALS_YAML = Path(__file__).resolve().parents[2] / 'config' / 'materials.yaml'
@@ -117,8 +154,8 @@ def load_material(yaml_path: str | Path | None = None, name: str = 'liver') -> M
     """Load material ``name`` from a YAML file (default: the package's ``config/materials.yaml``).
 
     Each entry gives ``rho`` and either (``E``, ``nu``) or (``G``, ``nu``), plus ``eta_shear`` and
-    optionally ``eta_bulk`` [Pa s] (default: same retardation time as the shear part); or
-    ``preset: paper`` with ``E``, ``eta``, ``rho``.
+    optionally ``eta_bulk`` [Pa s] (default: same retardation time as the shear part) and ``prony``
+    (a list of ``[g, tau]``, the spring's relaxation); or ``preset: paper`` with ``E``, ``eta``, ``rho``.
 
     Raises:
         ConfigError: missing file, unknown name or invalid values.
@@ -145,14 +182,16 @@ def load_material(yaml_path: str | Path | None = None, name: str = 'liver') -> M
         rho = float(entry['rho'])
         eta_s = float(entry['eta_shear'])
         eta_b = entry.get('eta_bulk')
+        prony = tuple(tuple(term) for term in entry.get('prony') or ())
         if 'G' in entry:
-            return Material.from_shear(float(entry['G']), nu, eta_s,
-                                       None if eta_b is None else float(eta_b), rho, name)
+            mat = Material.from_shear(float(entry['G']), nu, eta_s,
+                                      None if eta_b is None else float(eta_b), rho, name)
+            return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name, prony)
         E = float(entry['E'])
         if eta_b is None:
             G = E / (2.0 * (1.0 + nu))
             eta_b = E / (3.0 * (1.0 - 2.0 * nu)) * eta_s / G
-        return Material(E, nu, eta_s, float(eta_b), rho, name)
+        return Material(E, nu, eta_s, float(eta_b), rho, name, prony)
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise

@@ -457,6 +457,9 @@ class PaperScheme:
         elif self.material is not None:
             self.rho[:] = self.material.rho
 
+    def start_frame(self, time: float, sub_dt: float) -> None:
+        pass
+
     def state(self, sets, active: np.ndarray, n_active: int) -> Paper:
         """This frame's state: every particle as rows in global mode (``sets.sph`` is every free
         one), else the solved particles, their stress set and the search set around them."""

@@ -56,6 +56,10 @@ class FrameScheme(Protocol):
     def reset(self) -> None:
         """Back to the reference state (after the positions were reset)."""
 
+    def start_frame(self, time: float, sub_dt: float) -> None:
+        """A frame of sub-steps of ``sub_dt`` [s] starts at sim time ``time`` [s] (for schemes
+        with a memory of time: a relaxing spring)."""
+
     def state(self, sets, active: np.ndarray, n_active: int) -> NamedTuple:
         """The named tuple the scheme's ``internal_forces`` overload takes, for this frame."""
 
@@ -76,6 +80,9 @@ class FixedStateScheme:
     _state: NamedTuple
 
     def reset(self) -> None:
+        pass
+
+    def start_frame(self, time: float, sub_dt: float) -> None:
         pass
 
     def state(self, sets, active: np.ndarray, n_active: int) -> NamedTuple:

@@ -347,8 +347,11 @@ class Solver:
         and the sub-step bounds follow."""
         if not isinstance(material, Material):
             raise ConfigError(f'material must be a Material, got {type(material).__name__}')
-        self.material = material
         cfg = self.config
+        if material.prony and (cfg.scheme != 'tlsph' or cfg.integrator != 'explicit'):
+            raise ConfigError(f'material {material.name}: a relaxing spring (prony) needs scheme tlsph with '
+                              f'integrator explicit, got {cfg.scheme} with {cfg.integrator}')
+        self.material = material
         self.mass = material.rho * self.volume
         self.inv_mass = 1.0 / self.mass
         self.body = Body(self.X, self.fixed, self.mass, self.inv_mass)
@@ -606,6 +609,7 @@ class Solver:
         back to their state before the frame and :class:`SimError` is raised.
         """
         self.area.save(self.x, self.v, sets)
+        self.scheme.start_frame(self.sim_time, sub_dt)
         status, overlap = frame.run(self.scheme, self.substep_integrator(sub_dt), self.body, self.motion, sets,
                                     path, self.loads, n_sub, dt, self.react, self.abort,
                                     self.area.active, self.area.n_active)

@@ -12,6 +12,17 @@ Green-Lagrange strain rate ``dE/dt = (dF^T F + F^T dF)/2``:
 
     P = G (F - F^-T) + (K - 2G/3) ln(J) F^-T  +  F [eta_bulk tr(dE/dt) I + 2 eta_shear dev(dE/dt)].
 
+A relaxing spring (the material's ``prony`` terms, quasi-linear viscoelasticity) replaces the
+elastic part by ``g_inf P_e + F sum_k Q_k``: with ``S_e = F^-1 P_e`` the second Piola-Kirchhoff
+stress of the spring at the instantaneous moduli, each internal variable ``Q_k`` (symmetric, per
+particle) follows ``dQ_k/dt = -Q_k / tau_k + g_k dS_e/dt``, integrated exactly for ``S_e`` linear
+in time since the particle's last update, ``dt`` ago (:func:`relax_one`):
+
+    Q_k <- exp(-dt / tau_k) Q_k + g_k (1 - exp(-dt / tau_k)) (tau_k / dt) (S_e - S_e,last),
+
+stable for any ``dt`` and exact for a held strain, whose stress then follows the relaxation
+function ``g_inf + sum_k g_k exp(-t / tau_k)`` of :class:`~.material.Material`.
+
 Forces follow from the discrete energy ``sum_i V_i psi(F_i)`` (momentum conserving: ``F`` sees
 differences only, and ``psi`` is frame-indifferent):
 
@@ -66,6 +77,20 @@ class Tlsph(NamedTuple):
     hg_k: float            # hourglass stiffness
     hg_c: float            # hourglass damping
     par_min: int           # stressed particles from which a sub-step runs on the thread pool
+
+
+class TlsphRelax(NamedTuple):
+    """The scheme's state with a relaxing spring: the Kelvin-Voigt state at the instantaneous moduli
+    and the Prony series' internal variables (:func:`relax_one`)."""
+
+    base: Tlsph            # the Kelvin-Voigt state (G, K the instantaneous moduli)
+    g_inf: float           # [-] 1 - sum g_k
+    gk: np.ndarray         # (n_terms,) [-] weights g_k
+    tau: np.ndarray        # (n_terms,) [s] time constants
+    Se: np.ndarray         # (N, 6) [Pa] S_e (xx, yy, zz, xy, xz, yz) at each particle's last update
+    Q: np.ndarray          # (N, n_terms, 6) [Pa] the internal variables Q_k
+    t_up: np.ndarray       # (N,) [s] the sim time of each particle's last update
+    clock: np.ndarray      # (2,) [s] the sim time of this sub-step's stresses, the sub-step
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -144,6 +169,67 @@ def tlsph_stress_one(i, s, x, v):
 
 
 @njit(cache=True, fastmath=True, inline='always')
+def relax_one(i, s):
+    """Turn ``A_i = V P_i`` of :func:`tlsph_stress_one` (the Kelvin-Voigt element at the
+    instantaneous moduli, ``s.base``) into the relaxing spring's: ``A_i += V (F sum_k Q_k -
+    (1 - g_inf) P_e)`` after updating the ``Q_k`` of particle ``i`` to ``s.clock[0]`` (``s`` a
+    :class:`TlsphRelax`; the update in the module docstring)."""
+    b = s.base
+    G, K = b.G, b.K
+    Fm = b.F[i]
+    f00 = Fm[0, 0]; f01 = Fm[0, 1]; f02 = Fm[0, 2]
+    f10 = Fm[1, 0]; f11 = Fm[1, 1]; f12 = Fm[1, 2]
+    f20 = Fm[2, 0]; f21 = Fm[2, 1]; f22 = Fm[2, 2]
+    c00 = f11 * f22 - f12 * f21; c01 = f12 * f20 - f10 * f22; c02 = f10 * f21 - f11 * f20
+    c10 = f02 * f21 - f01 * f22; c11 = f00 * f22 - f02 * f20; c12 = f01 * f20 - f00 * f21
+    c20 = f01 * f12 - f02 * f11; c21 = f02 * f10 - f00 * f12; c22 = f00 * f11 - f01 * f10
+    J = f00 * c00 + f01 * c01 + f02 * c02
+    if J < 0.05:
+        J = 0.05  # as _piola: a crushed particle keeps pushing back
+    t = ((K - 2.0 * G / 3.0) * math.log(J) - G) / J
+    # S_e = F^-1 P_e = G I + t cof^T cof / J (P_e = G F + t cof, F^-1 = cof^T / J)
+    u = t / J
+    se = (G + u * (c00 * c00 + c10 * c10 + c20 * c20),
+          G + u * (c01 * c01 + c11 * c11 + c21 * c21),
+          G + u * (c02 * c02 + c12 * c12 + c22 * c22),
+          u * (c00 * c01 + c10 * c11 + c20 * c21),
+          u * (c00 * c02 + c10 * c12 + c20 * c22),
+          u * (c01 * c02 + c11 * c12 + c21 * c22))
+    now = s.clock[0]
+    dt = now - s.t_up[i]
+    s.t_up[i] = now
+    q0 = 0.0; q1 = 0.0; q2 = 0.0; q3 = 0.0; q4 = 0.0; q5 = 0.0
+    Se, Q = s.Se[i], s.Q[i]
+    for k in range(len(s.gk)):
+        if dt > 0.0:
+            x = dt / s.tau[k]
+            d = math.exp(-x)
+            w = s.gk[k] * (1.0 - d) / x
+        else:
+            d = 1.0
+            w = s.gk[k]
+        Qk = Q[k]
+        for c in range(6):
+            Qk[c] = d * Qk[c] + w * (se[c] - Se[c])
+        q0 += Qk[0]; q1 += Qk[1]; q2 += Qk[2]; q3 += Qk[3]; q4 += Qk[4]; q5 += Qk[5]
+    for c in range(6):
+        Se[c] = se[c]
+    # A += V (F Q - (1 - g_inf) (G F + t cof)), Q = sum_k Q_k (symmetric: xx yy zz xy xz yz)
+    r = 1.0 - s.g_inf
+    vol = b.volume
+    Am = b.A[i]
+    Am[0, 0] += vol * (f00 * q0 + f01 * q3 + f02 * q4 - r * (G * f00 + t * c00))
+    Am[0, 1] += vol * (f00 * q3 + f01 * q1 + f02 * q5 - r * (G * f01 + t * c01))
+    Am[0, 2] += vol * (f00 * q4 + f01 * q5 + f02 * q2 - r * (G * f02 + t * c02))
+    Am[1, 0] += vol * (f10 * q0 + f11 * q3 + f12 * q4 - r * (G * f10 + t * c10))
+    Am[1, 1] += vol * (f10 * q3 + f11 * q1 + f12 * q5 - r * (G * f11 + t * c11))
+    Am[1, 2] += vol * (f10 * q4 + f11 * q5 + f12 * q2 - r * (G * f12 + t * c12))
+    Am[2, 0] += vol * (f20 * q0 + f21 * q3 + f22 * q4 - r * (G * f20 + t * c20))
+    Am[2, 1] += vol * (f20 * q3 + f21 * q1 + f22 * q5 - r * (G * f21 + t * c21))
+    Am[2, 2] += vol * (f20 * q4 + f21 * q5 + f22 * q2 - r * (G * f22 + t * c22))
+
+
+@njit(cache=True, fastmath=True, inline='always')
 def tlsph_force_one(i, s, X, x, v):
     """Internal force ``(f0, f1, f2)`` [N] on particle ``i`` (gather over its reference neighbours).
 
@@ -203,6 +289,26 @@ def tlsph_pass(s, body, motion, sets):
     for t in range(sets.n_sph):
         i = sets.sph[t]
         f0, f1, f2 = tlsph_force_one(i, s, X, x, v)
+        acc[i, 0] = f0 * inv_mass
+        acc[i, 1] = f1 * inv_mass
+        acc[i, 2] = f2 * inv_mass
+
+
+@njit(cache=True, fastmath=True)
+def tlsph_relax_pass(s, body, motion, sets):
+    """:func:`tlsph_pass` with the relaxing spring (``s`` a :class:`TlsphRelax`): the clock moves
+    on by a sub-step, each stressed particle's Kelvin-Voigt stress is turned into the relaxing
+    spring's (:func:`relax_one`), then the forces as there."""
+    X, x, v, acc, inv_mass = body.X, motion.x, motion.v, motion.acc, body.inv_mass
+    s.clock[0] += s.clock[1]
+    b = s.base
+    for t in range(sets.n_stress):
+        i = sets.stress[t]
+        tlsph_stress_one(i, b, x, v)
+        relax_one(i, s)
+    for t in range(sets.n_sph):
+        i = sets.sph[t]
+        f0, f1, f2 = tlsph_force_one(i, b, X, x, v)
         acc[i, 0] = f0 * inv_mass
         acc[i, 1] = f1 * inv_mass
         acc[i, 2] = f2 * inv_mass
@@ -286,6 +392,30 @@ def tlsph_von_mises(F, Fd, G, K, eta_s, eta_v, idx, n, out):
                                   + 2.0 * (sig[0, 1] ** 2 + sig[0, 2] ** 2 + sig[1, 2] ** 2)))
 
 
+@njit(cache=True, nogil=True)
+def piola_von_mises(F, A, volume, idx, n, out):
+    """Von Mises stress [Pa] of the Cauchy stress ``sigma = P F^T / J`` (``P = A / volume``) for
+    ``idx[:n]`` into ``out``."""
+    sig = np.empty((3, 3))
+    for t in range(n):
+        i = idx[t]
+        Fi = F[i]
+        J = _det3(Fi)
+        if abs(J) < 1e-9:
+            J = 1e-9
+        for p in range(3):
+            for q in range(3):
+                sig[p, q] = (A[i, p, 0] * Fi[q, 0] + A[i, p, 1] * Fi[q, 1] + A[i, p, 2] * Fi[q, 2]) / (volume * J)
+        tr = (sig[0, 0] + sig[1, 1] + sig[2, 2]) / 3.0
+        d0 = sig[0, 0] - tr
+        d1 = sig[1, 1] - tr
+        d2 = sig[2, 2] - tr
+        s01 = 0.5 * (sig[0, 1] + sig[1, 0])
+        s02 = 0.5 * (sig[0, 2] + sig[2, 0])
+        s12 = 0.5 * (sig[1, 2] + sig[2, 1])
+        out[i] = math.sqrt(1.5 * (d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (s01 ** 2 + s02 ** 2 + s12 ** 2)))
+
+
 def _pair_arrays(X, offsets, indices, h, volume):
     """``g``, its reverse pairs' ``gr``, the per-particle sums ``gsum`` and the hourglass weights
     (:func:`~.gradients.corrected_gradients`)."""
@@ -322,6 +452,11 @@ def _tlsph_forces(scheme, body, motion, sets):
             tlsph_pass(scheme, body, motion, sets)
             return STATUS_OK
         return serial
+    if is_state(scheme, TlsphRelax):
+        def relaxing(scheme, body, motion, sets):
+            tlsph_relax_pass(scheme, body, motion, sets)
+            return STATUS_OK
+        return relaxing
     return None
 
 
@@ -352,6 +487,9 @@ class TlsphScheme(FixedStateScheme):
         self.A = np.zeros((n, 3, 3))
         self.H = np.zeros((n, 3, 3))
         self._state: Tlsph | None = None
+        #: with a relaxing material: its state, and what a frame that is undone puts back
+        self._relax: TlsphRelax | None = None
+        self._saved: tuple | None = None
         self.reset()
 
     def set_material(self, material: Material, mass: float) -> None:
@@ -369,6 +507,35 @@ class TlsphScheme(FixedStateScheme):
         self._state = kind(self.offsets, self.indices, self.g, self.gr, self.gsum, self.w0,
                            self.F, self.Fd, self.A, self.H, self.volume, material.G, material.K,
                            on * eta_s, on * eta_b, hg_k, hg_c, self.par_min)
+        self._relax = None
+        if material.prony:
+            # a new material starts its relaxation afresh; the Kelvin-Voigt part runs serially
+            n, m = len(self.F), len(material.prony)
+            base = Tlsph(*self._state)
+            self._relax = TlsphRelax(base, material.g_inf, np.array([g for g, _ in material.prony]),
+                                     np.array([tau for _, tau in material.prony]), np.zeros((n, 6)),
+                                     np.zeros((n, m, 6)), np.zeros(n), np.zeros(2))
+
+    def start_frame(self, time: float, sub_dt: float) -> None:
+        if self._relax is not None:
+            self._relax.clock[0] = time - sub_dt    # each sub-step's pass moves it on first
+            self._relax.clock[1] = sub_dt
+
+    def state(self, sets, active: np.ndarray, n_active: int) -> Tlsph | TlsphRelax:
+        """The frame's state; ``sets`` None: the Kelvin-Voigt state of the instantaneous moduli (the
+        organ's linear response, the implicit solves)."""
+        r = self._relax
+        if r is None or sets is None:
+            return self._state
+        idx = sets.stress[:sets.n_stress].copy()
+        self._saved = (idx, r.Se[idx], r.Q[idx], r.t_up[idx])
+        return r
+
+    def frame_done(self, ok: bool) -> None:
+        if not ok and self._saved is not None and self._relax is not None:
+            idx, Se, Q, t_up = self._saved
+            self._relax.Se[idx], self._relax.Q[idx], self._relax.t_up[idx] = Se, Q, t_up
+        self._saved = None
 
     def wave_speed(self, material: Material, mass: float) -> float:
         return material.wave_speed
@@ -401,8 +568,15 @@ class TlsphScheme(FixedStateScheme):
         self.Fd[:] = 0.0
         self.A[:] = 0.0
         self.H[:] = 0.0
+        if self._relax is not None:
+            for a in (self._relax.Se, self._relax.Q, self._relax.t_up, self._relax.clock):
+                a[:] = 0.0
 
     def von_mises(self, x: np.ndarray, sets, out: np.ndarray) -> None:
-        """Von Mises stress of the stress set of the last frame (``sets``)."""
+        """Von Mises stress of the stress set of the last frame (``sets``; with a relaxing spring
+        from the stresses the frame used, ``A = V P``)."""
         m = self.material
+        if self._relax is not None:
+            piola_von_mises(self.F, self.A, self.volume, sets.stress, sets.n_stress, out)
+            return
         tlsph_von_mises(self.F, self.Fd, m.G, m.K, m.eta_shear, m.eta_bulk, sets.stress, sets.n_stress, out)

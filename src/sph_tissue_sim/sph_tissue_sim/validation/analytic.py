@@ -18,6 +18,41 @@ def creep_strain(sigma0: float, E: float, tau: float, t: float) -> float:
     return sigma0 / E * (1.0 - math.exp(-t / tau))
 
 
+def relaxing_creep_strain(sigma0: float, E0: float, tau_v: float, prony, t: float) -> float:
+    """Creep under a constant uniaxial stress from rest of a relaxing spring (quasi-linear
+    viscoelastic: instantaneous modulus ``E0``, relaxation ``g(t) = g_inf + sum_k g_k
+    exp(-t / tau_k)`` from ``prony = ((g_k, tau_k), ...)``) in parallel with a dashpot of
+    retardation ``tau_v`` (stress ``E0 tau_v deps/dt``), inertia neglected (linear
+    viscoelasticity: Findley, Lai and Onaran, Creep and Relaxation of Nonlinear Viscoelastic
+    Materials, 1976, ch. 5). In Laplace space
+
+        eps(s) = sigma0 / (E0 s M(s)),   M(s) = g_inf + sum_k g_k s tau_k / (s tau_k + 1) + tau_v s,
+
+    and with ``P(s) = prod_k (s tau_k + 1)``, ``N(s) = M(s) P(s)`` (a polynomial whose roots ``r``
+    are real and negative) the residues give
+
+        eps(t) = sigma0 / E0 [1 / g_inf + sum_r P(r) exp(r t) / (r N'(r))].
+    """
+    from numpy.polynomial import Polynomial as Poly
+
+    g_inf = 1.0 - sum(g for g, _ in prony)
+    P = Poly([1.0])
+    for _, tau in prony:
+        P = P * Poly([1.0, tau])
+    N = (g_inf + Poly([0.0, tau_v])) * P
+    for k, (g, tau) in enumerate(prony):
+        term = Poly([0.0, g * tau])
+        for j, (_, tau_j) in enumerate(prony):
+            if j != k:
+                term = term * Poly([1.0, tau_j])
+        N = N + term
+    dN = N.deriv()
+    total = 1.0 / g_inf
+    for r in N.roots():
+        total += float(np.real(P(r) * np.exp(r * t) / (r * dN(r))))
+    return sigma0 / E0 * total
+
+
 def euler_bernoulli_f1(length: float, height: float, E: float, rho: float) -> float:
     """First bending frequency [Hz] of a clamped-free Euler-Bernoulli beam of rectangular section
     bent across ``height``: (beta L)^2 / (2 pi L^2) sqrt(E I / (rho A)), I / A = H^2 / 12."""

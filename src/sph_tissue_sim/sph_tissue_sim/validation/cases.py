@@ -14,7 +14,8 @@ from ..core.errors import SimError
 from ..core.material import Material
 from ..core.models import TissueModel, make_beam, make_block
 from ..core.solver import Solver, SolverConfig
-from .analytic import CANTILEVER_BETA_L, creep_strain, euler_bernoulli_f1, timoshenko_f1
+from ..core.tlsph import tlsph_pass, tlsph_relax_pass
+from .analytic import CANTILEVER_BETA_L, creep_strain, euler_bernoulli_f1, relaxing_creep_strain, timoshenko_f1
 
 E_TEST = 5000.0      # Young's modulus of the test material [Pa] (liver order of magnitude)
 RHO = 1060.0         # density [kg/m^3]
@@ -99,6 +100,62 @@ def creep(nx: int = 8, ny: int = 4, nz: int = 4, nu: float = 0.45,
         advance_to(solver, t * tau, 5e-4)
         out.append((t, strain_slope(solver, interior, 0),
                     creep_strain(sigma0, E_TEST, tau, solver.sim_time)))
+    return out
+
+
+def held_stretch(material: Material, times=(0.0, 0.05, 0.5, 2.0), stretch: float = 1.02,
+                 dt: float = 1e-3) -> list[tuple[float, float, float]]:
+    """Relaxation under a step strain: a free block of ``material`` (a relaxing spring) put at a
+    uniform stretch along x at t = 0 and held there (the positions never move; the stress passes
+    run at sub-steps of ``dt``), against the relaxation function ``g(t)``: the ratio of an interior
+    particle's stress P_xx to its instantaneous elastic value (a Kelvin-Voigt twin's at rest).
+
+    Returns ``(t, measured ratio, g(t))`` at each of ``times`` [s].
+    """
+    model = make_block(6, 6, 6, spacing=SPACING, fix='none')
+    twin = Material(material.E, material.nu, material.eta_shear, material.eta_bulk, material.rho, 'twin')
+    solvers = [Solver(model, m, SolverConfig(mode='global')) for m in (material, twin)]
+    for s in solvers:
+        s.x[:] = s.X * [stretch, 1.0, 1.0]
+    solver, kv = solvers
+    sets = solver.area.global_sets(-1)
+    tlsph_pass(kv.scheme.state(sets, kv.area.active, 0), kv.body, kv.motion, sets)
+    X = model.positions
+    centre = int(np.argmin(np.linalg.norm(X - X.mean(axis=0), axis=1)))
+    elastic = kv.scheme.A[centre, 0, 0]
+    scheme = solver.scheme
+    out = []
+    for step in range(int(round(max(times) / dt)) + 1):
+        scheme.start_frame(step * dt, dt)
+        tlsph_relax_pass(scheme.state(sets, solver.area.active, 0), solver.body, solver.motion, sets)
+        scheme.frame_done(True)
+        t = step * dt
+        if any(abs(t - want) < 0.5 * dt for want in times):
+            out.append((t, float(scheme.A[centre, 0, 0] / elastic), material.relaxation(t)))
+    return out
+
+
+def relaxing_creep(nx: int = 8, ny: int = 4, nz: int = 4, nu: float = 0.45, prony=((0.3, 4.0), (0.2, 20.0)),
+                   times=(0.5, 2.0, 8.0, 30.0, 80.0)) -> list[tuple[float, float, float]]:
+    """:func:`creep` with a relaxing spring: the Kelvin-Voigt bar of :func:`creep` (its dashpot's
+    retardation ``tau_v`` as there) whose spring relaxes by ``prony`` (time constants in units of
+    ``tau_v``), against :func:`~.analytic.relaxing_creep_strain`. The strain creeps towards
+    ``sigma0 / (g_inf E)`` with the Prony terms' slower time constants.
+
+    Returns ``(t / tau_v, measured strain, exact strain)`` at each of ``times`` (in units of tau_v).
+    """
+    omega = math.pi * math.sqrt(E_TEST / RHO) / (nx * SPACING)
+    tau_v = 12.0 / omega
+    sigma0 = 1e-3 * E_TEST
+    terms = tuple((g, k * tau_v) for g, k in prony)
+    kv = kelvin_voigt(nu, tau_v)
+    material = Material(kv.E, kv.nu, kv.eta_shear, kv.eta_bulk, kv.rho, 'relaxing', terms)
+    solver, interior = free_bar_under_end_tractions(nx, ny, nz, material, sigma0)
+    out = []
+    for t in times:
+        advance_to(solver, t * tau_v, 5e-4)
+        out.append((t, strain_slope(solver, interior, 0),
+                    relaxing_creep_strain(sigma0, E_TEST, tau_v, terms, solver.sim_time)))
     return out
 
 
