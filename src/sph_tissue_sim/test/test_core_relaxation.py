@@ -1,6 +1,7 @@
-"""A relaxing spring (``Material.prony``, quasi-linear viscoelasticity in :mod:`.core.tlsph`):
-its checks, a held strain against the relaxation function, creep against the linear viscoelastic
-closed form, and the frame's undo and reset."""
+"""A relaxing and stiffening spring (``Material.prony``, ``Material.stiffening``: quasi-linear
+viscoelasticity in :mod:`.core.tlsph`): their checks, a held strain against the relaxation
+function, creep against the linear viscoelastic closed form, the frame's undo and reset, the
+stiffening stress against its strain energy's gradient."""
 
 import math
 
@@ -11,7 +12,7 @@ from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.material import Material, load_material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
-from sph_tissue_sim.core.tlsph import TlsphRelax, tlsph_pass, tlsph_relax_pass
+from sph_tissue_sim.core.tlsph import TlsphQlv, tlsph_pass, tlsph_qlv_pass
 from sph_tissue_sim.validation.cases import relaxing_creep
 
 KV = Material.from_shear(1800.0, 0.45, 3.0)
@@ -48,12 +49,17 @@ def test_the_relaxation_function_falls_from_one_to_g_inf():
 def test_materials_yaml_reads_a_prony_series_and_refuses_a_bad_one(tmp_path):
     path = tmp_path / 'materials.yaml'
     path.write_text('materials:\n  soft:\n    G: 1800.0\n    nu: 0.45\n    rho: 1060.0\n    eta_shear: 3.0\n'
-                    '    prony: [[0.4, 0.05], [0.2, 0.5]]\n'
+                    '    prony: [[0.4, 0.05], [0.2, 0.5]]\n    stiffening: 4.0\n'
                     '  fluid:\n    G: 1800.0\n    nu: 0.45\n    rho: 1060.0\n    eta_shear: 3.0\n'
                     '    prony: [[0.7, 1.0], [0.3, 5.0]]\n')
-    assert load_material(path, 'soft').prony == PRONY
+    assert load_material(path, 'soft').prony == PRONY and load_material(path, 'soft').stiffening == 4.0
     with pytest.raises(ConfigError, match='sum below 1'):
         load_material(path, 'fluid')
+    # sim_node's material parameters go the same way (a start-up or run-time change is refused)
+    from sph_tissue_sim.params import build_material
+    assert build_material({'material': 'soft', 'materials_file': str(path)}).prony == PRONY
+    with pytest.raises(ConfigError, match='sum below 1'):
+        build_material({'material': 'fluid', 'materials_file': str(path)})
 
 
 def test_a_relaxing_spring_needs_the_explicit_tlsph_solver():
@@ -91,8 +97,8 @@ def test_a_held_stretch_relaxes_as_the_relaxation_function_in_every_particle():
         for step in range(int(round(1.0 / dt)) + 1):
             scheme.start_frame(step * dt, dt)
             state = scheme.state(sets, solver.area.active, 0)
-            assert isinstance(state, TlsphRelax)
-            tlsph_relax_pass(state, solver.body, solver.motion, sets)
+            assert isinstance(state, TlsphQlv)
+            tlsph_qlv_pass(state, solver.body, solver.motion, sets)
             scheme.frame_done(True)
             if step in (0, int(round(0.05 / dt)), int(round(1.0 / dt))):
                 g = m.relaxation(step * dt)
@@ -117,13 +123,13 @@ def test_an_undone_frame_puts_the_internal_variables_back():
     scheme = solver.scheme
     scheme.start_frame(0.0, 1e-3)
     state = scheme.state(sets, solver.area.active, 0)
-    tlsph_relax_pass(state, solver.body, solver.motion, sets)
+    tlsph_qlv_pass(state, solver.body, solver.motion, sets)
     scheme.frame_done(True)
     before = [a.copy() for a in (state.Se, state.Q, state.t_up)]
     solver.x[:] *= 1.01
     scheme.start_frame(1e-3, 1e-3)
     state = scheme.state(sets, solver.area.active, 0)
-    tlsph_relax_pass(state, solver.body, solver.motion, sets)
+    tlsph_qlv_pass(state, solver.body, solver.motion, sets)
     assert not np.array_equal(state.Q, before[1])
     scheme.frame_done(False)
     for a, b in zip((state.Se, state.Q, state.t_up), before):
@@ -157,3 +163,88 @@ def test_a_press_relaxes_while_held_and_reset_forgets_the_history(mode):
     print(held)
     assert held['kv'][1] > 0.95 * held['kv'][0]
     assert held['relaxing'][1] < 0.8 * held['relaxing'][0]
+
+
+# ------------------------------------------------------------------------------ a stiffening spring
+def _stiffening(b: float, prony=()) -> Material:
+    return Material(KV.E, KV.nu, KV.eta_shear, KV.eta_bulk, KV.rho, 'stiffening', prony, b)
+
+
+@pytest.mark.parametrize('b', [-0.1, 51.0, math.nan, math.inf])
+def test_a_softening_or_absurd_stiffening_exponent_is_refused(b):
+    with pytest.raises(ConfigError, match='stiffening must be in'):
+        _stiffening(b)
+
+
+def _energy(F: np.ndarray, m: Material) -> float:
+    """The spring's strain energy density [J/m^3] (the module docstring of core/material.py)."""
+    J = np.linalg.det(F)
+    I1 = float(np.sum(F * F))
+    lam = m.K - 2.0 * m.G / 3.0
+    psi = 0.5 * m.G * (I1 - 3.0) - m.G * math.log(J) + 0.5 * lam * math.log(J) ** 2
+    x = J ** (-2.0 / 3.0) * I1 - 3.0
+    b = m.stiffening
+    return psi + (m.G / (2.0 * b) * (math.exp(b * x) - 1.0 - b * x) if b > 0.0 else 0.0)
+
+
+@pytest.mark.parametrize('F', [np.diag([1.25, 0.92, 0.9]),
+                               np.array([[1.0, 0.3, 0.0], [0.0, 1.0, 0.0], [0.05, 0.0, 0.97]])])
+def test_the_stiffening_spring_is_the_gradient_of_its_strain_energy(F):
+    """At a homogeneous deformation (a stretch, a shear) every particle's stress ``P = A / V`` is
+    d psi / d F of the strain energy, by central differences (the stress at rest: none)."""
+    m = _stiffening(8.0)
+    solver = Solver(make_block(6, 6, 6, spacing=0.005, fix='none'), m, SolverConfig(mode='global'))
+    solver.x[:] = solver.X @ F.T
+    sets = solver.area.global_sets(-1)
+    scheme = solver.scheme
+    scheme.start_frame(0.0, 1e-3)
+    tlsph_qlv_pass(scheme.state(sets, solver.area.active, 0), solver.body, solver.motion, sets)
+    scheme.frame_done(True)
+    P = scheme.A / solver.volume
+    dPsi = np.zeros((3, 3))
+    eps = 1e-6
+    for p in range(3):
+        for q in range(3):
+            d = np.zeros((3, 3))
+            d[p, q] = eps
+            dPsi[p, q] = (_energy(F + d, m) - _energy(F - d, m)) / (2.0 * eps)
+    np.testing.assert_allclose(P, np.broadcast_to(dPsi, P.shape), rtol=2e-6, atol=1e-6 * np.abs(dPsi).max())
+    assert scheme.stiffness_growth() > 1.5
+    soft = Solver(make_block(6, 6, 6, spacing=0.005, fix='none'), KV, SolverConfig(mode='global'))
+    soft.x[:] = soft.X @ F.T
+    tlsph_pass(soft.scheme.state(sets, soft.area.active, 0), soft.body, soft.motion, sets)
+    assert np.abs(P[0]).max() > 1.2 * np.abs(soft.scheme.A[0] / soft.volume).max()
+
+
+def test_the_stiffening_term_leaves_the_small_strain_moduli_alone():
+    """At 0.1 % stretch the stiffening term is of third order: with b = 20 the stress within 2e-4
+    of the neo-Hookean spring's (b (I1b - 3) is about 5e-5 there)."""
+    F = np.diag([1.001, 0.9995, 0.9995])
+    stresses = []
+    for m in (KV, _stiffening(20.0)):
+        solver = Solver(make_block(6, 6, 6, spacing=0.005, fix='none'), m, SolverConfig(mode='global'))
+        solver.x[:] = solver.X @ F.T
+        sets = solver.area.global_sets(-1)
+        state = solver.scheme.state(sets, solver.area.active, 0)
+        (tlsph_qlv_pass if isinstance(state, TlsphQlv) else tlsph_pass)(state, solver.body, solver.motion, sets)
+        stresses.append(solver.scheme.A.copy())
+    np.testing.assert_allclose(stresses[1], stresses[0], rtol=0, atol=2e-4 * np.abs(stresses[0]).max())
+    assert not np.array_equal(stresses[1], stresses[0])
+
+
+@pytest.mark.parametrize('mode', ['global', 'local'])
+def test_a_stiffening_liver_block_pushes_back_harder_deep_and_takes_smaller_sub_steps(mode):
+    block = make_block(8, 8, 5, spacing=0.0075, fix='bottom')
+    out = {}
+    for name, material in (('kv', KV), ('stiff', _stiffening(10.0, PRONY))):
+        solver = Solver(block, material, SolverConfig(mode=mode, far_field=0.0))
+        X = solver.X
+        start = np.array([X[:, 0].mean() + 1e-3, X[:, 1].mean() + 5e-4, X[:, 2].max() + solver.contact_reach])
+        res = [solver.step(start - [0.0, 0.0, 0.012 * min(1.0, (k + 1) / 200)], 1e-3) for k in range(200)]
+        out[name] = (res[20].force[2], res[-1].force[2], max(r.substeps for r in res),
+                     solver.scheme.stiffness_growth())
+    print(out)
+    # shallow, the instantaneous spring is the same; deep it stiffens (and relaxes a little)
+    assert out['stiff'][0] == pytest.approx(out['kv'][0], rel=0.05)
+    assert out['stiff'][1] > 1.3 * out['kv'][1]
+    assert out['stiff'][3] > 1.5 and out['stiff'][2] > out['kv'][2]

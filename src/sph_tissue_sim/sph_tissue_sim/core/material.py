@@ -16,6 +16,14 @@ relaxation function
     g(t) = g_inf + sum_k g_k exp(-t / tau_k),    g_inf = 1 - sum_k g_k > 0,
 
 so a held strain's stress falls from ``G`` to ``g_inf G`` (:meth:`Material.relaxation`).
+
+With ``stiffening`` ``b > 0`` the spring stiffens with the isochoric first invariant
+``I1b = J^(-2/3) tr(F^T F)`` (an exponential law, Demiray's form added to the neo-Hookean spring):
+
+    psi = psi_neo-Hookean + G / (2 b) (exp(b (I1b - 3)) - 1 - b (I1b - 3)),
+
+whose extra term is of third order in the strain: the small-strain moduli stay ``G, K``, and the
+shear stiffness grows as ``exp(b (I1b - 3))`` (uniaxial stretch 1 + e: ``I1b - 3 ~ 3 e^2``).
 """
 
 from __future__ import annotations
@@ -25,6 +33,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import ConfigError
+
+
+#: the largest strain-stiffening exponent b (at b = 50 a 20 % uniaxial stretch is 200 times stiffer)
+MAX_STIFFENING = 50.0
 
 
 @dataclass(frozen=True)
@@ -40,6 +52,7 @@ class Material:
         name: label for logs.
         prony: ``((g_1, tau_1), ...)``: the spring's relaxation, weights ``g_k > 0`` of the
             instantaneous moduli (summing below 1) and time constants ``tau_k > 0`` [s]; empty: none.
+        stiffening: the exponent ``b`` [-] of the strain-stiffening term, 0 <= b <= 50 (0: none).
     """
 
     E: float
@@ -49,6 +62,7 @@ class Material:
     rho: float
     name: str = 'custom'
     prony: tuple = ()
+    stiffening: float = 0.0
 
     def __post_init__(self) -> None:
         for key in ('E', 'nu', 'eta_shear', 'eta_bulk', 'rho'):
@@ -79,6 +93,16 @@ class Material:
             raise ConfigError(f'material {self.name}: the prony weights must sum below 1 (the spring '
                               f'keeps g_inf = 1 - sum g > 0 of its stiffness), got {sum(g for g, _ in terms):g}')
         object.__setattr__(self, 'prony', tuple(terms))
+        b = self.stiffening
+        if not (isinstance(b, (int, float)) and math.isfinite(b) and 0.0 <= b <= MAX_STIFFENING):
+            raise ConfigError(f'material {self.name}: stiffening must be in [0, {MAX_STIFFENING:g}] (below 0 the '
+                              f'spring would soften with strain), got {b!r}')
+        object.__setattr__(self, 'stiffening', float(b))
+
+    @property
+    def beyond_kelvin_voigt(self) -> bool:
+        """Whether the spring relaxes or stiffens (only the tlsph scheme's explicit solver models it)."""
+        return bool(self.prony) or self.stiffening > 0.0
 
     @property
     def G(self) -> float:
@@ -144,7 +168,7 @@ class Material:
     def with_viscosity_scale(self, factor: float) -> 'Material':
         """A copy with both viscosities multiplied by ``factor``."""
         return Material(self.E, self.nu, self.eta_shear * factor, self.eta_bulk * factor, self.rho,
-                        self.name, self.prony)
+                        self.name, self.prony, self.stiffening)
 
 
 DEFAULT_MATERIALS_YAML = Path(__file__).resolve().parents[2] / 'config' / 'materials.yaml'
@@ -154,8 +178,9 @@ def load_material(yaml_path: str | Path | None = None, name: str = 'liver') -> M
     """Load material ``name`` from a YAML file (default: the package's ``config/materials.yaml``).
 
     Each entry gives ``rho`` and either (``E``, ``nu``) or (``G``, ``nu``), plus ``eta_shear`` and
-    optionally ``eta_bulk`` [Pa s] (default: same retardation time as the shear part) and ``prony``
-    (a list of ``[g, tau]``, the spring's relaxation); or ``preset: paper`` with ``E``, ``eta``, ``rho``.
+    optionally ``eta_bulk`` [Pa s] (default: same retardation time as the shear part), ``prony``
+    (a list of ``[g, tau]``, the spring's relaxation) and ``stiffening`` (its exponent ``b``); or
+    ``preset: paper`` with ``E``, ``eta``, ``rho``.
 
     Raises:
         ConfigError: missing file, unknown name or invalid values.
@@ -183,15 +208,16 @@ def load_material(yaml_path: str | Path | None = None, name: str = 'liver') -> M
         eta_s = float(entry['eta_shear'])
         eta_b = entry.get('eta_bulk')
         prony = tuple(tuple(term) for term in entry.get('prony') or ())
+        b = float(entry.get('stiffening', 0.0))
         if 'G' in entry:
             mat = Material.from_shear(float(entry['G']), nu, eta_s,
                                       None if eta_b is None else float(eta_b), rho, name)
-            return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name, prony)
+            return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name, prony, b)
         E = float(entry['E'])
         if eta_b is None:
             G = E / (2.0 * (1.0 + nu))
             eta_b = E / (3.0 * (1.0 - 2.0 * nu)) * eta_s / G
-        return Material(E, nu, eta_s, float(eta_b), rho, name, prony)
+        return Material(E, nu, eta_s, float(eta_b), rho, name, prony, b)
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise

@@ -460,6 +460,9 @@ class PaperScheme:
     def start_frame(self, time: float, sub_dt: float) -> None:
         pass
 
+    def stiffness_growth(self) -> float:
+        return 1.0
+
     def state(self, sets, active: np.ndarray, n_active: int) -> Paper:
         """This frame's state: every particle as rows in global mode (``sets.sph`` is every free
         one), else the solved particles, their stress set and the search set around them."""

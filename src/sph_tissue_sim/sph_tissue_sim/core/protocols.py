@@ -60,6 +60,10 @@ class FrameScheme(Protocol):
         """A frame of sub-steps of ``sub_dt`` [s] starts at sim time ``time`` [s] (for schemes
         with a memory of time: a relaxing spring)."""
 
+    def stiffness_growth(self) -> float:
+        """[-] how much stiffer in shear than at small strain the last frame's tissue was at most
+        (a stiffening spring; 1 otherwise): the CFL bound follows it."""
+
     def state(self, sets, active: np.ndarray, n_active: int) -> NamedTuple:
         """The named tuple the scheme's ``internal_forces`` overload takes, for this frame."""
 
@@ -84,6 +88,9 @@ class FixedStateScheme:
 
     def start_frame(self, time: float, sub_dt: float) -> None:
         pass
+
+    def stiffness_growth(self) -> float:
+        return 1.0
 
     def state(self, sets, active: np.ndarray, n_active: int) -> NamedTuple:
         return self._state

@@ -348,9 +348,9 @@ class Solver:
         if not isinstance(material, Material):
             raise ConfigError(f'material must be a Material, got {type(material).__name__}')
         cfg = self.config
-        if material.prony and (cfg.scheme != 'tlsph' or cfg.integrator != 'explicit'):
-            raise ConfigError(f'material {material.name}: a relaxing spring (prony) needs scheme tlsph with '
-                              f'integrator explicit, got {cfg.scheme} with {cfg.integrator}')
+        if material.beyond_kelvin_voigt and (cfg.scheme != 'tlsph' or cfg.integrator != 'explicit'):
+            raise ConfigError(f'material {material.name}: a relaxing (prony) or stiffening spring needs scheme '
+                              f'tlsph with integrator explicit, got {cfg.scheme} with {cfg.integrator}')
         self.material = material
         self.mass = material.rho * self.volume
         self.inv_mass = 1.0 / self.mass
@@ -527,6 +527,10 @@ class Solver:
         dt_max = self.dt_max
         if self.dashpot_rate is not None:
             dt_max = min(dt_max, self.dashpot_rate.bound())
+        growth = self.scheme.stiffness_growth()
+        if growth > 1.0:      # a stiffening spring's waves are faster: the CFL bound at its stiffness
+            m = self.material
+            dt_max = min(dt_max, cfg.cfl * self.h / math.sqrt((m.K + 4.0 * m.G * growth / 3.0) / m.rho))
         n_sub, sub_dt, capped = substeps_for(dt, dt_max, cfg.max_substeps)
         tool_lag = 0.0
         if tool_on:

@@ -12,11 +12,15 @@ Green-Lagrange strain rate ``dE/dt = (dF^T F + F^T dF)/2``:
 
     P = G (F - F^-T) + (K - 2G/3) ln(J) F^-T  +  F [eta_bulk tr(dE/dt) I + 2 eta_shear dev(dE/dt)].
 
-A relaxing spring (the material's ``prony`` terms, quasi-linear viscoelasticity) replaces the
-elastic part by ``g_inf P_e + F sum_k Q_k``: with ``S_e = F^-1 P_e`` the second Piola-Kirchhoff
+A stiffening or relaxing spring (the material's ``stiffening`` and ``prony``: quasi-linear
+viscoelasticity) adds the exponential term of :mod:`.material` to the spring,
+
+    P_e = P_neo-Hookean + G (exp(b (I1b - 3)) - 1) J^(-2/3) (F - I1/3 F^-T),
+
+and replaces it by ``g_inf P_e + F sum_k Q_k``: with ``S_e = F^-1 P_e`` the second Piola-Kirchhoff
 stress of the spring at the instantaneous moduli, each internal variable ``Q_k`` (symmetric, per
 particle) follows ``dQ_k/dt = -Q_k / tau_k + g_k dS_e/dt``, integrated exactly for ``S_e`` linear
-in time since the particle's last update, ``dt`` ago (:func:`relax_one`):
+in time since the particle's last update, ``dt`` ago (:func:`qlv_one`):
 
     Q_k <- exp(-dt / tau_k) Q_k + g_k (1 - exp(-dt / tau_k)) (tau_k / dt) (S_e - S_e,last),
 
@@ -79,11 +83,14 @@ class Tlsph(NamedTuple):
     par_min: int           # stressed particles from which a sub-step runs on the thread pool
 
 
-class TlsphRelax(NamedTuple):
-    """The scheme's state with a relaxing spring: the Kelvin-Voigt state at the instantaneous moduli
-    and the Prony series' internal variables (:func:`relax_one`)."""
+class TlsphQlv(NamedTuple):
+    """The scheme's state with a stiffening or relaxing spring: the Kelvin-Voigt state at the
+    instantaneous moduli, the stiffening exponent and the Prony series' internal variables
+    (:func:`qlv_one`)."""
 
     base: Tlsph            # the Kelvin-Voigt state (G, K the instantaneous moduli)
+    b: float               # [-] the stiffening exponent
+    stiff: np.ndarray      # (1,) the largest shear stiffening factor of the frame (the CFL bound)
     g_inf: float           # [-] 1 - sum g_k
     gk: np.ndarray         # (n_terms,) [-] weights g_k
     tau: np.ndarray        # (n_terms,) [s] time constants
@@ -169,11 +176,11 @@ def tlsph_stress_one(i, s, x, v):
 
 
 @njit(cache=True, fastmath=True, inline='always')
-def relax_one(i, s):
+def qlv_one(i, s):
     """Turn ``A_i = V P_i`` of :func:`tlsph_stress_one` (the Kelvin-Voigt element at the
-    instantaneous moduli, ``s.base``) into the relaxing spring's: ``A_i += V (F sum_k Q_k -
-    (1 - g_inf) P_e)`` after updating the ``Q_k`` of particle ``i`` to ``s.clock[0]`` (``s`` a
-    :class:`TlsphRelax`; the update in the module docstring)."""
+    instantaneous moduli, ``s.base``) into the stiffening, relaxing spring's: ``A_i += V (g_inf P_e
+    + F sum_k Q_k - P_nH)`` after updating the ``Q_k`` of particle ``i`` to ``s.clock[0]`` (``s`` a
+    :class:`TlsphQlv`; the laws in the module docstring)."""
     b = s.base
     G, K = b.G, b.K
     Fm = b.F[i]
@@ -186,12 +193,25 @@ def relax_one(i, s):
     J = f00 * c00 + f01 * c01 + f02 * c02
     if J < 0.05:
         J = 0.05  # as _piola: a crushed particle keeps pushing back
-    t = ((K - 2.0 * G / 3.0) * math.log(J) - G) / J
-    # S_e = F^-1 P_e = G I + t cof^T cof / J (P_e = G F + t cof, F^-1 = cof^T / J)
-    u = t / J
-    se = (G + u * (c00 * c00 + c10 * c10 + c20 * c20),
-          G + u * (c01 * c01 + c11 * c11 + c21 * c21),
-          G + u * (c02 * c02 + c12 * c12 + c22 * c22),
+    t = ((K - 2.0 * G / 3.0) * math.log(J) - G) / J        # P_nH = G F + t cof
+    # the stiffening term a (F - I1/3 F^-T), a = G (e - 1) J^(-2/3), e = exp(b (I1b - 3))
+    I1 = (f00 * f00 + f01 * f01 + f02 * f02 + f10 * f10 + f11 * f11 + f12 * f12
+          + f20 * f20 + f21 * f21 + f22 * f22)
+    jm = J ** (-2.0 / 3.0)
+    x = jm * I1 - 3.0
+    e = math.exp(s.b * x)
+    a = G * (e - 1.0) * jm
+    # the shear stiffness's growth, e (1 + 2 b (I1b - 3)) (the uniaxial tangent), for the CFL bound
+    grow = e * (1.0 + 2.0 * s.b * x)
+    if grow > s.stiff[0]:
+        s.stiff[0] = grow
+    Ge = G + a                          # P_e = Ge F + te cof
+    te = t - a * I1 / (3.0 * J)
+    # S_e = F^-1 P_e = Ge I + te cof^T cof / J (F^-1 = cof^T / J)
+    u = te / J
+    se = (Ge + u * (c00 * c00 + c10 * c10 + c20 * c20),
+          Ge + u * (c01 * c01 + c11 * c11 + c21 * c21),
+          Ge + u * (c02 * c02 + c12 * c12 + c22 * c22),
           u * (c00 * c01 + c10 * c11 + c20 * c21),
           u * (c00 * c02 + c10 * c12 + c20 * c22),
           u * (c01 * c02 + c11 * c12 + c21 * c22))
@@ -202,9 +222,9 @@ def relax_one(i, s):
     Se, Q = s.Se[i], s.Q[i]
     for k in range(len(s.gk)):
         if dt > 0.0:
-            x = dt / s.tau[k]
-            d = math.exp(-x)
-            w = s.gk[k] * (1.0 - d) / x
+            r = dt / s.tau[k]
+            d = math.exp(-r)
+            w = s.gk[k] * (1.0 - d) / r
         else:
             d = 1.0
             w = s.gk[k]
@@ -214,19 +234,21 @@ def relax_one(i, s):
         q0 += Qk[0]; q1 += Qk[1]; q2 += Qk[2]; q3 += Qk[3]; q4 += Qk[4]; q5 += Qk[5]
     for c in range(6):
         Se[c] = se[c]
-    # A += V (F Q - (1 - g_inf) (G F + t cof)), Q = sum_k Q_k (symmetric: xx yy zz xy xz yz)
-    r = 1.0 - s.g_inf
+    # A += V (g_inf (Ge F + te cof) + F Q - (G F + t cof)), Q = sum_k Q_k (xx yy zz xy xz yz)
+    gi = s.g_inf
+    pg = gi * Ge - G
+    pt = gi * te - t
     vol = b.volume
     Am = b.A[i]
-    Am[0, 0] += vol * (f00 * q0 + f01 * q3 + f02 * q4 - r * (G * f00 + t * c00))
-    Am[0, 1] += vol * (f00 * q3 + f01 * q1 + f02 * q5 - r * (G * f01 + t * c01))
-    Am[0, 2] += vol * (f00 * q4 + f01 * q5 + f02 * q2 - r * (G * f02 + t * c02))
-    Am[1, 0] += vol * (f10 * q0 + f11 * q3 + f12 * q4 - r * (G * f10 + t * c10))
-    Am[1, 1] += vol * (f10 * q3 + f11 * q1 + f12 * q5 - r * (G * f11 + t * c11))
-    Am[1, 2] += vol * (f10 * q4 + f11 * q5 + f12 * q2 - r * (G * f12 + t * c12))
-    Am[2, 0] += vol * (f20 * q0 + f21 * q3 + f22 * q4 - r * (G * f20 + t * c20))
-    Am[2, 1] += vol * (f20 * q3 + f21 * q1 + f22 * q5 - r * (G * f21 + t * c21))
-    Am[2, 2] += vol * (f20 * q4 + f21 * q5 + f22 * q2 - r * (G * f22 + t * c22))
+    Am[0, 0] += vol * (f00 * q0 + f01 * q3 + f02 * q4 + pg * f00 + pt * c00)
+    Am[0, 1] += vol * (f00 * q3 + f01 * q1 + f02 * q5 + pg * f01 + pt * c01)
+    Am[0, 2] += vol * (f00 * q4 + f01 * q5 + f02 * q2 + pg * f02 + pt * c02)
+    Am[1, 0] += vol * (f10 * q0 + f11 * q3 + f12 * q4 + pg * f10 + pt * c10)
+    Am[1, 1] += vol * (f10 * q3 + f11 * q1 + f12 * q5 + pg * f11 + pt * c11)
+    Am[1, 2] += vol * (f10 * q4 + f11 * q5 + f12 * q2 + pg * f12 + pt * c12)
+    Am[2, 0] += vol * (f20 * q0 + f21 * q3 + f22 * q4 + pg * f20 + pt * c20)
+    Am[2, 1] += vol * (f20 * q3 + f21 * q1 + f22 * q5 + pg * f21 + pt * c21)
+    Am[2, 2] += vol * (f20 * q4 + f21 * q5 + f22 * q2 + pg * f22 + pt * c22)
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -295,17 +317,17 @@ def tlsph_pass(s, body, motion, sets):
 
 
 @njit(cache=True, fastmath=True)
-def tlsph_relax_pass(s, body, motion, sets):
-    """:func:`tlsph_pass` with the relaxing spring (``s`` a :class:`TlsphRelax`): the clock moves
+def tlsph_qlv_pass(s, body, motion, sets):
+    """:func:`tlsph_pass` with the relaxing spring (``s`` a :class:`TlsphQlv`): the clock moves
     on by a sub-step, each stressed particle's Kelvin-Voigt stress is turned into the relaxing
-    spring's (:func:`relax_one`), then the forces as there."""
+    spring's (:func:`qlv_one`), then the forces as there."""
     X, x, v, acc, inv_mass = body.X, motion.x, motion.v, motion.acc, body.inv_mass
     s.clock[0] += s.clock[1]
     b = s.base
     for t in range(sets.n_stress):
         i = sets.stress[t]
         tlsph_stress_one(i, b, x, v)
-        relax_one(i, s)
+        qlv_one(i, s)
     for t in range(sets.n_sph):
         i = sets.sph[t]
         f0, f1, f2 = tlsph_force_one(i, b, X, x, v)
@@ -452,9 +474,9 @@ def _tlsph_forces(scheme, body, motion, sets):
             tlsph_pass(scheme, body, motion, sets)
             return STATUS_OK
         return serial
-    if is_state(scheme, TlsphRelax):
+    if is_state(scheme, TlsphQlv):
         def relaxing(scheme, body, motion, sets):
-            tlsph_relax_pass(scheme, body, motion, sets)
+            tlsph_qlv_pass(scheme, body, motion, sets)
             return STATUS_OK
         return relaxing
     return None
@@ -488,8 +510,9 @@ class TlsphScheme(FixedStateScheme):
         self.H = np.zeros((n, 3, 3))
         self._state: Tlsph | None = None
         #: with a relaxing material: its state, and what a frame that is undone puts back
-        self._relax: TlsphRelax | None = None
+        self._relax: TlsphQlv | None = None
         self._saved: tuple | None = None
+        self._growth = 1.0
         self.reset()
 
     def set_material(self, material: Material, mass: float) -> None:
@@ -508,20 +531,28 @@ class TlsphScheme(FixedStateScheme):
                            self.F, self.Fd, self.A, self.H, self.volume, material.G, material.K,
                            on * eta_s, on * eta_b, hg_k, hg_c, self.par_min)
         self._relax = None
-        if material.prony:
+        if material.beyond_kelvin_voigt:
             # a new material starts its relaxation afresh; the Kelvin-Voigt part runs serially
             n, m = len(self.F), len(material.prony)
             base = Tlsph(*self._state)
-            self._relax = TlsphRelax(base, material.g_inf, np.array([g for g, _ in material.prony]),
-                                     np.array([tau for _, tau in material.prony]), np.zeros((n, 6)),
-                                     np.zeros((n, m, 6)), np.zeros(n), np.zeros(2))
+            self._relax = TlsphQlv(base, material.stiffening, np.ones(1), material.g_inf,
+                                   np.array([g for g, _ in material.prony], dtype=np.float64),
+                                   np.array([tau for _, tau in material.prony], dtype=np.float64),
+                                   np.zeros((n, 6)), np.zeros((n, m, 6)), np.zeros(n), np.zeros(2))
+        self._growth = 1.0
+
+    def stiffness_growth(self) -> float:
+        """[-] the largest growth of the shear stiffness over its small-strain value in the last
+        finished frame (1 without stiffening): the CFL bound follows it."""
+        return self._growth
 
     def start_frame(self, time: float, sub_dt: float) -> None:
         if self._relax is not None:
             self._relax.clock[0] = time - sub_dt    # each sub-step's pass moves it on first
             self._relax.clock[1] = sub_dt
+            self._relax.stiff[0] = 1.0
 
-    def state(self, sets, active: np.ndarray, n_active: int) -> Tlsph | TlsphRelax:
+    def state(self, sets, active: np.ndarray, n_active: int) -> Tlsph | TlsphQlv:
         """The frame's state; ``sets`` None: the Kelvin-Voigt state of the instantaneous moduli (the
         organ's linear response, the implicit solves)."""
         r = self._relax
@@ -532,6 +563,8 @@ class TlsphScheme(FixedStateScheme):
         return r
 
     def frame_done(self, ok: bool) -> None:
+        if self._relax is not None and ok:
+            self._growth = float(self._relax.stiff[0])
         if not ok and self._saved is not None and self._relax is not None:
             idx, Se, Q, t_up = self._saved
             self._relax.Se[idx], self._relax.Q[idx], self._relax.t_up[idx] = Se, Q, t_up
@@ -571,6 +604,7 @@ class TlsphScheme(FixedStateScheme):
         if self._relax is not None:
             for a in (self._relax.Se, self._relax.Q, self._relax.t_up, self._relax.clock):
                 a[:] = 0.0
+        self._growth = 1.0
 
     def von_mises(self, x: np.ndarray, sets, out: np.ndarray) -> None:
         """Von Mises stress of the stress set of the last frame (``sets``; with a relaxing spring

@@ -14,7 +14,7 @@ from ..core.errors import SimError
 from ..core.material import Material
 from ..core.models import TissueModel, make_beam, make_block
 from ..core.solver import Solver, SolverConfig
-from ..core.tlsph import tlsph_pass, tlsph_relax_pass
+from ..core.tlsph import tlsph_pass, tlsph_qlv_pass
 from .analytic import CANTILEVER_BETA_L, creep_strain, euler_bernoulli_f1, relaxing_creep_strain, timoshenko_f1
 
 E_TEST = 5000.0      # Young's modulus of the test material [Pa] (liver order of magnitude)
@@ -127,7 +127,7 @@ def held_stretch(material: Material, times=(0.0, 0.05, 0.5, 2.0), stretch: float
     out = []
     for step in range(int(round(max(times) / dt)) + 1):
         scheme.start_frame(step * dt, dt)
-        tlsph_relax_pass(scheme.state(sets, solver.area.active, 0), solver.body, solver.motion, sets)
+        tlsph_qlv_pass(scheme.state(sets, solver.area.active, 0), solver.body, solver.motion, sets)
         scheme.frame_done(True)
         t = step * dt
         if any(abs(t - want) < 0.5 * dt for want in times):
