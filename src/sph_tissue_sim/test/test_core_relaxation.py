@@ -248,3 +248,29 @@ def test_a_stiffening_liver_block_pushes_back_harder_deep_and_takes_smaller_sub_
     assert out['stiff'][0] == pytest.approx(out['kv'][0], rel=0.05)
     assert out['stiff'][1] > 1.3 * out['kv'][1]
     assert out['stiff'][3] > 1.5 and out['stiff'][2] > out['kv'][2]
+
+
+def test_a_crushed_particle_stiffens_no_more_than_the_cap():
+    """Far beyond the cap (b (I1b - 3) > ln 50) the spring is neo-Hookean at STIFFENING_CAP G more:
+    the stress that law gives, and the CFL bound sees the cap (an uncapped exponential needed 64+
+    sub-steps and blew up a 3000 N/m press into the stiffened liver at 22 mm)."""
+    from sph_tissue_sim.core.tlsph import STIFFENING_CAP
+
+    m = _stiffening(10.0)
+    F = np.diag([0.55, 1.45, 1.3])
+    solver = Solver(make_block(6, 6, 6, spacing=0.005, fix='none'), m, SolverConfig(mode='global'))
+    solver.x[:] = solver.X @ F.T
+    sets = solver.area.global_sets(-1)
+    scheme = solver.scheme
+    scheme.start_frame(0.0, 1e-3)
+    tlsph_qlv_pass(scheme.state(sets, solver.area.active, 0), solver.body, solver.motion, sets)
+    scheme.frame_done(True)
+    J, I1 = np.linalg.det(F), float(np.sum(F * F))
+    assert m.stiffening * (J ** (-2.0 / 3.0) * I1 - 3.0) > math.log(STIFFENING_CAP)
+    Finv_T = np.linalg.inv(F).T
+    lam = m.K - 2.0 * m.G / 3.0
+    expected = (m.G * (F - Finv_T) + lam * math.log(J) * Finv_T
+                + m.G * (STIFFENING_CAP - 1.0) * J ** (-2.0 / 3.0) * (F - I1 / 3.0 * Finv_T))
+    np.testing.assert_allclose(scheme.A / solver.volume, np.broadcast_to(expected, scheme.A.shape),
+                               rtol=1e-9, atol=1e-9 * np.abs(expected).max())
+    assert scheme.stiffness_growth() == STIFFENING_CAP

@@ -23,7 +23,8 @@ With ``stiffening`` ``b > 0`` the spring stiffens with the isochoric first invar
     psi = psi_neo-Hookean + G / (2 b) (exp(b (I1b - 3)) - 1 - b (I1b - 3)),
 
 whose extra term is of third order in the strain: the small-strain moduli stay ``G, K``, and the
-shear stiffness grows as ``exp(b (I1b - 3))`` (uniaxial stretch 1 + e: ``I1b - 3 ~ 3 e^2``).
+shear stiffness grows as ``exp(b (I1b - 3))`` (uniaxial stretch 1 + e: ``I1b - 3 ~ 3 e^2``) up to
+``tlsph.STIFFENING_CAP`` times ``G``.
 """
 
 from __future__ import annotations

@@ -17,6 +17,9 @@ viscoelasticity) adds the exponential term of :mod:`.material` to the spring,
 
     P_e = P_neo-Hookean + G (exp(b (I1b - 3)) - 1) J^(-2/3) (F - I1/3 F^-T),
 
+the exponential held at :data:`STIFFENING_CAP` beyond it (the stress continuous, the spring then
+neo-Hookean at that many times ``G``),
+
 and replaces it by ``g_inf P_e + F sum_k Q_k``: with ``S_e = F^-1 P_e`` the second Piola-Kirchhoff
 stress of the spring at the instantaneous moduli, each internal variable ``Q_k`` (symmetric, per
 particle) follows ``dQ_k/dt = -Q_k / tau_k + g_k dS_e/dt``, integrated exactly for ``S_e`` linear
@@ -81,6 +84,11 @@ class Tlsph(NamedTuple):
     hg_k: float            # hourglass stiffness
     hg_c: float            # hourglass damping
     par_min: int           # stressed particles from which a sub-step runs on the thread pool
+
+
+#: a stiffening spring stiffens up to this many times its small-strain shear modulus
+STIFFENING_CAP = 50.0
+LOG_STIFFENING_CAP = math.log(STIFFENING_CAP)
 
 
 class TlsphQlv(NamedTuple):
@@ -199,10 +207,17 @@ def qlv_one(i, s):
           + f20 * f20 + f21 * f21 + f22 * f22)
     jm = J ** (-2.0 / 3.0)
     x = jm * I1 - 3.0
-    e = math.exp(s.b * x)
+    bx = s.b * x
+    if bx < LOG_STIFFENING_CAP:
+        e = math.exp(bx)
+        # the shear stiffness's growth, e (1 + 2 b (I1b - 3)) (the uniaxial tangent): the CFL bound
+        grow = e * (1.0 + 2.0 * bx)
+    else:
+        # beyond the cap the spring is neo-Hookean at STIFFENING_CAP G: a crushed particle's
+        # exponential would need more sub-steps than any frame has
+        e = STIFFENING_CAP
+        grow = STIFFENING_CAP
     a = G * (e - 1.0) * jm
-    # the shear stiffness's growth, e (1 + 2 b (I1b - 3)) (the uniaxial tangent), for the CFL bound
-    grow = e * (1.0 + 2.0 * s.b * x)
     if grow > s.stiff[0]:
         s.stiff[0] = grow
     Ge = G + a                          # P_e = Ge F + te cof
