@@ -55,7 +55,7 @@ from tissue_common.throttle import EventThrottle
 
 from .cloud import CloudBuffer
 from .core.errors import ConfigError, SimError
-from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, StepResult
+from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, StepResult, check_material
 from .haptics.multirate import MultiRate, SolverJob
 from .haptics.renderer import HapticRenderer
 from .mapping import DeviceMapping, anchor_point, check_position
@@ -571,6 +571,8 @@ class Runner:
             if 'solver' in kinds:
                 solver = make_solver(self.model, material or self.solver.material, config, new['nominal_dt'],
                                      background=solves_in_background(new))
+            elif material is not None:
+                check_material(self.solver.config, material)
             mapping = None
             if 'mapping' in kinds or solver is not None:
                 mapping = make_mapping(new, solver or self.solver)

@@ -57,6 +57,6 @@ def momentum_drift(solver, velocities, frames: int = 200, dt: float = 1e-3) -> t
 
 def organ_too_large(monkeypatch) -> None:
     """Make every organ too large for its own far field (``solver.ORGAN_MAX_FREE`` 0), so local mode
-    takes the half-space's, as on the 30k and 100k livers."""
+    takes the half-space's, as on the 12k, 30k and 100k livers."""
     from sph_tissue_sim.core import solver
     monkeypatch.setattr(solver, 'ORGAN_MAX_FREE', 0)

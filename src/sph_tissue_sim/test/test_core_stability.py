@@ -4,7 +4,6 @@ the dense damping matrix's eigenvalues, and a creep whose dashpots outgrow the r
 import numpy as np
 import pytest
 
-from sph_tissue_sim.core.contact import contact_vector_py
 from sph_tissue_sim.core.material import Material
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import Solver, SolverConfig
@@ -21,9 +20,8 @@ def _tracked(s: Solver, every: int) -> Solver:
     return s
 
 
-def _largest_dashpot_rate(s: Solver, x: np.ndarray, contact=None) -> float:
-    """max |eig(M^-1 C)| of the dashpots at positions ``x``, ``C`` assembled column by column,
-    plus ``rate n n^T`` on each particle the tool touches (``contact = (seg, reach, rate)``)."""
+def _largest_dashpot_rate(s: Solver, x: np.ndarray) -> float:
+    """max |eig(M^-1 C)| of the dashpots at positions ``x``, ``C`` assembled column by column."""
     state = s.scheme.dashpots_only()
     sets = s.area.global_sets(-1)
     sph = sets.sph[:sets.n_sph]
@@ -36,13 +34,6 @@ def _largest_dashpot_rate(s: Solver, x: np.ndarray, contact=None) -> float:
         v[sph[k // 3], k % 3] = 1.0
         tlsph_pass(state, s.body, Motion(x, v, acc), sets)
         C[:, k] = -acc[sph].ravel()
-    if contact is not None:
-        seg, reach, rate = contact
-        for t, i in enumerate(sph):
-            u = np.array(contact_vector_py(i, x, seg)[:3])
-            if np.linalg.norm(u) < reach:
-                n = u / np.linalg.norm(u)
-                C[3 * t:3 * t + 3, 3 * t:3 * t + 3] += rate * np.outer(n, n)
     return float(np.abs(np.linalg.eigvals(C)).max())
 
 
@@ -61,24 +52,6 @@ def test_the_tracked_rate_converges_to_the_dashpots_largest_eigenvalue_at_rest_a
         rates.append(exact)
     # stretched dashpots are faster: F S(sym(F^T dF)) grows with the stretch
     assert rates[1] > 1.3 * rates[0]
-
-
-def test_a_touched_particles_contact_dashpot_adds_to_the_tracked_rate():
-    """Explicit contact dashpots act on the touched particles beside the material's: the rate
-    followed is that of their sum (here a contact dashpot five times the material's fastest)."""
-    model = make_block(5, 5, 4, spacing=0.005, fix='bottom')
-    s = _tracked(Solver(model, LIVER, SolverConfig(mode='global')), 1)
-    sets = s.area.global_sets(-1)
-    x = s.X.copy()
-    material = _largest_dashpot_rate(s, x)
-    top = x[:, 2].max()
-    tip = np.array([0.0105, 0.0095, top + s.contact.ball_reach - 0.002])
-    contact = (np.stack([tip, tip]), s.contact.ball_reach, 5.0 * material)
-    exact = _largest_dashpot_rate(s, x, contact)
-    for _ in range(30):
-        s.dashpot_rate.update(s.body, x, sets, 1e-4, contact)
-    assert exact > 2.0 * material
-    assert 0.99 * exact <= s.dashpot_rate.rate <= exact * (1 + 1e-9)
 
 
 def _creep(every: int, cfl: float = 0.3, frames: int = 800) -> tuple[np.ndarray, np.ndarray]:

@@ -119,6 +119,24 @@ def test_a_parameter_change_is_validated_whole_and_a_solver_setting_rebuilds_the
     assert runner.solver is not solver and runner.solver.config.mode == 'global'
 
 
+def test_a_material_the_solver_cannot_model_is_refused_at_run_time_and_nothing_changes(tmp_path):
+    """A relaxing spring on the paper scheme: the change is refused with the reason (it used to
+    escape apply() and the node's parameter callback); a Prony series that sums to 1 the same."""
+    path = tmp_path / 'materials.yaml'
+    path.write_text('materials:\n  relaxing:\n    G: 1800.0\n    nu: 0.45\n    rho: 1060.0\n    eta_shear: 3.0\n'
+                    '    prony: [[0.4, 0.05]]\n  fluid:\n    G: 1800.0\n    nu: 0.45\n    rho: 1060.0\n'
+                    '    eta_shear: 3.0\n    prony: [[0.6, 0.05], [0.4, 1.0]]\n')
+    runner, _ = make_runner(scheme='paper')
+    material = runner.solver.material
+    for name, reason in (('relaxing', 'needs scheme tlsph'), ('fluid', 'sum below 1')):
+        change = runner.apply({'materials_file': str(path), 'material': name})
+        assert not change.successful and reason in change.reason
+        assert runner.solver.material is material and runner.p['material'] != name
+    runner, _ = make_runner()
+    change = runner.apply({'materials_file': str(path), 'material': 'relaxing'})
+    assert change.successful and change.what == 'material swapped' and runner.solver.material.prony
+
+
 def test_the_pose_history_keeps_every_lockstep_pose_and_one_live_pose_stepped_in_the_callback():
     runner, _ = make_runner(timing_mode='lockstep')
     assert pose_history(runner.p, runner) == (1000, True, '')

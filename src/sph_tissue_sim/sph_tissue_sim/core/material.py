@@ -36,7 +36,7 @@ from pathlib import Path
 from .errors import ConfigError
 
 
-#: the largest strain-stiffening exponent b (at b = 50 a 20 % uniaxial stretch is 200 times stiffer)
+#: the largest strain-stiffening exponent b (at b = 50 a 10 % uniaxial stretch is 4 times stiffer)
 MAX_STIFFENING = 50.0
 
 
@@ -203,7 +203,9 @@ def load_material(yaml_path: str | Path | None = None, name: str = 'liver') -> M
     try:
         if entry.get('preset') == 'paper':
             mat = Material.paper_preset(float(entry['E']), float(entry['eta']), float(entry.get('rho', 1060.0)))
-            return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name)
+            return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name,
+                            tuple(tuple(term) for term in entry.get('prony') or ()),
+                            float(entry.get('stiffening', 0.0)))
         nu = float(entry['nu'])
         rho = float(entry['rho'])
         eta_s = float(entry['eta_shear'])

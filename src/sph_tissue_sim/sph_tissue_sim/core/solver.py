@@ -217,6 +217,15 @@ def organ_far_field(cfg: SolverConfig, X: np.ndarray, fixed: np.ndarray, scheme,
                            background=background)
 
 
+def check_material(cfg: SolverConfig, material: Material) -> None:
+    """Raise :class:`ConfigError` if ``cfg``'s solver cannot model ``material``: a relaxing or
+    stiffening spring needs the tlsph scheme's explicit integrator (the others treat it as
+    Kelvin-Voigt)."""
+    if material.beyond_kelvin_voigt and (cfg.scheme != 'tlsph' or cfg.integrator != 'explicit'):
+        raise ConfigError(f'material {material.name}: a relaxing (prony) or stiffening spring needs scheme '
+                          f'tlsph with integrator explicit, got {cfg.scheme} with {cfg.integrator}')
+
+
 def frame_bounds(cfg: SolverConfig, h: float, wave_speed: float, material: Material) -> dict:
     """[s] the largest stable sub-step of each bound (:func:`~.integrate.substep_bounds`), by name.
     The contacts that push are integrated backward (:mod:`.implicit_contact`) and bound nothing; the
@@ -348,9 +357,7 @@ class Solver:
         if not isinstance(material, Material):
             raise ConfigError(f'material must be a Material, got {type(material).__name__}')
         cfg = self.config
-        if material.beyond_kelvin_voigt and (cfg.scheme != 'tlsph' or cfg.integrator != 'explicit'):
-            raise ConfigError(f'material {material.name}: a relaxing (prony) or stiffening spring needs scheme '
-                              f'tlsph with integrator explicit, got {cfg.scheme} with {cfg.integrator}')
+        check_material(cfg, material)
         self.material = material
         self.mass = material.rho * self.volume
         self.inv_mass = 1.0 / self.mass
@@ -553,11 +560,7 @@ class Solver:
         else:
             res = self._local_step(path, n_sub, sub_dt, dt)
         if self.dashpot_rate is not None:
-            # explicit contacts add their dashpots on the touched particles (the samples' own,
-            # spread over their particles, are left out)
-            contact = ((path.seg1, path.reach, self.contact_damping * self.inv_mass)
-                       if tool_on and not self.touches.on and cfg.contact_damping_ratio > 0.0 else None)
-            self.dashpot_rate.update(self.body, self.x, self._last_sets, sub_dt, contact)
+            self.dashpot_rate.update(self.body, self.x, self._last_sets, sub_dt)
         force_raw = self.react.copy()
         force, clamped = clamp_norm(force_raw, cfg.force_limit)
         f0, f1, f2 = force.tolist()

@@ -14,7 +14,7 @@ from one frame to the next (the elastic part's rate grew 4.3x, but its ``omega d
 :class:`DashpotRate` follows ``c`` at the current positions by power iteration, one pass of the
 dashpots alone over the particles being solved every few frames (every frame while the rate
 rises near the limit), warm-started from the previous vector, and bounds the sub-step by
-``DASHPOT_LIMIT / c``. The explicit contact dashpots on the touched particles join the pass. At
+``DASHPOT_LIMIT / c`` (the contacts' dashpots are integrated backward and bound nothing). At
 rest it leaves the reference bounds in charge; it only adds sub-steps where the deformation has
 made the dashpots faster than they allow. Its arrays take 0.36 kB per particle (36 MB on the
 100k liver, zero pages until touched: a 100k solver's RSS grows by 3 MB).
@@ -27,7 +27,6 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import touch_normal
 from .state import Body, Motion, Sets
 from .tlsph import Tlsph, TlsphPool, tlsph_pass, tlsph_pass_parallel
 
@@ -65,22 +64,6 @@ def _load(u, v, idx, n):
         for c in range(3):
             v[i, c] = u[i, c] / norm
     return norm
-
-
-@njit(cache=True)
-def _contact_dashpots(x, v, acc, cand, n_cand, seg, reach, rate):
-    """``acc -= rate (v . n) n`` on the candidates the tool touches (``n`` the normal it pushes
-    them along, ``rate`` = c_c / m): the explicit contact dashpots' share of ``-M^-1 C v``. A
-    touched particle's dashpots add up: on the 3670 liver the contact's alone has ``c dt`` 0.95
-    at the reference bounds' sub-step."""
-    for t in range(n_cand):
-        i = cand[t]
-        touching, overlap, n0, n1, n2, ts = touch_normal(i, x, seg, reach)
-        if touching:
-            vn = rate * (v[i, 0] * n0 + v[i, 1] * n1 + v[i, 2] * n2)
-            acc[i, 0] -= vn * n0
-            acc[i, 1] -= vn * n1
-            acc[i, 2] -= vn * n2
 
 
 @njit(cache=True)
@@ -127,11 +110,10 @@ class DashpotRate:
         self._u[:] = 0.0
         self._rng = np.random.default_rng(0)
 
-    def update(self, body: Body, x: np.ndarray, sets: Sets, sub_dt: float, contact=None) -> float:
+    def update(self, body: Body, x: np.ndarray, sets: Sets, sub_dt: float) -> float:
         """Count a finished frame on ``sets`` with sub-steps of ``sub_dt`` [s] ending at positions
-        ``x``; when due, one power iteration over ``sets.sph``. ``contact``: ``(seg, reach,
-        c_c / m)`` of explicit contact dashpots on the tool's particles (None: none). Returns the
-        rate's estimate [1/s]."""
+        ``x``; when due, one power iteration over ``sets.sph`` (the contact's dashpots are
+        integrated backward and bound nothing). Returns the rate's estimate [1/s]."""
         self._frames += 1
         due = self._frames >= self.every or (self._rising and self.rate * sub_dt >= CLOSE)
         if not due or sets.n_sph == 0:
@@ -146,9 +128,6 @@ class DashpotRate:
             tlsph_pass_parallel(self.state, body, self._motion(x), sets)
         else:
             tlsph_pass(self.state, body, self._motion(x), sets)
-        if contact is not None:
-            seg, reach, c_over_m = contact
-            _contact_dashpots(x, self._v, self._acc, sets.cand, sets.n_cand, seg, reach, c_over_m)
         rate = _store(self._acc, self._u, self._v, sets.sph, sets.n_sph)
         if math.isfinite(rate):
             self._rising = rate > self.rate * (1.0 + RISING * gap)

@@ -86,7 +86,8 @@ class Tlsph(NamedTuple):
     par_min: int           # stressed particles from which a sub-step runs on the thread pool
 
 
-#: a stiffening spring stiffens up to this many times its small-strain shear modulus
+#: a stiffening spring's secant shear modulus grows up to this many times its small-strain one (the
+#: tangent the CFL bound follows to 50 (1 + 2 ln 50) = 441 times, just below the cap)
 STIFFENING_CAP = 50.0
 LOG_STIFFENING_CAP = math.log(STIFFENING_CAP)
 
@@ -210,7 +211,8 @@ def qlv_one(i, s):
     bx = s.b * x
     if bx < LOG_STIFFENING_CAP:
         e = math.exp(bx)
-        # the shear stiffness's growth, e (1 + 2 b (I1b - 3)) (the uniaxial tangent): the CFL bound
+        # the shear stiffness's growth for the CFL bound: e (1 + 2 b (I1b - 3)), the tangent in
+        # simple shear (the largest acoustic modulus is within about 10 % of it; CFL 0.3 covers that)
         grow = e * (1.0 + 2.0 * bx)
     else:
         # beyond the cap the spring is neo-Hookean at STIFFENING_CAP G: a crushed particle's
@@ -231,7 +233,8 @@ def qlv_one(i, s):
           u * (c00 * c02 + c10 * c12 + c20 * c22),
           u * (c01 * c02 + c11 * c12 + c21 * c22))
     now = s.clock[0]
-    dt = now - s.t_up[i]
+    # t_up < 0: no history yet (reset, a new material): the spring answers instantaneously
+    dt = now - s.t_up[i] if s.t_up[i] >= 0.0 else 0.0
     s.t_up[i] = now
     q0 = 0.0; q1 = 0.0; q2 = 0.0; q3 = 0.0; q4 = 0.0; q5 = 0.0
     Se, Q = s.Se[i], s.Q[i]
@@ -239,7 +242,7 @@ def qlv_one(i, s):
         if dt > 0.0:
             r = dt / s.tau[k]
             d = math.exp(-r)
-            w = s.gk[k] * (1.0 - d) / r
+            w = s.gk[k] * -math.expm1(-r) / r
         else:
             d = 1.0
             w = s.gk[k]
@@ -553,8 +556,9 @@ class TlsphScheme(FixedStateScheme):
             self._relax = TlsphQlv(base, material.stiffening, np.ones(1), material.g_inf,
                                    np.array([g for g, _ in material.prony], dtype=np.float64),
                                    np.array([tau for _, tau in material.prony], dtype=np.float64),
-                                   np.zeros((n, 6)), np.zeros((n, m, 6)), np.zeros(n), np.zeros(2))
-        self._growth = 1.0
+                                   np.zeros((n, 6)), np.zeros((n, m, 6)), np.full(n, -1.0), np.zeros(2))
+        # the deformation a new material meets is not measured yet: the largest growth until a frame is
+        self._growth = STIFFENING_CAP * (1.0 + 2.0 * LOG_STIFFENING_CAP) if material.stiffening > 0.0 else 1.0
 
     def stiffness_growth(self) -> float:
         """[-] the largest growth of the shear stiffness over its small-strain value in the last
@@ -578,8 +582,10 @@ class TlsphScheme(FixedStateScheme):
         return r
 
     def frame_done(self, ok: bool) -> None:
-        if self._relax is not None and ok:
-            self._growth = float(self._relax.stiff[0])
+        if self._relax is not None:
+            grown = float(self._relax.stiff[0])
+            # an undone frame may have stiffened within itself: its retry takes the larger bound
+            self._growth = grown if ok else max(self._growth, grown if math.isfinite(grown) else 0.0)
         if not ok and self._saved is not None and self._relax is not None:
             idx, Se, Q, t_up = self._saved
             self._relax.Se[idx], self._relax.Q[idx], self._relax.t_up[idx] = Se, Q, t_up
@@ -617,8 +623,9 @@ class TlsphScheme(FixedStateScheme):
         self.A[:] = 0.0
         self.H[:] = 0.0
         if self._relax is not None:
-            for a in (self._relax.Se, self._relax.Q, self._relax.t_up, self._relax.clock):
+            for a in (self._relax.Se, self._relax.Q, self._relax.clock):
                 a[:] = 0.0
+            self._relax.t_up[:] = -1.0
         self._growth = 1.0
 
     def von_mises(self, x: np.ndarray, sets, out: np.ndarray) -> None:
