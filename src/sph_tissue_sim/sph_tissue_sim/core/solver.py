@@ -99,10 +99,12 @@ class SolverConfig:
     (:func:`setting`). Why each default is what it is: ``docs/decisions/``."""
 
     # -- scheme and area --------------------------------------------------------------------------
-    scheme: str = setting('tlsph', 'tlsph (total-Lagrangian SPH) | paper (updated-Lagrangian, eqs. 11-16) '
-                          '| mass_spring (the paper\'s Table 1 baseline)', SCHEMES)
-    mode: str = setting('local', 'local (the dynamic local interaction area) | global (every free particle)',
-                        MODES)
+    scheme: str = setting('tlsph', 'tlsph (total-Lagrangian SPH) | paper (updated-Lagrangian, eqs. 11-16, '
+                          'for comparison: 1.9-2.4x tlsph\'s cost per particle-sub-step, unstable in long '
+                          'holds) | mass_spring (the paper\'s Table 1 baseline: 0.27x tlsph\'s global step)',
+                          SCHEMES)
+    mode: str = setting('local', 'local (the dynamic local interaction area) | global (every free particle: '
+                        '4.8x the local step on the 3671 liver, for reference runs)', MODES)
     h_ratio: float = setting(1.3, '[-] smoothing length h / particle spacing (support 2h)', (0.2, 4.0))
     k1_gain: float = setting(0.5, '[1/N] k1 = k1_gain * f_ext (paper eq. 18); the area radius Dr = k1 h',
                              (0.0, 100.0))
@@ -122,9 +124,11 @@ class SolverConfig:
                                            'particle', (0.0, 10.0))
     contact_samples: int = setting(3, 'samples per side of a surface particle behind the balls, which hold '
                                    'the tool out of the gaps between particles (0: the balls alone, the '
-                                   'tool slips between them; 3 costs 1.3-1.4x the balls\' step)', (0, 5))
+                                   'tool slips between them, the paper\'s; 3 costs 0.9-1.15x the balls\' step)',
+                                   (0, 5))
     friction: float = setting(0.0, '[-] Coulomb coefficient of stick-slip friction between the tool and '
-                              'the balls (0: frictionless)', (0.0, 2.0), rebuild=None)
+                              'the balls (0: frictionless; 0.3 holds the touched particle to 0.1 mm at a '
+                              '10 mm press but stiffens the shallow press by a third)', (0.0, 2.0), rebuild=None)
     max_tool_speed: float = setting(1.0, '[m/s] the simulated tool follows the request at most this fast '
                                     '(a hand stays below 1 m/s; 1000: no limit)', (0.01, 1000.0), rebuild=None)
     force_limit: float = setting(HARD_FORCE_LIMIT, '[N] norm clamp of the force sent to the device (Omni '
@@ -132,20 +136,23 @@ class SolverConfig:
     # -- integration ------------------------------------------------------------------------------
     integrator: str = setting('explicit', 'explicit (symplectic Euler within the CFL and viscous bounds, '
                               'the pushing contacts backward) | implicit (tlsph: backward Euler on everything, '
-                              'for large visual frames)',
+                              'for large visual frames: a 16 ms frame costs 0.84-1.35x sixteen explicit ones)',
                               INTEGRATORS)
     cfl: float = setting(0.3, '[-] Courant number of the sub-step bounds', (0.01, 1.0))
     max_substeps: int = setting(64, 'sub-steps per frame at most (beyond it simulated time lags; reported)',
                                 (1, 100000))
     implicit_max_dt: float = setting(0.016, '[s] the implicit integrator\'s largest sub-step', (1e-5, 1.0))
     parallel_min_particles: int = setting(0, 'tlsph: numba\'s threads from this many stressed particles (0: '
-                                          'never; only on cores of its own: a busy core stalls each sub-step)',
+                                          'never; 2 idle threads: the local 3671 step 1.2x faster, but a '
+                                          'busy core stalls each sub-step)',
                                           (0, 10_000_000))
     # -- far field --------------------------------------------------------------------------------
     far_field: float = setting(1.0, '[-] local mode: the still particles next to the solved ones follow this '
                                'times the far field\'s response to the contact force (the organ\'s own for '
-                               f'tlsph up to {ORGAN_MAX_FREE} free particles, else an elastic half-space\'s; 0: '
-                               'held still, the paper)', (0.0, 2.0))
+                               f'tlsph up to {ORGAN_MAX_FREE} free particles, factored once and cached on disk, '
+                               'else an elastic half-space\'s; 0: held still as in the paper, whose area was '
+                               'then up to 24 % stiffer than global)',
+                               (0.0, 2.0))
 
     def validate(self) -> 'SolverConfig':
         """Check every field against its limits; raises :class:`ConfigError` naming the bad field.
