@@ -74,13 +74,32 @@ def test_a_relaxing_spring_needs_the_explicit_tlsph_solver():
     assert solver.material is KV
 
 
-def _stretched(material: Material, stretch: float = 1.02):
-    """A global solver on a block, every particle moved to ``x = F X`` (F a uniaxial stretch
-    along x), and its frame sets."""
+def _stretched(material: Material, F: np.ndarray | None = None):
+    """A global solver on a block, every particle moved to ``x = F X`` (default a 2 % stretch along
+    x), its frame sets and ``F``."""
     solver = Solver(make_block(6, 6, 6, spacing=0.005, fix='none'), material, SolverConfig(mode='global'))
-    F = np.diag([stretch, 1.0, 1.0])
+    F = np.diag([1.02, 1.0, 1.0]) if F is None else F
     solver.x[:] = solver.X @ F.T
     return solver, solver.area.global_sets(-1), F
+
+
+def _kv_stress(F: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) ``V P`` of the Kelvin-Voigt twin at rest at ``x = F X`` (its spring's)."""
+    kv, sets, _ = _stretched(KV, F)
+    tlsph_pass(kv.scheme.state(sets, kv.area.active, 0), kv.body, kv.motion, sets)
+    return kv.scheme.A.copy()
+
+
+def _pass(solver: Solver, sets, t: float = 0.0, dt: float = 1e-3):
+    """One stress and force pass of a stiffening or relaxing solver as a frame's first sub-step at
+    sim time ``t``; returns the scheme (its ``A`` then holds ``V P``)."""
+    scheme = solver.scheme
+    scheme.start_frame(t, dt)
+    state = scheme.state(sets, solver.area.active, 0)
+    assert isinstance(state, TlsphQlv)
+    tlsph_qlv_pass(state, solver.body, solver.motion, sets)
+    scheme.frame_done(True)
+    return scheme
 
 
 def test_a_held_stretch_relaxes_as_the_relaxation_function_in_every_particle():
@@ -90,16 +109,9 @@ def test_a_held_stretch_relaxes_as_the_relaxation_function_in_every_particle():
     m = _relaxing()
     for dt in (2e-4, 1e-3, 0.01):
         solver, sets, F = _stretched(m)
-        kv, _, _ = _stretched(KV)
-        tlsph_pass(kv.scheme.state(sets, kv.area.active, 0), kv.body, kv.motion, sets)
-        elastic = kv.scheme.A.copy()   # V P_e: at rest the Kelvin-Voigt stress is the spring's
-        scheme = solver.scheme
+        elastic = _kv_stress(F)        # V P_e: at rest the Kelvin-Voigt stress is the spring's
         for step in range(int(round(1.0 / dt)) + 1):
-            scheme.start_frame(step * dt, dt)
-            state = scheme.state(sets, solver.area.active, 0)
-            assert isinstance(state, TlsphQlv)
-            tlsph_qlv_pass(state, solver.body, solver.motion, sets)
-            scheme.frame_done(True)
+            scheme = _pass(solver, sets, step * dt, dt)
             if step in (0, int(round(0.05 / dt)), int(round(1.0 / dt))):
                 g = m.relaxation(step * dt)
                 np.testing.assert_allclose(scheme.A, g * elastic, rtol=1e-9, atol=1e-12 * np.abs(elastic).max())
@@ -193,13 +205,8 @@ def test_the_stiffening_spring_is_the_gradient_of_its_strain_energy(F):
     """At a homogeneous deformation (a stretch, a shear) every particle's stress ``P = A / V`` is
     d psi / d F of the strain energy, by central differences (the stress at rest: none)."""
     m = _stiffening(8.0)
-    solver = Solver(make_block(6, 6, 6, spacing=0.005, fix='none'), m, SolverConfig(mode='global'))
-    solver.x[:] = solver.X @ F.T
-    sets = solver.area.global_sets(-1)
-    scheme = solver.scheme
-    scheme.start_frame(0.0, 1e-3)
-    tlsph_qlv_pass(scheme.state(sets, solver.area.active, 0), solver.body, solver.motion, sets)
-    scheme.frame_done(True)
+    solver, sets, _ = _stretched(m, F)
+    scheme = _pass(solver, sets)
     P = scheme.A / solver.volume
     dPsi = np.zeros((3, 3))
     eps = 1e-6
@@ -210,26 +217,17 @@ def test_the_stiffening_spring_is_the_gradient_of_its_strain_energy(F):
             dPsi[p, q] = (_energy(F + d, m) - _energy(F - d, m)) / (2.0 * eps)
     np.testing.assert_allclose(P, np.broadcast_to(dPsi, P.shape), rtol=2e-6, atol=1e-6 * np.abs(dPsi).max())
     assert scheme.stiffness_growth() > 1.5
-    soft = Solver(make_block(6, 6, 6, spacing=0.005, fix='none'), KV, SolverConfig(mode='global'))
-    soft.x[:] = soft.X @ F.T
-    tlsph_pass(soft.scheme.state(sets, soft.area.active, 0), soft.body, soft.motion, sets)
-    assert np.abs(P[0]).max() > 1.2 * np.abs(soft.scheme.A[0] / soft.volume).max()
+    assert np.abs(P[0]).max() > 1.2 * np.abs(_kv_stress(F)[0] / solver.volume).max()
 
 
 def test_the_stiffening_term_leaves_the_small_strain_moduli_alone():
     """At 0.1 % stretch the stiffening term is of third order: with b = 20 the stress within 2e-4
     of the neo-Hookean spring's (b (I1b - 3) is about 5e-5 there)."""
     F = np.diag([1.001, 0.9995, 0.9995])
-    stresses = []
-    for m in (KV, _stiffening(20.0)):
-        solver = Solver(make_block(6, 6, 6, spacing=0.005, fix='none'), m, SolverConfig(mode='global'))
-        solver.x[:] = solver.X @ F.T
-        sets = solver.area.global_sets(-1)
-        state = solver.scheme.state(sets, solver.area.active, 0)
-        (tlsph_qlv_pass if isinstance(state, TlsphQlv) else tlsph_pass)(state, solver.body, solver.motion, sets)
-        stresses.append(solver.scheme.A.copy())
-    np.testing.assert_allclose(stresses[1], stresses[0], rtol=0, atol=2e-4 * np.abs(stresses[0]).max())
-    assert not np.array_equal(stresses[1], stresses[0])
+    solver, sets, _ = _stretched(_stiffening(20.0), F)
+    stiff, soft = _pass(solver, sets).A, _kv_stress(F)
+    np.testing.assert_allclose(stiff, soft, rtol=0, atol=2e-4 * np.abs(soft).max())
+    assert not np.array_equal(stiff, soft)
 
 
 @pytest.mark.parametrize('mode', ['global', 'local'])
@@ -258,13 +256,8 @@ def test_a_crushed_particle_stiffens_no_more_than_the_cap():
 
     m = _stiffening(10.0)
     F = np.diag([0.55, 1.45, 1.3])
-    solver = Solver(make_block(6, 6, 6, spacing=0.005, fix='none'), m, SolverConfig(mode='global'))
-    solver.x[:] = solver.X @ F.T
-    sets = solver.area.global_sets(-1)
-    scheme = solver.scheme
-    scheme.start_frame(0.0, 1e-3)
-    tlsph_qlv_pass(scheme.state(sets, solver.area.active, 0), solver.body, solver.motion, sets)
-    scheme.frame_done(True)
+    solver, sets, _ = _stretched(m, F)
+    scheme = _pass(solver, sets)
     J, I1 = np.linalg.det(F), float(np.sum(F * F))
     assert m.stiffening * (J ** (-2.0 / 3.0) * I1 - 3.0) > math.log(STIFFENING_CAP)
     Finv_T = np.linalg.inv(F).T
