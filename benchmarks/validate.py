@@ -116,7 +116,8 @@ def check_relaxation(quick: bool, out: Path) -> list[dict]:
     liver = liver_default()
     material = Material(liver.E, liver.nu, liver.eta_shear, liver.eta_bulk, liver.rho, 'relaxing', RELAX_PRONY)
     held = cases.held_stretch(material, times=(0.0, 0.05, 0.5) if quick else (0.0, 0.05, 0.5, 2.0))
-    creep = cases.relaxing_creep(prony=CREEP_PRONY, times=(0.5, 2.0) if quick else (0.5, 2.0, 8.0, 30.0, 80.0))
+    # quick: no creep bar (its frame is a compile of its own; test_core_relaxation.py holds it to 2 %)
+    creep = [] if quick else cases.relaxing_creep(prony=CREEP_PRONY, times=(0.5, 2.0, 8.0, 30.0, 80.0))
     rows = [row('relaxation', f'step stretch held, t = {t:g} s', m, e, 'P/P0', '|error| <= 2 %',
                 abs(m / e - 1.0) <= 0.02) for t, m, e in held]
     rows += [row('relaxation', f'creep, t = {t:g} tau_v', m, e, 'strain', '|error| <= 2 %', abs(m / e - 1.0) <= 0.02)

@@ -148,7 +148,7 @@ def test_an_undone_frame_puts_the_internal_variables_back():
         assert np.array_equal(a, b)
 
 
-def _press_and_hold(solver: Solver, depth: float = 0.004, ramp: int = 100, hold: int = 1000):
+def _press_and_hold(solver: Solver, depth: float = 0.004, ramp: int = 100, hold: int = 400):
     """Fz [N] when the tool reaches ``depth`` below first touch (lowered over ``ramp`` 1 ms
     frames at the top centre) and after ``hold`` frames there."""
     X = solver.X
@@ -161,7 +161,7 @@ def _press_and_hold(solver: Solver, depth: float = 0.004, ramp: int = 100, hold:
 
 @pytest.mark.parametrize('mode', ['global', 'local'])
 def test_a_press_relaxes_while_held_and_reset_forgets_the_history(mode):
-    """Pressed 4 mm and held for a second, the force falls towards g_inf of it (Kelvin-Voigt's
+    """Pressed 4 mm and held for 0.4 s, the force falls towards g_inf of it (Kelvin-Voigt's
     holds); after a reset the same press gives the same forces bit for bit. (No far field: the
     organ's lends a response solved before the reset to a neighbour, by design.)"""
     block = make_block(8, 8, 5, spacing=0.0075, fix='bottom')
