@@ -115,7 +115,8 @@ class SolverConfig:
                                node=False)
     # -- tool and contact -------------------------------------------------------------------------
     tool_shape: str = setting('sphere', 'sphere (a probe tip) | capsule (a shaft of tool_length along '
-                              'the tool\'s +z, rounded)', tuple(TOOLS))
+                              'the tool\'s +z, rounded: an instrument; 1.17x the sphere\'s step at a 6 mm '
+                              'press)', tuple(TOOLS))
     tool_radius: float = setting(0.005, '[m] radius of the sphere, or of the capsule\'s shaft', (1e-4, 0.05))
     tool_length: float = setting(0.05, '[m] length of the capsule\'s shaft (unused by the sphere)', (0.0, 0.3))
     contact_stiffness: float = setting(300.0, '[N/m] penalty stiffness per touched particle or surface '
