@@ -27,7 +27,13 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
   slide from under the tool; Hertz's sphere-on-half-space curve is drawn where it applies
   (depth < tool radius; the liver is no half-space, so it is not scored). Then the running loop's
   version: the device pressed as deep through the haptic renderer (local, the driver's 0.88 N
-  limit): the simulated tool must stop where the tissue holds the limit, with no particle over it.
+  limit): the simulated tool must stop where the tissue holds the limit, with no particle over it;
+* ``press_set``: the press as a surgeon makes it, at 20 places spread over the liver's upper
+  surface (level and sloping, up to 53 degrees; ``cases.upper_surface``), along the surface's
+  normal, at 2, 10 and 50 mm/s, straight and with holds of 0.1 / 1 / 0.3 s at 10 / 20 / 30 mm,
+  to 40 mm or the force limit (local, defaults): each press's force must rise with depth (no fall
+  over 2 % while the tool advances: ``cases.largest_fall``), no particle may pass over the tool
+  and the first-touched particle must slide less than 1 mm by 10 mm. Two processes.
 
 Writes to ``--out`` (default ``benchmarks/results/validate``): ``validate.csv`` (one row per
 measure: measured, reference, error, target, met), ``validate.md`` (the same as a table, with the
@@ -35,7 +41,8 @@ plots) and ``validate_<check>.png``. ``--quick`` runs small versions of every ch
 suite's smoke run; its numbers are not the validation's). ``--checks`` picks some; ``--set
 FIELD=VALUE`` changes a ``SolverConfig`` field for the checks with a tool (to compare settings).
 
-Usage: ``python benchmarks/validate.py [--out DIR] [--quick] [--checks creep,...] [--set FIELD=VALUE ...]``
+Usage: ``python benchmarks/validate.py [--out DIR] [--quick] [--checks creep,...] [--set FIELD=VALUE ...]
+[--press-speeds 2,10,50]``
 """
 
 from __future__ import annotations
@@ -60,7 +67,8 @@ from sph_tissue_sim.validation.analytic import hertz_force
 from tissue_common.force import HARD_FORCE_LIMIT
 
 ROOT = Path(__file__).resolve().parents[1]
-CHECKS = ('creep', 'uniaxial', 'relaxation', 'cantilever', 'hertz', 'local_global', 'drag', 'press')
+CHECKS = ('creep', 'uniaxial', 'relaxation', 'cantilever', 'hertz', 'local_global', 'drag', 'press',
+          'press_set')
 COLUMNS = ('check', 'case', 'measured', 'reference', 'unit', 'error_pct', 'target', 'met')
 
 #: places on the liver's top (x, y) [m] and depths [m] of the local-vs-global presses
@@ -71,11 +79,18 @@ PRESS_REPORT_DEPTHS = (0.005, 0.010, 0.020, 0.030, 0.040)
 #: (at the bounding box's centre the top slopes at about 45 degrees, where a frictionless tool is
 #: pushed sideways as much as up)
 LIVER_TOP = (-0.034, 0.0)
+#: the press set: places, speeds [m/s], holds ((depth [m], hold [s]), ...) and depth [m]
+PRESS_SET_PLACES = 20
+PRESS_SET_SPEEDS = (0.002, 0.010, 0.050)
+PRESS_SET_HOLDS = ((0.010, 0.1), (0.020, 1.0), (0.030, 0.3))
+PRESS_SET_DEPTH = 0.040
 #: [N] the driver's continuous force limit (PHANTOM Omni), for the press through the renderer
 DEVICE_LIMIT = 0.88
 
 #: SolverConfig fields set from the command line (--set) for the checks with a tool
 OVERRIDES: dict = {}
+#: [m/s] the press set's speeds from the command line (--press-speeds; empty: PRESS_SET_SPEEDS)
+PRESS_SPEEDS: list = []
 
 
 def solver_config(**fields) -> SolverConfig:
@@ -384,6 +399,88 @@ def check_press(quick: bool, out: Path) -> list[dict]:
     return rows
 
 
+def _press_set_job(job: tuple) -> dict:
+    """One press of the set (a worker process): its summary and its curve."""
+    n, place, point, normal, speed, holds, depth, overrides = job
+    OVERRIDES.update(overrides)
+    model = make_model('liver', n_particles=n)
+    c = cases.press_along(model, liver_default(), solver_config(mode='local', parallel_min_particles=0), point,
+                          normal, depth, speed, holds=holds, limit=HARD_FORCE_LIMIT)
+    fall, holds_up = cases.largest_fall(c)
+    k10 = np.flatnonzero(c['depth'] >= min(0.010, depth) - 1e-12)
+    peak = float(np.max(c['normal'], initial=0.0))
+    return {'place': place, 'speed_mm_s': speed * 1e3, 'holds': bool(holds), 'fall_n': fall,
+            'fall_pct': 100.0 * fall / peak if peak > 0 else 0.0, 'rises': bool(holds_up),
+            'over_max': int(c['over'].max(initial=0)), 'slip10_mm': float(c['slip'][k10[0]]) * 1e3 if len(k10) else math.nan,
+            'peak_n': peak, 'deepest_mm': float(c['depth'][-1]) * 1e3 if len(c['depth']) else 0.0,
+            'limit': bool(peak >= HARD_FORCE_LIMIT), 'unstable': c['unstable_at'] is not None,
+            'curve': (c['depth'][c['moving'] > 0], c['normal'][c['moving'] > 0])}
+
+
+def check_press_set(quick: bool, out: Path) -> list[dict]:
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    n, count, speeds, holds, depth = ((1289, 2, (0.050,), ((0.010, 0.05),), 0.020) if quick else
+                                      (3670, PRESS_SET_PLACES, PRESS_SPEEDS or PRESS_SET_SPEEDS, PRESS_SET_HOLDS,
+                                       PRESS_SET_DEPTH))
+    points, normals = cases.upper_surface(make_model('liver', n_particles=n), count, seed=LIVER_TOP)
+    jobs = [(n, i, points[i], normals[i], v, h, depth, dict(OVERRIDES))
+            for v in speeds for h in ((), holds) for i in range(count)]
+    workers = 1 if quick else 2
+    if workers == 1:
+        got = [_press_set_job(j) for j in jobs]
+    else:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context('spawn')) as pool:
+            got = list(pool.map(_press_set_job, jobs))
+    fields = [k for k in got[0] if k != 'curve']
+    with open(out / 'validate_press_set.csv', 'w', newline='') as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        w.writerows({k: r[k] for k in fields} for r in got)
+    good = [r['rises'] and r['over_max'] == 0 and not r['unstable'] and not r['slip10_mm'] > 1.0 for r in got]
+    rows = []
+    for v in speeds:
+        for held in (False, True):
+            group = [r for r in got if r['speed_mm_s'] == v * 1e3 and r['holds'] == held]
+            name = f'{v * 1e3:g} mm/s, ' + ('holds' if held else 'straight')
+            rows.append(row('press_set', f'{name}: presses whose force rises (fall <= 2 %)',
+                            float(sum(r['rises'] for r in group)), None, f'of {len(group)}', 'all',
+                            all(r['rises'] for r in group)))
+            rows.append(row('press_set', f'{name}: largest fall while advancing',
+                            max(r['fall_pct'] for r in group), None, '% of peak', '<= 2', None))
+            rows.append(row('press_set', f'{name}: most particles over the tool',
+                            float(max(r['over_max'] for r in group)), None, '-', '0',
+                            all(r['over_max'] == 0 for r in group)))
+            rows.append(row('press_set', f'{name}: largest slip of the first-touched particle at 10 mm',
+                            float(np.nanmax([r['slip10_mm'] for r in group])), None, 'mm', '<= 1 mm',
+                            all(not r['slip10_mm'] > 1.0 for r in group)))
+            rows.append(row('press_set', f'{name}: presses that reach the {HARD_FORCE_LIMIT} N limit',
+                            float(sum(r['limit'] for r in group)), None, f'of {len(group)}', 'reported', None))
+    rows.append(row('press_set', 'presses that pass every target', float(sum(good)), None, f'of {len(got)}', 'all',
+                    all(good)))
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(len(speeds), 2, figsize=(10, 3.2 * len(speeds)), squeeze=False)
+    for a, v in enumerate(speeds):
+        for b, held in enumerate((False, True)):
+            ax = axes[a, b]
+            for r, ok in zip(got, good):
+                if r['speed_mm_s'] == v * 1e3 and r['holds'] == held:
+                    d, f = r['curve']
+                    ax.plot(d * 1e3, f, color='#1f77b4' if ok else '#d62728', lw=0.8, alpha=0.8)
+            ax.axhline(HARD_FORCE_LIMIT, color='0.5', lw=0.8, ls='-.')
+            stops = ' / '.join(f'{t:g} s at {d * 1e3:g} mm' for d, t in holds)
+            ax.set_title(f'{v * 1e3:g} mm/s, ' + (f'holds of {stops}' if held else 'straight'), fontsize=9)
+            ax.set_xlabel('depth along the normal [mm]')
+            ax.set_ylabel('force along the normal [N]')
+            ax.grid(alpha=0.3)
+    fig.suptitle(f'{count} presses per panel on the liver ({n} particles): blue passes, red fails', fontsize=10)
+    _save(fig, axes[0, 0], out / 'validate_press_set.png', legend=False)
+    return rows
+
+
 # ---------------------------------------------------------------------------------------------
 def _plot_hertz(ax, material, radius: float, depth: float, label: str) -> None:
     """Hertz's force of a rigid sphere of ``radius`` on a half-space of ``material``, 0..depth."""
@@ -436,7 +533,16 @@ def main(argv=None) -> int:
     ap.add_argument('--set', action='append', default=[], metavar='FIELD=VALUE',
                     help='a SolverConfig field for the checks with a tool (hertz, local_global, drag, '
                          'press; repeatable), e.g. --set contact_samples=3 --set far_field=1')
+    ap.add_argument('--press-speeds', default='', metavar='MM_PER_S,...',
+                    help='the press set at these speeds only [mm/s] (default 2,10,50)')
     args = ap.parse_args(argv)
+    PRESS_SPEEDS.clear()
+    try:
+        PRESS_SPEEDS.extend(float(v) * 1e-3 for v in args.press_speeds.split(',') if v.strip())
+    except ValueError:
+        ap.error(f'--press-speeds {args.press_speeds!r}: expected speeds in mm/s, e.g. 10,50')
+    if any(not (0.0 < v <= 1.0) for v in PRESS_SPEEDS):
+        ap.error(f'--press-speeds {args.press_speeds!r}: each speed must be in (0, 1000] mm/s')
     OVERRIDES.clear()
     for item in args.set:
         name, _, text = item.partition('=')
@@ -458,7 +564,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     runners = {'creep': check_creep, 'uniaxial': check_uniaxial, 'relaxation': check_relaxation, 'cantilever': check_cantilever,
                'hertz': check_hertz, 'local_global': check_local_global, 'drag': check_drag,
-               'press': check_press}
+               'press': check_press, 'press_set': check_press_set}
     rows, pngs = [], []
     t_all = time.perf_counter()
     for i, name in enumerate(chosen, start=1):

@@ -267,3 +267,61 @@ def test_local_area_force_on_the_liver_matches_global():
         worst_ff = max(worst_ff, np.abs(err_ff).max())
     assert worst_still > 0.05          # the still region alone is too stiff ...
     assert worst_ff < 0.05             # ... the far field brings the area to the organ
+
+
+# ---------------------------------------------------------------------------------------------
+def test_the_upper_surface_places_point_up_lie_on_the_top_and_spread_apart():
+    """On a bottom-fixed block the upper surface is the top face and its upper edges: every place
+    is a top-layer particle (or an upper edge's, whose normal leans at most to 45 degrees), its
+    normal points up by at least ``min_up``, and farthest-point sampling spreads them at least a
+    third of the face's width apart."""
+    from sph_tissue_sim.validation.cases import upper_surface
+
+    model = make_block(12, 12, 6, spacing=0.005, fix='bottom')
+    points, normals = upper_surface(model, 4, seed=(0.0275, 0.0275))
+    top = model.positions[:, 2].max()
+    assert np.allclose(points[:, 2], top)
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+    assert np.all(normals[:, 2] >= 0.6)
+    gaps = [np.linalg.norm(a - b) for k, a in enumerate(points) for b in points[k + 1:]]
+    assert min(gaps) >= 0.055 / 3.0
+    with pytest.raises(ValueError, match='places on the upper surface'):
+        upper_surface(model, 10_000)
+
+
+def test_a_fall_while_the_tool_advances_is_a_give_way_and_a_fall_while_it_is_held_is_not():
+    """``largest_fall`` scores only advancing frames, its running maximum restarting after a hold:
+    a relaxing hold (force down 30 %) then a rise again passes; a 5 % fall while advancing fails."""
+    from sph_tissue_sim.validation.cases import largest_fall
+
+    rise = np.linspace(0.0, 1.0, 50)
+    held = 1.0 - 0.3 * (1.0 - np.exp(-np.arange(20) / 5.0))
+    moving = np.r_[np.ones(50), np.zeros(20), np.ones(50)]
+    curve = {'normal': np.r_[rise, held, held[-1] + rise], 'moving': moving}
+    fall, rises = largest_fall(curve)
+    assert rises and fall == 0.0
+    f = curve['normal']
+    f[100] -= 0.05 * f.max()
+    fall, rises = largest_fall(curve)
+    assert not rises and fall == pytest.approx(f[70:100].max() - f[100])
+
+
+def test_a_press_along_a_normal_holds_where_asked_and_stops_at_the_force_limit():
+    """``press_along`` on a block's top at 20 mm/s with a 30 ms hold at 1 mm: the tool stands still
+    exactly the hold's frames at exactly 1 mm, the force along the press rises, and the press ends
+    at the first frame whose force reaches the limit."""
+    from sph_tissue_sim.validation.cases import press_along
+
+    model = make_block(8, 8, 5, spacing=0.005, fix='bottom')
+    mat = Material.from_shear(1800.0, 0.45, 3.0)
+    top = (0.0175, 0.0175, 0.0)
+    c = press_along(model, mat, SolverConfig(mode='global'), top, (0.0, 0.0, 1.0), 0.003, 0.02, holds=[(0.001, 0.03)])
+    still = c['moving'] == 0
+    assert still.sum() == 30 and np.all(c['depth'][still] == 0.001)
+    assert len(c['depth']) == 150 + 30 and c['depth'][-1] == pytest.approx(0.003)
+    assert c['normal'][-1] > c['normal'][still][-1] > 0.0 and c['over'].max() == 0
+    limit = 0.5 * c['normal'][-1]
+    cut = press_along(model, mat, SolverConfig(mode='global'), top, (0.0, 0.0, 1.0), 0.003, 0.02,
+                      holds=[(0.001, 0.03)], limit=limit)
+    assert cut['normal'][-1] >= limit > cut['normal'][-2]
+    assert np.array_equal(cut['normal'], c['normal'][:len(cut['normal'])])

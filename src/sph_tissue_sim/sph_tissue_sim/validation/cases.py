@@ -302,18 +302,30 @@ def drag(model: TissueModel, material: Material, config: SolverConfig, depth: fl
 def press_curve(model: TissueModel, material: Material, config: SolverConfig, depth: float,
                 speed: float = 0.01, xy=(0.0, 0.0), dt: float = 1e-3, renderer=None) -> dict:
     """Press the tool straight down into the top surface above ``xy`` to ``depth`` [m] at ``speed``
-    [m/s], one ``dt`` frame at a time, from first touch.
-
-    Returns per frame: ``depth`` [m] below first touch, ``normal`` (the force along +z) and
-    ``sideways`` (its horizontal norm) [N], and ``over``: how many particle centres lie over the
-    tool (closer than its radius to its vertical axis and above its centre): tissue the tool has
-    passed under, i.e. popped through; ``slip``: how far the particle touched first has moved
-    sideways [m] (a straight press should carry it straight down).
+    [m/s], one ``dt`` frame at a time, from first touch: :func:`press_along` the vertical.
 
     With a :class:`~..haptics.renderer.HapticRenderer`, ``depth`` is the device's: the renderer
     answers each device sample and the solver steps at its proxy (the lockstep schedule of the
     node, one step per sample); then ``tool`` is the simulated tool's depth [m] and ``device`` the
     force sent to the device along +z [N] (``normal`` stays the solver's).
+    """
+    return press_along(model, material, config, (xy[0], xy[1], 0.0), (0.0, 0.0, 1.0), depth, speed,
+                       dt=dt, renderer=renderer)
+
+
+def press_along(model: TissueModel, material: Material, config: SolverConfig, point, normal, depth: float,
+                speed: float, holds=(), limit: float = math.inf, dt: float = 1e-3, renderer=None) -> dict:
+    """Press the tool into the surface along ``-normal`` (a unit vector, the surface's outward one)
+    on the line through ``point`` [m], from first touch to ``depth`` [m] at ``speed`` [m/s], one
+    ``dt`` frame at a time, pausing ``hold`` [s] at each ``(depth, hold)`` of ``holds``; stops after
+    the first frame whose force along the press reaches ``limit`` [N].
+
+    Returns per frame: ``depth`` [m] below first touch, ``normal`` (the force along ``normal``) and
+    ``sideways`` (the norm of the rest) [N], ``moving`` (whether the tool advanced that frame),
+    ``over``: how many particle centres lie over the tool (closer than its radius to the press's
+    axis and behind its centre): tissue the tool has passed under, i.e. popped through; ``slip``:
+    how far the particle touched first has moved across the press [m] (a straight press should
+    carry it along). ``tool`` and ``device`` as in :func:`press_curve`.
 
     A step that goes unstable (:class:`~..core.errors.SimError`, e.g. the crushed tissue round a
     deep tool) ends the press: the arrays then stop at the last good frame and ``unstable_at`` is
@@ -321,17 +333,28 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
     """
     solver = Solver(model, material, config)
     P = model.positions
-    start = first_touch(model, solver.contact_reach, xy, NUDGE)
-    frames = int(math.ceil(depth / (speed * dt)))
-    out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'over', 'slip', 'tool', 'device')}
-    radius = solver.tool.radius
+    n = np.asarray(normal, dtype=float)
+    start = _touch_along(model, solver.contact_reach, np.asarray(point, dtype=float), n)
     first = int(np.argmin(np.linalg.norm(P - start, axis=1)))
+    pauses = sorted((d, int(round(h / dt))) for d, h in holds)
+    frames = int(math.ceil(depth / (speed * dt))) + sum(k for _, k in pauses)
+    out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'over', 'slip', 'tool', 'device', 'moving')}
+    radius = solver.tool.radius
+    d, wait, done = 0.0, 0, 0
     for k in range(frames):
-        d = min(depth, (k + 1) * speed * dt)
-        tip = start - np.array([0.0, 0.0, d])
+        moving = wait == 0
+        if moving:
+            d = min(depth, (k + 1 - done) * speed * dt)
+            if pauses and d >= pauses[0][0]:
+                d, wait = pauses[0][0], pauses[0][1]
+                done += wait
+                pauses.pop(0)
+        else:
+            wait -= 1
+        tip = start - d * n
         if renderer is not None:
             answer = renderer.answer(tip, dt)
-            out['device'][k] = answer.force[2]
+            out['device'][k] = answer.force @ n
             tip = answer.proxy
         try:
             res = solver.step(tip, dt)
@@ -344,15 +367,80 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
             renderer.refresh(res.tool_segment[0] if res.tool_segment is not None else tip, f)
         at = res.tool_segment[0] if res.tool_segment is not None else tip
         out['depth'][k] = d
-        out['tool'][k] = start[2] - at[2]
-        out['normal'][k] = f[2]
-        out['sideways'][k] = math.hypot(f[0], f[1])
-        x = solver.positions
-        out['over'][k] = np.count_nonzero((np.hypot(x[:, 0] - at[0], x[:, 1] - at[1]) < radius)
-                                          & (x[:, 2] > at[2]))
-        out['slip'][k] = math.hypot(x[first, 0] - P[first, 0], x[first, 1] - P[first, 1])
+        out['moving'][k] = moving
+        out['tool'][k] = (start - at) @ n
+        out['normal'][k] = f @ n
+        out['sideways'][k] = _across(f, n)
+        rel = solver.positions - at
+        along = rel @ n
+        out['over'][k] = np.count_nonzero((np.linalg.norm(rel - along[:, None] * n, axis=1) < radius) & (along > 0.0))
+        out['slip'][k] = _across(solver.positions[first] - P[first], n)
+        if out['normal'][k] >= limit:
+            out = {key: val[:k + 1] for key, val in out.items()}
+            break
     out['unstable_at'] = None
     return out
+
+
+def _across(v: np.ndarray, n: np.ndarray) -> float:
+    """The norm of ``v``'s part normal to the unit vector ``n``."""
+    return float(np.linalg.norm(v - (v @ n) * n))
+
+
+def _touch_along(model: TissueModel, reach: float, point: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Where a tool moving along ``-n`` on the line through ``point`` first touches the model:
+    ``reach`` beyond the outermost free particle within 1.5 spacings of the line, moved across it
+    by :data:`NUDGE` (:func:`first_touch` for a vertical press)."""
+    rel = model.positions - point
+    along = rel @ n
+    line = ~model.fixed & (np.linalg.norm(rel - along[:, None] * n, axis=1) < 1.5 * model.spacing)
+    nudge = np.array([NUDGE[0], NUDGE[1], 0.0])
+    return point + (along[line].max() + reach) * n + (nudge - (nudge @ n) * n)
+
+
+def upper_surface(model: TissueModel, count: int, min_up: float = 0.6, seed=None) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` places on the model's upper surface, ``(points (count, 3) [m], outward normals)``:
+    surface particles (:func:`~..core.surface_contact.surface_normals`) whose reference normal
+    points up by at least ``min_up`` (level and sloping, up to acos(min_up)), at least three
+    spacings from a fixed particle, spread by farthest-point sampling from the one nearest
+    ``seed`` (x, y) (default: the highest)."""
+    from ..core.neighbours import find_neighbours
+    from ..core.surface_contact import surface_normals
+
+    P, s = model.positions, model.spacing
+    h = SolverConfig().h_ratio * s
+    offsets, indices = find_neighbours(P, 2.0 * h)
+    N = surface_normals(P, offsets, indices, h, s ** 3, s)
+    fixed = P[model.fixed]
+    far = np.ones(len(P), dtype=bool) if len(fixed) == 0 else np.array(
+        [np.min(np.linalg.norm(fixed - p, axis=1)) >= 3.0 * s for p in P])
+    cand = np.flatnonzero((N[:, 2] >= min_up) & ~model.fixed & far)
+    if len(cand) < count:
+        raise ValueError(f'upper_surface: {len(cand)} places on the upper surface, {count} asked')
+    pts = P[cand]
+    first = int(np.argmax(pts[:, 2])) if seed is None else int(np.argmin(np.hypot(pts[:, 0] - seed[0], pts[:, 1] - seed[1])))
+    chosen = [first]
+    dist = np.linalg.norm(pts - pts[first], axis=1)
+    while len(chosen) < count:
+        k = int(np.argmax(dist))
+        chosen.append(k)
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[k], axis=1))
+    return pts[chosen], N[cand[chosen]]
+
+
+def largest_fall(curve: dict, tolerance: float = 0.02) -> tuple[float, bool]:
+    """``(fall [N], holds)``: the largest fall of a press's force below its running maximum while
+    the tool advances (the maximum restarts after each hold: what a relaxing tissue loses while
+    held is not the tool giving way), and whether it is within ``tolerance`` of the largest force."""
+    f, moving = curve['normal'], curve['moving'].astype(bool)
+    worst, run = 0.0, -math.inf
+    for k in range(len(f)):
+        if not moving[k]:
+            run = -math.inf
+            continue
+        run = max(run, f[k])
+        worst = max(worst, run - f[k])
+    return worst, worst <= tolerance * float(np.max(f, initial=0.0))
 
 
 def gives_way(depth: np.ndarray, force: np.ndarray, tolerance: float = 0.02) -> float:
