@@ -340,6 +340,7 @@ def press_along(model: TissueModel, material: Material, config: SolverConfig, po
     frames = int(math.ceil(depth / (speed * dt))) + sum(k for _, k in pauses)
     out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'over', 'slip', 'tool', 'device', 'moving')}
     radius = solver.tool.radius
+    rot = _turn_z_to(n)
     d, wait, done = 0.0, 0, 0
     for k in range(frames):
         moving = wait == 0
@@ -357,7 +358,7 @@ def press_along(model: TissueModel, material: Material, config: SolverConfig, po
             out['device'][k] = answer.force @ n
             tip = answer.proxy
         try:
-            res = solver.step(tip, dt)
+            res = solver.step(tip, dt, rot)
         except SimError:
             out = {key: val[:k] for key, val in out.items()}
             out['unstable_at'] = d
@@ -380,6 +381,19 @@ def press_along(model: TissueModel, material: Material, config: SolverConfig, po
             break
     out['unstable_at'] = None
     return out
+
+
+def _turn_z_to(n: np.ndarray) -> np.ndarray:
+    """The rotation taking +z to the unit vector ``n`` about their common normal (an instrument
+    held along the press: a capsule's shaft runs back along ``n``); the identity for +z."""
+    c = float(n[2])
+    if c > 1.0 - 1e-12:
+        return np.eye(3)
+    if c < -1.0 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    k = np.cross([0.0, 0.0, 1.0], n)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + K + K @ K / (1.0 + c)
 
 
 def _across(v: np.ndarray, n: np.ndarray) -> float:
