@@ -30,8 +30,8 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
   limit): the simulated tool must stop where the tissue holds the limit, with no particle over it;
 * ``press_set``: the press as a surgeon makes it, at 20 places spread over the liver's upper
   surface (level and sloping, up to 53 degrees; ``cases.upper_surface``), along the surface's
-  normal, at 2, 10 and 50 mm/s, straight and with holds of 0.1 / 1 / 0.3 s at 10 / 20 / 30 mm,
-  to 40 mm or the force limit (local, defaults): each press's force must rise with depth (no fall
+  normal, at 2, 10 and 50 mm/s (reached over 50 ms, as a hand does), straight and with holds of
+  0.1 / 1 / 0.3 s at 10 / 20 / 30 mm, to 40 mm or the force limit (local, defaults): each press's force must rise with depth (no fall
   over 2 % while the tool advances: ``cases.largest_fall``), no particle may pass over the tool
   and the first-touched particle must slide less than 1 mm by 10 mm. Two processes.
 
@@ -84,6 +84,8 @@ PRESS_SET_PLACES = 20
 PRESS_SET_SPEEDS = (0.002, 0.010, 0.050)
 PRESS_SET_HOLDS = ((0.010, 0.1), (0.020, 1.0), (0.030, 0.3))
 PRESS_SET_DEPTH = 0.040
+#: [s] the press set's speed rises over this time at the start and after each hold (a hand's)
+PRESS_SET_RAMP = 0.05
 #: [N] the driver's continuous force limit (PHANTOM Omni), for the press through the renderer
 DEVICE_LIMIT = 0.88
 
@@ -405,7 +407,7 @@ def _press_set_job(job: tuple) -> dict:
     OVERRIDES.update(overrides)
     model = make_model('liver', n_particles=n)
     c = cases.press_along(model, liver_default(), solver_config(mode='local', parallel_min_particles=0), point,
-                          normal, depth, speed, holds=holds, limit=HARD_FORCE_LIMIT)
+                          normal, depth, speed, holds=holds, limit=HARD_FORCE_LIMIT, ramp=PRESS_SET_RAMP)
     fall, holds_up = cases.largest_fall(c)
     k10 = np.flatnonzero(c['depth'] >= min(0.010, depth) - 1e-12)
     peak = float(np.max(c['normal'], initial=0.0))

@@ -313,12 +313,36 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
                        dt=dt, renderer=renderer)
 
 
+def press_path(depth: float, speed: float, holds=(), dt: float = 1e-3, ramp: float = 0.0) -> tuple[list, list]:
+    """A press's depth [m] at each ``dt`` frame and whether the tool advanced in it: to ``depth`` at
+    ``speed`` [m/s], standing ``hold`` [s] at each ``(depth, hold)`` of ``holds``; with ``ramp`` [s]
+    the speed rises linearly from 0 over that time at the start and after each hold (a hand does not
+    step its speed: a step makes the dashpots' force jump and fall back)."""
+    pauses = sorted((d, int(round(h / dt))) for d, h in holds)
+    moves = int(math.ceil(depth / (speed * dt)))
+    path, advancing = [], []
+    d, m, j = 0.0, 0, 0
+    while (d < depth) if ramp > 0.0 else (m < moves):
+        m += 1
+        j += 1
+        d = min(depth, d + min(1.0, j * dt / ramp) * speed * dt) if ramp > 0.0 else min(depth, m * speed * dt)
+        wait = 0
+        if pauses and d >= pauses[0][0]:
+            d, wait, j = pauses[0][0], pauses[0][1], 0
+            pauses.pop(0)
+        path += [d] * (1 + wait)
+        advancing += [True] + [False] * wait
+    return path, advancing
+
+
 def press_along(model: TissueModel, material: Material, config: SolverConfig, point, normal, depth: float,
-                speed: float, holds=(), limit: float = math.inf, dt: float = 1e-3, renderer=None) -> dict:
+                speed: float, holds=(), limit: float = math.inf, dt: float = 1e-3, renderer=None,
+                ramp: float = 0.0) -> dict:
     """Press the tool into the surface along ``-normal`` (a unit vector, the surface's outward one)
     on the line through ``point`` [m], from first touch to ``depth`` [m] at ``speed`` [m/s], one
-    ``dt`` frame at a time, pausing ``hold`` [s] at each ``(depth, hold)`` of ``holds``; stops after
-    the first frame whose force along the press reaches ``limit`` [N].
+    ``dt`` frame at a time, pausing ``hold`` [s] at each ``(depth, hold)`` of ``holds`` (the speed
+    rising over ``ramp`` [s] after each start: :func:`press_path`); stops after the first frame whose
+    force along the press reaches ``limit`` [N].
 
     Returns per frame: ``depth`` [m] below first touch, ``normal`` (the force along ``normal``) and
     ``sideways`` (the norm of the rest) [N], ``moving`` (whether the tool advanced that frame),
@@ -336,22 +360,13 @@ def press_along(model: TissueModel, material: Material, config: SolverConfig, po
     n = np.asarray(normal, dtype=float)
     start = _touch_along(model, solver.contact_reach, np.asarray(point, dtype=float), n)
     first = int(np.argmin(np.linalg.norm(P - start, axis=1)))
-    pauses = sorted((d, int(round(h / dt))) for d, h in holds)
-    frames = int(math.ceil(depth / (speed * dt))) + sum(k for _, k in pauses)
+    path, advancing = press_path(depth, speed, holds, dt, ramp)
+    frames = len(path)
     out = {k: np.zeros(frames) for k in ('depth', 'normal', 'sideways', 'over', 'slip', 'tool', 'device', 'moving')}
     radius = solver.tool.radius
     rot = _turn_z_to(n)
-    d, wait, done = 0.0, 0, 0
     for k in range(frames):
-        moving = wait == 0
-        if moving:
-            d = min(depth, (k + 1 - done) * speed * dt)
-            if pauses and d >= pauses[0][0]:
-                d, wait = pauses[0][0], pauses[0][1]
-                done += wait
-                pauses.pop(0)
-        else:
-            wait -= 1
+        d, moving = path[k], advancing[k]
         tip = start - d * n
         if renderer is not None:
             answer = renderer.answer(tip, dt)
