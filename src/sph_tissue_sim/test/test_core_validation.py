@@ -308,17 +308,21 @@ def test_a_fall_while_the_tool_advances_is_a_give_way_and_a_fall_while_it_is_hel
 
 def test_a_press_path_ramps_its_speed_up_at_the_start_and_after_each_hold():
     """``press_path`` with a 10 ms ramp at 10 mm/s: the advance per 1 ms frame grows 1/10 of full
-    speed per frame, the hold's frames stand at its depth, the ramp starts again after it, and the
-    path ends exactly at the depth; without a ramp every advancing frame moves at full speed."""
+    speed per frame, falls as steeply into the hold (no frame's speed changes by more than 2/10
+    of full speed), the hold's frames stand at its depth, the ramp starts again after it, and the
+    path ends exactly at the depth; only full-speed frames count as advancing; without a ramp every
+    frame advances at full speed."""
     from sph_tissue_sim.validation.cases import press_path
 
     path, moving = press_path(0.003, 0.01, holds=[(0.001, 0.005)], ramp=0.01)
     step = np.diff(np.r_[0.0, path])
     assert step[:10] == pytest.approx(1e-5 * np.arange(1, 11) / 10)
     at = path.index(0.001)
-    assert moving[at] and not any(moving[at + 1:at + 6]) and path[at:at + 6] == [0.001] * 6
+    assert not any(moving[:9]) and moving[9] and not any(moving[at - 5:at + 6]) and path[at:at + 6] == [0.001] * 6
     assert step[at + 6:at + 9] == pytest.approx(1e-5 * np.arange(1, 4) / 10)
     assert path[-1] == 0.003 and all(np.diff(path) >= 0.0)
+    assert np.max(np.abs(np.diff(step))) <= 0.2 * 1e-5 + 1e-12
+    assert step[at - 1] < 0.3e-5 and step[-1] < 0.3e-5
     flat, moving = press_path(0.003, 0.01)
     assert len(flat) == 300 and all(moving) and np.diff(np.r_[0.0, flat]) == pytest.approx(1e-5)
 

@@ -314,10 +314,11 @@ def press_curve(model: TissueModel, material: Material, config: SolverConfig, de
 
 
 def press_path(depth: float, speed: float, holds=(), dt: float = 1e-3, ramp: float = 0.0) -> tuple[list, list]:
-    """A press's depth [m] at each ``dt`` frame and whether the tool advanced in it: to ``depth`` at
-    ``speed`` [m/s], standing ``hold`` [s] at each ``(depth, hold)`` of ``holds``; with ``ramp`` [s]
-    the speed rises linearly from 0 over that time at the start and after each hold (a hand does not
-    step its speed: a step makes the dashpots' force jump and fall back)."""
+    """A press's depth [m] at each ``dt`` frame and whether the tool advanced at ``speed`` [m/s] in
+    it: to ``depth``, standing ``hold`` [s] at each ``(depth, hold)`` of ``holds``; with ``ramp`` [s]
+    the speed rises linearly from 0 over that time at the start and after each hold and falls as
+    steeply before each stop (a hand does not step its speed: a step makes the dashpots' force jump
+    and fall back), and only the frames at full speed count as advancing."""
     pauses = sorted((d, int(round(h / dt))) for d, h in holds)
     moves = int(math.ceil(depth / (speed * dt)))
     path, advancing = [], []
@@ -325,13 +326,20 @@ def press_path(depth: float, speed: float, holds=(), dt: float = 1e-3, ramp: flo
     while (d < depth) if ramp > 0.0 else (m < moves):
         m += 1
         j += 1
-        d = min(depth, d + min(1.0, j * dt / ramp) * speed * dt) if ramp > 0.0 else min(depth, m * speed * dt)
+        full = True
+        if ramp > 0.0:
+            stop = pauses[0][0] if pauses else depth
+            frac = min(1.0, j * dt / ramp, math.sqrt(2.0 * max(stop - d, 0.0) / (speed * ramp)))
+            full = frac >= 1.0
+            d = min(stop, d + max(frac, dt / ramp) * speed * dt)
+        else:
+            d = min(depth, m * speed * dt)
         wait = 0
         if pauses and d >= pauses[0][0]:
             d, wait, j = pauses[0][0], pauses[0][1], 0
             pauses.pop(0)
         path += [d] * (1 + wait)
-        advancing += [True] + [False] * wait
+        advancing += [full] + [False] * wait
     return path, advancing
 
 
@@ -345,7 +353,7 @@ def press_along(model: TissueModel, material: Material, config: SolverConfig, po
     force along the press reaches ``limit`` [N].
 
     Returns per frame: ``depth`` [m] below first touch, ``normal`` (the force along ``normal``) and
-    ``sideways`` (the norm of the rest) [N], ``moving`` (whether the tool advanced that frame),
+    ``sideways`` (the norm of the rest) [N], ``moving`` (whether the tool advanced at ``speed``),
     ``over``: how many particle centres lie over the tool (closer than its radius to the press's
     axis and behind its centre): tissue the tool has passed under, i.e. popped through; ``slip``:
     how far the particle touched first has moved across the press [m] (a straight press should
@@ -459,8 +467,9 @@ def upper_surface(model: TissueModel, count: int, min_up: float = 0.6, seed=None
 
 def largest_fall(curve: dict, tolerance: float = 0.02) -> tuple[float, bool]:
     """``(fall [N], holds)``: the largest fall of a press's force below its running maximum while
-    the tool advances (the maximum restarts after each hold: what a relaxing tissue loses while
-    held is not the tool giving way), and whether it is within ``tolerance`` of the largest force."""
+    the tool advances at its speed (the maximum restarts after each slowing down or hold: what the
+    dashpots lose as the tool slows and a relaxing tissue loses while held is not the tool giving
+    way), and whether it is within ``tolerance`` of the largest force."""
     f, moving = curve['normal'], curve['moving'].astype(bool)
     worst, run = 0.0, -math.inf
     for k in range(len(f)):
