@@ -32,8 +32,9 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
   surface (level and sloping, up to 53 degrees; ``cases.upper_surface``), along the surface's
   normal, at 2, 10 and 50 mm/s (reached over 50 ms, as a hand does), straight and with holds of
   0.1 / 1 / 0.3 s at 10 / 20 / 30 mm, to 40 mm or the force limit (local, defaults): each press's force must rise with depth (no fall
-  over 2 % while the tool advances: ``cases.largest_fall``), no particle may pass over the tool
-  and the first-touched particle must slide less than 1 mm by 10 mm. Two processes.
+  over 2 % while the tool advances at its speed: ``cases.largest_fall``), no step may go unstable,
+  no particle may pass over the tool and the first-touched particle may slide at most 1 mm by
+  10 mm. Two processes.
 
 Writes to ``--out`` (default ``benchmarks/results/validate``): ``validate.csv`` (one row per
 measure: measured, reference, error, target, met), ``validate.md`` (the same as a table, with the
@@ -409,11 +410,13 @@ def _press_set_job(job: tuple) -> dict:
     c = cases.press_along(model, liver_default(), solver_config(mode='local', parallel_min_particles=0), point,
                           normal, depth, speed, holds=holds, limit=HARD_FORCE_LIMIT, ramp=PRESS_SET_RAMP)
     fall, holds_up = cases.largest_fall(c)
-    k10 = np.flatnonzero(c['depth'] >= min(0.010, depth) - 1e-12)
+    # at 10 mm, or where a press that stopped sooner ended
+    k10 = min(int(np.searchsorted(c['depth'], 0.010 - 1e-12)), len(c['depth']) - 1)
     peak = float(np.max(c['normal'], initial=0.0))
     return {'place': place, 'speed_mm_s': speed * 1e3, 'holds': bool(holds), 'fall_n': fall,
-            'fall_pct': 100.0 * fall / peak if peak > 0 else 0.0, 'rises': bool(holds_up),
-            'over_max': int(c['over'].max(initial=0)), 'slip10_mm': float(c['slip'][k10[0]]) * 1e3 if len(k10) else math.nan,
+            'fall_pct': 100.0 * fall / peak if peak > 0 else 0.0,
+            'rises': bool(holds_up),
+            'over_max': int(c['over'].max(initial=0)), 'slip10_mm': float(c['slip'][k10]) * 1e3 if k10 >= 0 else 0.0,
             'peak_n': peak, 'deepest_mm': float(c['depth'][-1]) * 1e3 if len(c['depth']) else 0.0,
             'limit': bool(peak >= HARD_FORCE_LIMIT), 'unstable': c['unstable_at'] is not None,
             'curve': (c['depth'][c['moving'] > 0], c['normal'][c['moving'] > 0])}
@@ -440,7 +443,7 @@ def check_press_set(quick: bool, out: Path) -> list[dict]:
         w = csv.DictWriter(fh, fieldnames=fields)
         w.writeheader()
         w.writerows({k: r[k] for k in fields} for r in got)
-    good = [r['rises'] and r['over_max'] == 0 and not r['unstable'] and not r['slip10_mm'] > 1.0 for r in got]
+    good = [r['rises'] and r['over_max'] == 0 and r['slip10_mm'] <= 1.0 and not r['unstable'] for r in got]
     rows = []
     for v in speeds:
         for held in (False, True):
@@ -454,9 +457,12 @@ def check_press_set(quick: bool, out: Path) -> list[dict]:
             rows.append(row('press_set', f'{name}: most particles over the tool',
                             float(max(r['over_max'] for r in group)), None, '-', '0',
                             all(r['over_max'] == 0 for r in group)))
+            rows.append(row('press_set', f'{name}: presses where a step went unstable',
+                            float(sum(r['unstable'] for r in group)), None, f'of {len(group)}', '0',
+                            not any(r['unstable'] for r in group)))
             rows.append(row('press_set', f'{name}: largest slip of the first-touched particle at 10 mm',
-                            float(np.nanmax([r['slip10_mm'] for r in group])), None, 'mm', '<= 1 mm',
-                            all(not r['slip10_mm'] > 1.0 for r in group)))
+                            max(r['slip10_mm'] for r in group), None, 'mm', '<= 1 mm',
+                            all(r['slip10_mm'] <= 1.0 for r in group)))
             rows.append(row('press_set', f'{name}: presses that reach the {HARD_FORCE_LIMIT} N limit',
                             float(sum(r['limit'] for r in group)), None, f'of {len(group)}', 'reported', None))
     rows.append(row('press_set', 'presses that pass every target', float(sum(good)), None, f'of {len(got)}', 'all',
@@ -534,7 +540,7 @@ def main(argv=None) -> int:
     ap.add_argument('--checks', default=','.join(CHECKS), help='comma-separated subset of ' + ','.join(CHECKS))
     ap.add_argument('--set', action='append', default=[], metavar='FIELD=VALUE',
                     help='a SolverConfig field for the checks with a tool (hertz, local_global, drag, '
-                         'press; repeatable), e.g. --set contact_samples=3 --set far_field=1')
+                         'press, press_set; repeatable), e.g. --set contact_samples=3 --set far_field=1')
     ap.add_argument('--press-speeds', default='', metavar='MM_PER_S,...',
                     help='the press set at these speeds only [mm/s] (default 2,10,50)')
     args = ap.parse_args(argv)

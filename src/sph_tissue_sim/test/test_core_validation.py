@@ -325,11 +325,39 @@ def test_a_press_path_ramps_its_speed_up_at_the_start_and_after_each_hold():
     assert step[at - 1] < 0.3e-5 and step[-1] < 0.3e-5
     flat, moving = press_path(0.003, 0.01)
     assert len(flat) == 300 and all(moving) and np.diff(np.r_[0.0, flat]) == pytest.approx(1e-5)
+    held, moving = press_path(0.003, 0.007, holds=[(0.001, 0.002)])
+    step = np.diff(np.r_[0.0, held])
+    assert np.all(step <= 7e-6 + 1e-15) and held.count(0.001) == 3 and held[-1] == 0.003
+    assert not moving[held.index(0.001)]                    # the step that reaches the hold is short
+    with pytest.raises(ValueError, match='between 0 and the depth'):
+        press_path(0.01, 0.01, holds=[(0.02, 0.1)], ramp=0.05)
+
+
+def test_a_press_along_a_tilted_normal_starts_on_its_line_and_turns_the_instrument_along_it():
+    """A press along a normal tilted 40 degrees from +z: the rotation takes +z to the normal (a
+    capsule's shaft runs back along it), and the first touch lies a contact reach beyond the
+    outermost particle near the line, nudged across the line only."""
+    from sph_tissue_sim.validation.cases import NUDGE, _touch_along, _turn_z_to
+
+    n = np.array([math.sin(0.7), 0.0, math.cos(0.7)])
+    R = _turn_z_to(n)
+    assert R[:, 2] == pytest.approx(n) and R.T @ R == pytest.approx(np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
+    assert np.array_equal(_turn_z_to(np.array([0.0, 0.0, 1.0])), np.eye(3))
+    model = make_block(8, 8, 5, spacing=0.005, fix='bottom')
+    point = np.array([0.0175, 0.0175, 0.01])
+    start = _touch_along(model, 0.008, point, n)
+    rel = model.positions - point
+    along = rel @ n
+    near = ~model.fixed & (np.linalg.norm(rel - along[:, None] * n, axis=1) < 1.5 * model.spacing)
+    offset = start - point
+    assert offset @ n == pytest.approx(along[near].max() + 0.008)
+    across = offset - (offset @ n) * n
+    assert np.linalg.norm(across) == pytest.approx(np.linalg.norm(np.array([*NUDGE, 0.0]) - NUDGE[0] * n[0] * n))
 
 
 def test_a_press_along_a_normal_holds_where_asked_and_stops_at_the_force_limit():
-    """``press_along`` on a block's top at 20 mm/s with a 30 ms hold at 1 mm: the tool stands still
-    exactly the hold's frames at exactly 1 mm, the force along the press rises, and the press ends
+    """``press_along`` on a block's top at 20 mm/s with a 30 ms hold at 1 mm: the tool arrives at
+    exactly 1 mm and stands there the hold's frames (none of them scored as advancing), the force along the press rises, and the press ends
     at the first frame whose force reaches the limit."""
     from sph_tissue_sim.validation.cases import press_along
 
@@ -337,9 +365,9 @@ def test_a_press_along_a_normal_holds_where_asked_and_stops_at_the_force_limit()
     mat = Material.from_shear(1800.0, 0.45, 3.0)
     top = (0.0175, 0.0175, 0.0)
     c = press_along(model, mat, SolverConfig(mode='global'), top, (0.0, 0.0, 1.0), 0.003, 0.02, holds=[(0.001, 0.03)])
-    still = c['moving'] == 0
-    assert still.sum() == 30 and np.all(c['depth'][still] == 0.001)
-    assert len(c['depth']) == 150 + 30 and c['depth'][-1] == pytest.approx(0.003)
+    still = c['depth'] == 0.001
+    assert still.sum() == 1 + 30 and not c['moving'][still].any()      # the arrival, then the hold
+    assert c['depth'][-1] == 0.003 and c['moving'].sum() >= len(c['depth']) - 31 - 2
     assert c['normal'][-1] > c['normal'][still][-1] > 0.0 and c['over'].max() == 0
     limit = 0.5 * c['normal'][-1]
     cut = press_along(model, mat, SolverConfig(mode='global'), top, (0.0, 0.0, 1.0), 0.003, 0.02,

@@ -318,25 +318,33 @@ def press_path(depth: float, speed: float, holds=(), dt: float = 1e-3, ramp: flo
     it: to ``depth``, standing ``hold`` [s] at each ``(depth, hold)`` of ``holds``; with ``ramp`` [s]
     the speed rises linearly from 0 over that time at the start and after each hold and falls as
     steeply before each stop (a hand does not step its speed: a step makes the dashpots' force jump
-    and fall back), and only the frames at full speed count as advancing."""
+    and fall back); only the frames at full speed count as advancing. Each hold lies between 0 and
+    ``depth`` (``ValueError`` otherwise)."""
     pauses = sorted((d, int(round(h / dt))) for d, h in holds)
+    if any(not 0.0 < d < depth for d, _ in pauses):
+        raise ValueError(f'press_path: every hold must lie between 0 and the depth {depth} m, got {holds}')
+    # a straight press without a ramp keeps the exact schedule m * speed * dt
+    scheduled = ramp <= 0.0 and not pauses
     moves = int(math.ceil(depth / (speed * dt)))
     path, advancing = [], []
     d, m, j = 0.0, 0, 0
-    while (d < depth) if ramp > 0.0 else (m < moves):
+    while (m < moves) if scheduled else (d < depth):
         m += 1
         j += 1
-        full = True
-        if ramp > 0.0:
-            stop = pauses[0][0] if pauses else depth
-            frac = min(1.0, j * dt / ramp, math.sqrt(2.0 * max(stop - d, 0.0) / (speed * ramp)))
-            full = frac >= 1.0
-            d = min(stop, d + max(frac, dt / ramp) * speed * dt)
-        else:
+        if scheduled:
+            full = True
             d = min(depth, m * speed * dt)
+        else:
+            stop = pauses[0][0] if pauses else depth
+            frac = 1.0
+            if ramp > 0.0:
+                frac = min(1.0, j * dt / ramp, math.sqrt(2.0 * max(stop - d, 0.0) / (speed * ramp)))
+            step = max(frac, dt / ramp if ramp > 0.0 else 1.0) * speed * dt
+            full = frac >= 1.0 and d + step <= stop
+            d = min(stop, d + step)
         wait = 0
         if pauses and d >= pauses[0][0]:
-            d, wait, j = pauses[0][0], pauses[0][1], 0
+            wait, j = pauses[0][1], 0
             pauses.pop(0)
         path += [d] * (1 + wait)
         advancing += [full] + [False] * wait
@@ -397,7 +405,7 @@ def press_along(model: TissueModel, material: Material, config: SolverConfig, po
         out['sideways'][k] = _across(f, n)
         rel = solver.positions - at
         along = rel @ n
-        out['over'][k] = np.count_nonzero((np.linalg.norm(rel - along[:, None] * n, axis=1) < radius) & (along > 0.0))
+        out['over'][k] = np.count_nonzero((_across_rows(rel, n) < radius) & (along > 0.0))
         out['slip'][k] = _across(solver.positions[first] - P[first], n)
         if out['normal'][k] >= limit:
             out = {key: val[:k + 1] for key, val in out.items()}
@@ -420,8 +428,15 @@ def _turn_z_to(n: np.ndarray) -> np.ndarray:
 
 
 def _across(v: np.ndarray, n: np.ndarray) -> float:
-    """The norm of ``v``'s part normal to the unit vector ``n``."""
-    return float(np.linalg.norm(v - (v @ n) * n))
+    """The norm of ``v``'s part normal to the unit vector ``n`` (by ``hypot``: for ``n = +z`` exactly
+    the horizontal norm)."""
+    return math.hypot(*(v - (v @ n) * n))
+
+
+def _across_rows(rel: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """:func:`_across` of each row of ``rel``."""
+    w = rel - (rel @ n)[:, None] * n
+    return np.hypot(np.hypot(w[:, 0], w[:, 1]), w[:, 2])
 
 
 def _touch_along(model: TissueModel, reach: float, point: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -430,7 +445,7 @@ def _touch_along(model: TissueModel, reach: float, point: np.ndarray, n: np.ndar
     by :data:`NUDGE` (:func:`first_touch` for a vertical press)."""
     rel = model.positions - point
     along = rel @ n
-    line = ~model.fixed & (np.linalg.norm(rel - along[:, None] * n, axis=1) < 1.5 * model.spacing)
+    line = ~model.fixed & (_across_rows(rel, n) < 1.5 * model.spacing)
     nudge = np.array([NUDGE[0], NUDGE[1], 0.0])
     return point + (along[line].max() + reach) * n + (nudge - (nudge @ n) * n)
 
