@@ -232,9 +232,7 @@ def first_touch(model: TissueModel, reach: float, xy, nudge=(0.0, 0.0)) -> np.nd
     """Where the tool tip first touches the top of the model above ``xy`` [m]: ``reach`` (the
     solver's contact distance) above the highest free particle within 1.5 spacings, moved sideways
     by ``nudge``."""
-    P = model.positions
-    column = ~model.fixed & (np.hypot(P[:, 0] - xy[0], P[:, 1] - xy[1]) < 1.5 * model.spacing)
-    return np.array([xy[0] + nudge[0], xy[1] + nudge[1], P[column, 2].max() + reach])
+    return _touch_along(model, reach, np.array([xy[0], xy[1], 0.0]), np.array([0.0, 0.0, 1.0]), nudge)
 
 
 def press_and_hold(model: TissueModel, material: Material, config: SolverConfig, depth: float,
@@ -439,15 +437,15 @@ def _across_rows(rel: np.ndarray, n: np.ndarray) -> np.ndarray:
     return np.hypot(np.hypot(w[:, 0], w[:, 1]), w[:, 2])
 
 
-def _touch_along(model: TissueModel, reach: float, point: np.ndarray, n: np.ndarray) -> np.ndarray:
+def _touch_along(model: TissueModel, reach: float, point: np.ndarray, n: np.ndarray, nudge=NUDGE) -> np.ndarray:
     """Where a tool moving along ``-n`` on the line through ``point`` first touches the model:
     ``reach`` beyond the outermost free particle within 1.5 spacings of the line, moved across it
-    by :data:`NUDGE` (:func:`first_touch` for a vertical press)."""
+    by ``nudge`` (x, y) [m] (its part across ``n``)."""
     rel = model.positions - point
     along = rel @ n
     line = ~model.fixed & (_across_rows(rel, n) < 1.5 * model.spacing)
-    nudge = np.array([NUDGE[0], NUDGE[1], 0.0])
-    return point + (along[line].max() + reach) * n + (nudge - (nudge @ n) * n)
+    side = np.array([nudge[0], nudge[1], 0.0])
+    return point + (along[line].max() + reach) * n + (side - (side @ n) * n)
 
 
 def upper_surface(model: TissueModel, count: int, min_up: float = 0.6, seed=None) -> tuple[np.ndarray, np.ndarray]:
