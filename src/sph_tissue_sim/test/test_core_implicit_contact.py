@@ -38,8 +38,9 @@ def _pressed(**config) -> Solver:
 
 
 def _system(s: Solver, sets, dt: float):
-    """The dense contact matrix ``sum_t (dt^2 k + dt c) Phi^T n n^T Phi`` and ``sum_t dt c Phi^T
-    n n^T Phi`` over all particles, from the recorded touches."""
+    """The dense contact matrix ``sum_t Phi^T (dt^2 K_t + dt c n n^T) Phi`` (``K_t = k n n^T``, or
+    ``k I`` where the friction sticks) and ``sum_t dt c Phi^T n n^T Phi`` over all particles, from
+    the recorded touches."""
     t = s.touches
     sm = s.samples
     A = np.zeros((3 * s.n, 3 * s.n))
@@ -56,13 +57,20 @@ def _system(s: Solver, sets, dt: float):
         g = np.kron(phi, t.normal[k])
         A += (dt * dt * kk + dt * cc) * np.outer(g, g)
         B += dt * cc * np.outer(g, g)
+        if t.held[k]:
+            G = np.kron(phi[:, None], np.eye(3) - np.outer(t.normal[k], t.normal[k]))
+            A += dt * dt * kk * G @ G.T
     return A, B
 
 
-def test_one_sub_step_solves_the_linearised_backward_euler_contact_system():
-    """``(M + sum (dt^2 k + dt c) Phi^T n n^T Phi) v'' = M v* + sum dt c Phi^T n n^T Phi v`` over
-    the solved particles (the others' velocities held), against numpy's dense solve."""
-    s = _pressed()
+@pytest.mark.parametrize('friction', [0.0, 0.3])
+def test_one_sub_step_solves_the_linearised_backward_euler_contact_system(friction):
+    """``(M + sum Phi^T (dt^2 K_t + dt c n n^T) Phi) v'' = M v* + sum dt c Phi^T n n^T Phi v`` over
+    the solved particles (the others' velocities held), against numpy's dense solve; with friction
+    the sticking samples are held by their stiffness across the normal too."""
+    s = _pressed(friction=friction)
+    held = int(s.touches.held[:s.touches.count[0]].sum())
+    assert held > 0 if friction else held == 0
     sets = s.area.global_sets(-1)
     sph = sets.sph[:sets.n_sph]
     dt = 5e-4
@@ -104,5 +112,39 @@ def test_a_ten_times_stiffer_contact_keeps_the_material_sub_steps_and_holds_the_
     f_imp = press_and_hold(model, LIVER, SolverConfig(**base, integrator='implicit'), 0.003, ramp=100, hold=200)
     print(f'sub-steps per ms {1e-3 / s.dt_max:.1f}; held force: implicit contact {f_exp[2]:.4f} N, '
           f'implicit integrator {f_imp[2]:.4f} N')
+    assert f_exp[2] > 0.1
+    assert f_exp[2] == pytest.approx(f_imp[2], rel=0.02)
+
+
+def test_a_tool_dragged_across_the_samples_feels_coulombs_friction():
+    """The samples alone meet the tool (the balls shrunk): pressed 3 mm and dragged 4 mm sideways,
+    a frictionless tool is held back only by the dent's slope; with friction mu the samples slide
+    once their springs reach mu |f_n|, and the tissue holds the tool back by mu times the normal
+    force (the samples' normals lean a little: within 20 %)."""
+    from sph_tissue_sim.validation.cases import drag
+
+    model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
+    X = model.positions
+    xy = (float(X[:, 0].mean()) - 2e-3, float(X[:, 1].mean()))
+    ratio = {}
+    for mu in (0.0, 0.3):
+        _, _, f = drag(model, LIVER, SolverConfig(mode='global', friction=mu, **SURFACE), 0.003, 0.004, xy,
+                       press=150, hold=50)
+        ratio[mu] = float(-f[-20:, 0].mean() / f[-20:, 2].mean())
+    print(f'drag resistance / normal force: frictionless {ratio[0.0]:.3f}, friction 0.3 {ratio[0.3]:.3f}')
+    assert abs(ratio[0.0]) < 0.1
+    assert ratio[0.3] == pytest.approx(0.3, rel=0.2)
+
+
+def test_sticking_samples_at_a_ten_times_stiffer_contact_keep_the_material_sub_steps():
+    """Friction 0.3 on samples of 3000 N/m: the sticking samples' tangential springs are integrated
+    backward with the normal ones (:attr:`~.state.Touches.held`), the sub-step stays the material's,
+    the held press is stable and its force the implicit integrator's within 2 %."""
+    model = make_block(8, 8, 5, spacing=SPACING, fix='bottom')
+    base = dict(SURFACE, mode='global', contact_stiffness=3000.0, friction=0.3, max_substeps=100000)
+    assert set(Solver(model, LIVER, SolverConfig(**base)).dt_bounds) == {'cfl', 'viscous'}
+    f_exp = press_and_hold(model, LIVER, SolverConfig(**base), 0.003, ramp=100, hold=200)
+    f_imp = press_and_hold(model, LIVER, SolverConfig(**base, integrator='implicit'), 0.003, ramp=100, hold=200)
+    print(f'held force with friction: implicit contact {f_exp[2]:.4f} N, implicit integrator {f_imp[2]:.4f} N')
     assert f_exp[2] > 0.1
     assert f_exp[2] == pytest.approx(f_imp[2], rel=0.02)

@@ -17,15 +17,18 @@ reaction of the tissue on the tool is ``-sum_i f_i``: equal and opposite, so the
 eq. 23, which adds a stress to a force). ``k_c`` is kept below the Omni's displayable stiffness
 (~1 N/mm) and the haptic loop sees the tissue in series with it.
 
-Friction (``friction`` = mu > 0, the balls only): stick-slip, as in discrete-element contact. A
-particle that starts to push keeps an anchor ``a_i``, where it sat relative to the tool's closest
-point ``c_i`` when it touched; while it pushes it feels the tangential spring
+Friction (``friction`` = mu > 0): stick-slip, as in discrete-element contact, for the balls and
+the surface samples alike. A contact point (a particle, or a sample of :mod:`.surface_contact`) that
+starts to push keeps an anchor ``a``, where it sat relative to the tool's closest point ``c`` when it
+touched; while it pushes it feels the tangential spring
 
-    f_t = -k_c ((x_i - c_i) - a_i)_t,    |f_t| <= mu |f_n|,
+    f_t = -k_c ((x - c) - a)_t,    |f_t| <= mu |f_n|,
 
-(``_t``: the part normal to ``n_i``); at the cap the anchor slides so that the spring holds exactly
+(``_t``: the part normal to ``n``); at the cap the anchor slides so that the spring holds exactly
 ``mu |f_n|`` (sliding friction). The tool carries the tissue it presses instead of letting it slide
 round it; the spring stores what it takes and sliding only dissipates, so the coupling stays passive.
+A sticking point's tangential spring is integrated backward with its normal one
+(:mod:`.implicit_contact`): with it a stuck point is held by ``k_c`` in every direction.
 """
 
 from __future__ import annotations
@@ -85,8 +88,9 @@ def touch_normal(i, x, seg, reach):
 
 
 @njit(cache=True, inline='always')
-def record_touch(touches, kind, idx, n0, n1, n2):
-    """Append a pushing contact to ``touches`` (:class:`~.state.Touches`)."""
+def record_touch(touches, kind, idx, n0, n1, n2, held):
+    """Append a pushing contact to ``touches`` (:class:`~.state.Touches`); ``held``: its friction
+    sticks (the tangential spring acts too)."""
     t = touches.count[0]
     if t < touches.idx.shape[0]:
         touches.kind[t] = kind
@@ -94,19 +98,19 @@ def record_touch(touches, kind, idx, n0, n1, n2):
         touches.normal[t, 0] = n0
         touches.normal[t, 1] = n1
         touches.normal[t, 2] = n2
+        touches.held[t] = held
         touches.count[0] = t + 1
 
 
 @njit(cache=True, fastmath=True, inline='always')
-def stick_slip(i, x, seg, n0, n1, n2, push, k, mu, anchor, stuck):
-    """The tangential friction force ``(f0, f1, f2)`` [N] on particle ``i``, pushed with ``push`` [N]
-    along ``n`` (see the module docstring); sets or slides its anchor."""
-    c0, c1, c2, t = closest_on_segment(x[i, 0], x[i, 1], x[i, 2], seg)
-    r0 = x[i, 0] - c0; r1 = x[i, 1] - c1; r2 = x[i, 2] - c2
-    if not stuck[i]:
-        anchor[i, 0] = r0; anchor[i, 1] = r1; anchor[i, 2] = r2
-        stuck[i] = True
-    d0 = r0 - anchor[i, 0]; d1 = r1 - anchor[i, 1]; d2 = r2 - anchor[i, 2]
+def stick_slip(slot, r0, r1, r2, n0, n1, n2, push, k, mu, anchor, stuck):
+    """The tangential friction force ``(f0, f1, f2)`` [N] on a contact point at ``r`` from the tool's
+    closest point, pushed with ``push`` [N] along ``n`` (see the module docstring), and whether it
+    sticks; sets or slides the anchor ``anchor[slot]``."""
+    if not stuck[slot]:
+        anchor[slot, 0] = r0; anchor[slot, 1] = r1; anchor[slot, 2] = r2
+        stuck[slot] = True
+    d0 = r0 - anchor[slot, 0]; d1 = r1 - anchor[slot, 1]; d2 = r2 - anchor[slot, 2]
     dn = d0 * n0 + d1 * n1 + d2 * n2
     f0 = -k * (d0 - dn * n0); f1 = -k * (d1 - dn * n1); f2 = -k * (d2 - dn * n2)
     fmag = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
@@ -114,8 +118,9 @@ def stick_slip(i, x, seg, n0, n1, n2, push, k, mu, anchor, stuck):
     if fmag > cap:
         scale = cap / fmag
         f0 *= scale; f1 *= scale; f2 *= scale
-        anchor[i, 0] = r0 + f0 / k; anchor[i, 1] = r1 + f1 / k; anchor[i, 2] = r2 + f2 / k
-    return f0, f1, f2
+        anchor[slot, 0] = r0 + f0 / k; anchor[slot, 1] = r1 + f1 / k; anchor[slot, 2] = r2 + f2 / k
+        return f0, f1, f2, False
+    return f0, f1, f2, True
 
 
 @njit(cache=True, nogil=True)
@@ -153,8 +158,11 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
         if fmag <= 0.0:
             tool.stuck[i] = False
             continue
+        held = False
         if mu > 0.0:
-            f0, f1, f2 = stick_slip(i, x, seg, n0, n1, n2, fmag, k_c, mu, tool.anchor, tool.stuck)
+            c0, c1, c2, _ = closest_on_segment(x[i, 0], x[i, 1], x[i, 2], seg)
+            f0, f1, f2, held = stick_slip(i, x[i, 0] - c0, x[i, 1] - c1, x[i, 2] - c2, n0, n1, n2, fmag, k_c, mu,
+                                          tool.anchor, tool.stuck)
             react[0] -= f0; react[1] -= f1; react[2] -= f2
             if not fixed[i]:
                 acc[i, 0] += f0 * inv_mass; acc[i, 1] += f1 * inv_mass; acc[i, 2] += f2 * inv_mass
@@ -162,7 +170,7 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
         react[1] -= fmag * n1
         react[2] -= fmag * n2
         if tool.touches.on:
-            record_touch(tool.touches, 0, i, n0, n1, n2)
+            record_touch(tool.touches, 0, i, n0, n1, n2, held)
         if not fixed[i]:
             acc[i, 0] += fmag * n0 * inv_mass
             acc[i, 1] += fmag * n1 * inv_mass

@@ -94,8 +94,8 @@ def run_frame(scheme, integrator, body, motion, sets, tool, loads, first, n_sub,
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
             overlap = contact_forces(body, motion, sets.cand, sets.n_cand, tool, seg, seg_vel, rsum)
             if tool.samples.w_val.shape[0] > 0:
-                overlap = max(overlap, sample_contact_forces(body, motion, sets.cand, sets.n_cand, seg,
-                                                             seg_vel, tool.samples, rsum, tool.touches))
+                overlap = max(overlap, sample_contact_forces(body, motion, sets.cand, sets.n_cand, tool, seg,
+                                                             seg_vel, rsum))
             react[0] += rsum[0]; react[1] += rsum[1]; react[2] += rsum[2]
         advance(integrator, body, motion, sets)
         move_layers(motion.x, motion.v, body.fixed, sets.layer, sets.layer_w, sets.n_layer,

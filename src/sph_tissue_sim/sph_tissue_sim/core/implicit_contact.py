@@ -39,7 +39,7 @@ class ContactTerms(NamedTuple):
     ``touches`` (:class:`~.state.Touches`) is the record the contact kernels write; ``w_start,
     w_idx, w_val`` the samples' weights; ``k_ball, c_ball`` and ``k_sample, c_sample`` the contact
     laws; ``react`` (3,) the frame's reaction accumulator; ``vn`` (cap,) each touch's normal
-    velocity at the sub-step's start (scratch).
+    velocity at the sub-step's start and ``vt`` (cap, 3) its tangential one (scratch).
     """
 
     touches: tuple
@@ -52,6 +52,7 @@ class ContactTerms(NamedTuple):
     c_sample: float
     react: np.ndarray
     vn: np.ndarray
+    vt: np.ndarray
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -92,30 +93,75 @@ def _spread(c, t, amount, out):
         out[i, 0] += a * n0; out[i, 1] += a * n1; out[i, 2] += a * n2
 
 
+@njit(cache=True, fastmath=True, inline='always')
+def _tangential_velocity(c, t, vel):
+    """``(I - n_t n_t^T) Phi_t vel``: the contact point's velocity across its normal."""
+    j = c.touches.idx[t]
+    if c.touches.kind[t] == 0:
+        u0 = vel[j, 0]; u1 = vel[j, 1]; u2 = vel[j, 2]
+    else:
+        u0 = 0.0; u1 = 0.0; u2 = 0.0
+        for k in range(c.w_start[j], c.w_start[j + 1]):
+            i = c.w_idx[k]
+            w = c.w_val[k]
+            u0 += w * vel[i, 0]; u1 += w * vel[i, 1]; u2 += w * vel[i, 2]
+    n0 = c.touches.normal[t, 0]; n1 = c.touches.normal[t, 1]; n2 = c.touches.normal[t, 2]
+    un = n0 * u0 + n1 * u1 + n2 * u2
+    return u0 - un * n0, u1 - un * n1, u2 - un * n2
+
+
+@njit(cache=True, fastmath=True, inline='always')
+def _spread_vector(c, t, f0, f1, f2, out):
+    """``out += Phi_t^T f``: a force ``f`` on the contact point, on its particles."""
+    j = c.touches.idx[t]
+    if c.touches.kind[t] == 0:
+        out[j, 0] += f0; out[j, 1] += f1; out[j, 2] += f2
+        return
+    for k in range(c.w_start[j], c.w_start[j + 1]):
+        i = c.w_idx[k]
+        w = c.w_val[k]
+        out[i, 0] += w * f0; out[i, 1] += w * f1; out[i, 2] += w * f2
+
+
 @njit(cache=True, fastmath=True)
 def contact_residual(c, inv_m, dt, v, dv, r):
-    """``r += -(1/m) sum_t Phi^T n [dt^2 k n . Phi v + (dt^2 k + dt c) n . Phi dv]``: the contacts'
-    share of the residual at ``v* = v + dv`` (``dv`` zero off the solved set); keeps each touch's
-    ``n . Phi v`` in ``c.vn`` for :func:`contact_reaction`."""
+    """``r += -(1/m) sum_t Phi^T [dt^2 K_t Phi v + (dt^2 K_t + dt c n n^T) Phi dv]``, ``K_t = k n n^T``
+    (``k I`` where the friction sticks: :attr:`~.state.Touches.held`): the contacts' share of the
+    residual at ``v* = v + dv`` (``dv`` zero off the solved set); keeps each touch's ``n . Phi v``
+    and ``(I - n n^T) Phi v`` in ``c.vn``, ``c.vt`` for :func:`contact_reaction`."""
     for t in range(c.touches.count[0]):
         kk, cc = _law(c, t)
         vn = _point_normal_velocity(c, t, v)
         c.vn[t] = vn
         _spread(c, t, -(dt * dt * kk * vn + (dt * dt * kk + dt * cc) * _point_normal_velocity(c, t, dv)) * inv_m, r)
+    for t in range(c.touches.count[0]):
+        if c.touches.held[t]:
+            kk, cc = _law(c, t)
+            u0, u1, u2 = _tangential_velocity(c, t, v)
+            c.vt[t, 0] = u0; c.vt[t, 1] = u1; c.vt[t, 2] = u2
+            w0, w1, w2 = _tangential_velocity(c, t, dv)
+            a = -dt * dt * kk * inv_m
+            _spread_vector(c, t, a * (u0 + w0), a * (u1 + w1), a * (u2 + w2), r)
 
 
 @njit(cache=True, fastmath=True)
 def contact_apply(c, inv_m, dt, w, q):
-    """``q += sum_t (dt^2 k + dt c) / m Phi^T n n^T Phi w`` (``w`` zero off the solved set)."""
+    """``q += sum_t (1/m) Phi^T (dt^2 K_t + dt c n n^T) Phi w`` (``w`` zero off the solved set)."""
     for t in range(c.touches.count[0]):
         kk, cc = _law(c, t)
         _spread(c, t, (dt * dt * kk + dt * cc) * inv_m * _point_normal_velocity(c, t, w), q)
+    for t in range(c.touches.count[0]):
+        if c.touches.held[t]:
+            kk, cc = _law(c, t)
+            w0, w1, w2 = _tangential_velocity(c, t, w)
+            a = dt * dt * kk * inv_m
+            _spread_vector(c, t, a * w0, a * w1, a * w2, q)
 
 
 @njit(cache=True, fastmath=True)
 def contact_reaction(c, dt, dv):
-    """The reaction's share of the solve: ``react += (dt k n . Phi v'' + c n . Phi (v'' - v)) n``
-    with ``dv = v'' - v`` (zero off the solved set) and ``n . Phi v`` from :func:`contact_residual`."""
+    """The reaction's share of the solve: ``react += dt K_t Phi v'' + c n n^T Phi (v'' - v)`` with
+    ``dv = v'' - v`` (zero off the solved set) and ``Phi v`` from :func:`contact_residual`."""
     for t in range(c.touches.count[0]):
         kk, cc = _law(c, t)
         d = _point_normal_velocity(c, t, dv)
@@ -123,6 +169,13 @@ def contact_reaction(c, dt, dv):
         c.react[0] += g * c.touches.normal[t, 0]
         c.react[1] += g * c.touches.normal[t, 1]
         c.react[2] += g * c.touches.normal[t, 2]
+    for t in range(c.touches.count[0]):
+        if c.touches.held[t]:
+            kk, cc = _law(c, t)
+            w0, w1, w2 = _tangential_velocity(c, t, dv)
+            c.react[0] += dt * kk * (c.vt[t, 0] + w0)
+            c.react[1] += dt * kk * (c.vt[t, 1] + w1)
+            c.react[2] += dt * kk * (c.vt[t, 2] + w2)
 
 
 def make_touches(cap: int):
@@ -130,14 +183,14 @@ def make_touches(cap: int):
     from .state import Touches
 
     return Touches(True, np.zeros(cap, dtype=np.int8), np.zeros(cap, dtype=np.int32), np.zeros((cap, 3)),
-                   np.zeros(1, dtype=np.int64))
+                   np.zeros(1, dtype=np.int64), np.zeros(cap, dtype=np.bool_))
 
 
 def contact_terms(touches, samples, k_ball: float, c_ball: float, react: np.ndarray,
-                  vn: np.ndarray) -> ContactTerms:
+                  vn: np.ndarray, vt: np.ndarray) -> ContactTerms:
     """The :class:`ContactTerms` of ``touches`` with ``samples`` (a :class:`~.state.Samples`)."""
     return ContactTerms(touches, samples.w_start, samples.w_idx, samples.w_val, k_ball, c_ball,
-                        samples.stiffness, samples.damping, react, vn)
+                        samples.stiffness, samples.damping, react, vn, vt)
 
 
 def no_contact_terms() -> ContactTerms:
@@ -145,4 +198,4 @@ def no_contact_terms() -> ContactTerms:
     from .state import no_touches
 
     return ContactTerms(no_touches(), np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0),
-                        0.0, 0.0, 0.0, 0.0, np.zeros(3), np.zeros(1))
+                        0.0, 0.0, 0.0, 0.0, np.zeros(3), np.zeros(1), np.zeros((1, 3)))

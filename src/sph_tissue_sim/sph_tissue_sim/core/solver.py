@@ -128,8 +128,9 @@ class SolverConfig:
                                    'tool slips between them, the paper\'s; 3 costs 0.9-1.15x the balls\' step)',
                                    (0, 5))
     friction: float = setting(0.0, '[-] Coulomb coefficient of stick-slip friction between the tool and '
-                              'the balls (0: frictionless; 0.3 holds the touched particle to 0.1 mm at a '
-                              '10 mm press but stiffens the shallow press by a third)', (0.0, 2.0), rebuild=None)
+                              'the tissue, balls and surface samples (0: frictionless; 0.3 holds the touched '
+                              'particle to 0.1 mm at a 10 mm press but stiffens the shallow press by a third)',
+                              (0.0, 2.0), rebuild=None)
     max_tool_speed: float = setting(1.0, '[m/s] the simulated tool follows the request at most this fast '
                                     '(a hand stays below 1 m/s; 1000: no limit)', (0.01, 1000.0), rebuild=None)
     force_limit: float = setting(HARD_FORCE_LIMIT, '[N] norm clamp of the force sent to the device (Omni '
@@ -302,10 +303,11 @@ class Solver:
                                       IMPLICIT_TOL if stiffness else CONTACT_TOL,
                                       IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER)
         self.touches = make_touches(self.n + self.contact.n_samples)
-        #: friction's anchors (contact.stick_slip)
-        self.anchor = np.zeros((self.n, 3))
-        self.stuck = np.zeros(self.n, dtype=np.bool_)
+        #: friction's anchors (contact.stick_slip): the particles', then the samples'
+        self.anchor = np.zeros((self.n + self.contact.n_samples, 3))
+        self.stuck = np.zeros(self.n + self.contact.n_samples, dtype=np.bool_)
         self._touch_vn = np.zeros(len(self.touches.idx))
+        self._touch_vt = np.zeros((len(self.touches.idx), 3))
         self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
                               self.h, cfg.n_layers)
         self.set_material(material)
@@ -614,7 +616,7 @@ class Solver:
         (and with ``integrator: implicit`` everything) backward in time (:mod:`.backward_euler`)."""
         return self.backward.integrator(sub_dt, contact_terms(
             self.touches, self.samples, self.config.contact_stiffness, self.contact_damping, self.react,
-            self._touch_vn))
+            self._touch_vn, self._touch_vt))
 
     def _frame(self, sets: Sets, path: ToolPath, n_sub: int, sub_dt: float, dt: float, mode: str) -> float:
         """One frame on ``sets`` (:func:`~.frame.run`); returns the last overlap [m].

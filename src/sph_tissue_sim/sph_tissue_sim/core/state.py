@@ -111,20 +111,22 @@ class Samples(NamedTuple):
 class Touches(NamedTuple):
     """The contacts of the last sub-step that pushed (for an implicit contact update,
     :mod:`.implicit_contact`): ``kind[t]`` 0 for a particle's ball, 1 for a surface sample, ``idx[t]``
-    the particle or sample, ``normal[t]`` its unit normal; ``count[0]`` of them. ``on`` False: the
-    contact kernels record nothing."""
+    the particle or sample, ``normal[t]`` its unit normal, ``held[t]`` whether its friction sticks
+    (its tangential spring acts too); ``count[0]`` of them. ``on`` False: the contact kernels
+    record nothing."""
 
     on: bool
     kind: np.ndarray       # (cap,) int8
     idx: np.ndarray        # (cap,) int32
     normal: np.ndarray     # (cap, 3)
     count: np.ndarray      # (1,) int64
+    held: np.ndarray       # (cap,) bool
 
 
 def no_touches() -> Touches:
     """Touches that record nothing (explicit contact)."""
     return Touches(False, np.zeros(1, dtype=np.int8), np.zeros(1, dtype=np.int32), np.zeros((1, 3)),
-                   np.zeros(1, dtype=np.int64))
+                   np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.bool_))
 
 
 class ToolPath(NamedTuple):
@@ -138,9 +140,10 @@ class ToolPath(NamedTuple):
     damping: float         # [N s/m] contact dashpot per particle
     samples: Samples       # contact samples (none: the particles' ball model alone)
     touches: Touches       # where the pushing contacts are recorded (implicit contact)
-    friction: float        # Coulomb coefficient of the balls' stick-slip friction (0: frictionless)
-    anchor: np.ndarray     # (N, 3) [m] where a stuck particle sits relative to the tool's closest point
-    stuck: np.ndarray      # (N,) bool: particle i holds an anchor (it touched in the last sub-step)
+    friction: float        # Coulomb coefficient of the stick-slip friction (0: frictionless)
+    anchor: np.ndarray     # (N + S, 3) [m] where a stuck particle (0..N-1) or sample (N + s) sits
+                           # relative to the tool's closest point
+    stuck: np.ndarray      # (N + S,) bool: it holds an anchor (it touched in the last sub-step)
 
 
 class Loads(NamedTuple):

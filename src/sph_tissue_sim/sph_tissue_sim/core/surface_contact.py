@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import closest_on_segment, first_moments, record_touch, segment_distance2
+from .contact import closest_on_segment, first_moments, record_touch, segment_distance2, stick_slip
 from .kernel import kernel_w
 from .neighbours import CellGrid, query_ball
 from .state import Samples
@@ -210,28 +210,35 @@ def nearest_sample_gap(x, v, cand, n_cand, seg, samples, within):
 
 
 @njit(cache=True, fastmath=True)
-def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, react, touches):
-    """Contact of the samples of ``cand[:n_cand]`` with the tool (segment ``seg`` (2, 3) swept by
-    a sphere of ``samples.radius`` [m], its ends moving at ``seg_vel`` [m/s]).
+def sample_contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
+    """Contact of the samples (``tool.samples``) of ``cand[:n_cand]`` with the tool (segment ``seg``
+    (2, 3) swept by a sphere of ``samples.radius`` [m], its ends moving at ``seg_vel`` [m/s]).
 
     A sample inside the tool gets ``f = max(0, k d - c (v_s - v_tool) . n) n`` (``d`` the overlap,
     ``n`` from the tool's closest point to the sample, ``k``, ``c`` the sample's stiffness and
-    damping), spread on its particles' accelerations by its weights; the reaction is accumulated
-    in ``react`` and a pushing sample recorded in ``touches`` (:class:`~.state.Touches`, for an
-    implicit contact update). Returns the largest overlap [m] (0 without contact).
+    damping) and, with ``tool.friction``, the stick-slip force of :func:`~.contact.stick_slip` (its
+    anchor in slot ``N + s``), spread on its particles' accelerations by its weights; the reaction
+    is accumulated in ``react`` and a pushing sample recorded in ``tool.touches``
+    (:class:`~.state.Touches`, for an implicit contact update). Returns the largest overlap [m]
+    (0 without contact).
     """
     x, v, acc, fixed, inv_mass = motion.x, motion.v, motion.acc, body.fixed, body.inv_mass
+    samples, touches, mu, stuck = tool.samples, tool.touches, tool.friction, tool.stuck
     start, w_start, w_idx, w_val = samples.start, samples.w_start, samples.w_idx, samples.w_val
     radius, k_s, c_s = samples.radius, samples.stiffness, samples.damping
+    n = x.shape[0]
     best = 0.0
     for t in range(n_cand):
         i = cand[t]
         if not samples_in_reach(i, x, seg, samples, 0.0):
+            for s in range(start[i], start[i + 1]):
+                stuck[n + s] = False
             continue
         for s in range(start[i], start[i + 1]):
             e0, e1, e2, ts, u0, u1, u2 = sample_offset(s, x, v, seg, samples)
             r2 = e0 * e0 + e1 * e1 + e2 * e2
             if r2 >= radius * radius:
+                stuck[n + s] = False
                 continue
             r = math.sqrt(r2)
             if r < 1e-12:
@@ -247,12 +254,18 @@ def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, rea
             vn = (u0 - tv0) * n0 + (u1 - tv1) * n1 + (u2 - tv2) * n2
             fmag = k_s * overlap - c_s * vn
             if fmag <= 0.0:
+                stuck[n + s] = False
                 continue
+            held = False
+            g0 = 0.0; g1 = 0.0; g2 = 0.0
+            if mu > 0.0:
+                g0, g1, g2, held = stick_slip(n + s, e0, e1, e2, n0, n1, n2, fmag, k_s, mu, tool.anchor, stuck)
+                react[0] -= g0; react[1] -= g1; react[2] -= g2
             react[0] -= fmag * n0
             react[1] -= fmag * n1
             react[2] -= fmag * n2
             if touches.on:
-                record_touch(touches, 1, s, n0, n1, n2)
+                record_touch(touches, 1, s, n0, n1, n2, held)
             for k in range(w_start[s], w_start[s + 1]):
                 j = w_idx[k]
                 if not fixed[j]:
@@ -260,4 +273,9 @@ def sample_contact_forces(body, motion, cand, n_cand, seg, seg_vel, samples, rea
                     acc[j, 0] += a * n0
                     acc[j, 1] += a * n1
                     acc[j, 2] += a * n2
+                    if mu > 0.0:
+                        a = w_val[k] * inv_mass
+                        acc[j, 0] += a * g0
+                        acc[j, 1] += a * g1
+                        acc[j, 2] += a * g2
     return best
