@@ -367,7 +367,9 @@ def test_runtime_parameters_are_applied_or_refused_with_a_reason(probe, rclpy_no
         # 6 mm deep the tissue pushes back far more than 0.05 N, once the solver has stepped there
         held = _hold_until_pushed(probe, path[-1], _unique_t0(7) + len(path) * 1_000_000, up=0.049)
         assert finite_and_bounded(list(forces) + list(held), 0.05)
-        assert np.linalg.norm(held[-1]) == pytest.approx(0.05, rel=1e-6)
+        # up to the limit, not at it to the bit: live, the energy bound may hold a slowly pushing
+        # hand a little below it (49.4 mN seen)
+        assert np.linalg.norm(held[-1]) == pytest.approx(0.05, rel=0.02)
         # accepted: global mode (solver rebuilt between steps)
         ok = set_parameters(rclpy_node, {'mode': 'global', 'material': 'liver_soft'})
         assert ok[0].successful and ok[1].successful
