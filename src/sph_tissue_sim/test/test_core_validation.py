@@ -289,6 +289,22 @@ def test_the_upper_surface_places_point_up_lie_on_the_top_and_spread_apart():
         upper_surface(model, 10_000)
 
 
+def test_the_thickness_under_a_place_is_the_block_height_down_and_its_width_across():
+    """A 12 x 12 x 6 block of 5 mm spacing is 30 mm thick from its top face down and 60 mm wide
+    across (the particle centres lie half a spacing inside each face); along a slanted line the
+    particles within the radius of it count."""
+    from sph_tissue_sim.validation.cases import thickness_along
+
+    model = make_block(12, 12, 6, spacing=0.005, fix='bottom')
+    X = model.positions
+    top = X[np.argmax(X[:, 2] - 1e-3 * np.abs(X[:, 0] - X[:, 0].mean()))]
+    assert thickness_along(model, top, np.array([0.0, 0.0, 1.0]), 0.004) == pytest.approx(0.030, abs=1e-12)
+    side = X[np.argmax(X[:, 0])]
+    assert thickness_along(model, side, np.array([1.0, 0.0, 0.0]), 0.004) == pytest.approx(0.060, abs=1e-12)
+    tilted = np.array([0.6, 0.0, 0.8])
+    assert 0.030 < thickness_along(model, top, tilted, 0.004) < 0.060
+
+
 def test_a_fall_while_the_tool_advances_is_a_give_way_and_a_fall_while_it_is_held_is_not():
     """``largest_fall`` scores only advancing frames, its running maximum restarting after a hold:
     a relaxing hold (force down 30 %) then a rise again passes; a 5 % fall while advancing fails."""

@@ -478,6 +478,16 @@ def upper_surface(model: TissueModel, count: int, min_up: float = 0.6, seed=None
     return pts[chosen], N[cand[chosen]]
 
 
+def thickness_along(model: TissueModel, point: np.ndarray, n: np.ndarray, radius: float) -> float:
+    """[m] how thick the model is under ``point`` along ``-n``: from the surface to the far face
+    through the particles within ``radius`` [m] of the line (their centres lie half a spacing
+    inside both faces)."""
+    rel = model.positions - np.asarray(point, dtype=float)
+    line = _across_rows(rel, n) < radius
+    along = rel[line] @ n
+    return float(along.max() - along.min() + model.spacing)
+
+
 def largest_fall(curve: dict, tolerance: float = 0.02) -> tuple[float, bool]:
     """``(fall [N], holds)``: the largest fall of a press's force below its running maximum while
     the tool advances at its speed (the maximum restarts after each slowing down or hold: what the
