@@ -28,7 +28,8 @@ touched; while it pushes it feels the tangential spring
 ``mu |f_n|`` (sliding friction). The tool carries the tissue it presses instead of letting it slide
 round it; the spring stores what it takes and sliding only dissipates, so the coupling stays passive.
 A sticking point's tangential spring is integrated backward with its normal one
-(:mod:`.implicit_contact`): with it a stuck point is held by ``k_c`` in every direction.
+(:mod:`.implicit_contact`): a stuck point is held by ``k_c`` in every direction but, on a shaft,
+along the tool's axis (there the closest point ``c`` slides with it).
 """
 
 from __future__ import annotations
@@ -88,18 +89,25 @@ def touch_normal(i, x, seg, reach):
 
 
 @njit(cache=True, inline='always')
-def record_touch(touches, kind, idx, n0, n1, n2, held):
+def record_touch(touches, kind, idx, n0, n1, n2, held, seg, t):
     """Append a pushing contact to ``touches`` (:class:`~.state.Touches`); ``held``: its friction
-    sticks (the tangential spring acts too)."""
-    t = touches.count[0]
-    if t < touches.idx.shape[0]:
-        touches.kind[t] = kind
-        touches.idx[t] = idx
-        touches.normal[t, 0] = n0
-        touches.normal[t, 1] = n1
-        touches.normal[t, 2] = n2
-        touches.held[t] = held
-        touches.count[0] = t + 1
+    sticks (the tangential spring acts too), ``t``: where on the tool's segment ``seg`` its closest
+    point lies (inside a shaft the anchor slides with it along the axis)."""
+    c = touches.count[0]
+    if c < touches.idx.shape[0]:
+        touches.kind[c] = kind
+        touches.idx[c] = idx
+        touches.normal[c, 0] = n0
+        touches.normal[c, 1] = n1
+        touches.normal[c, 2] = n2
+        touches.held[c] = held
+        touches.axis[c, 0] = 0.0; touches.axis[c, 1] = 0.0; touches.axis[c, 2] = 0.0
+        if held and 0.0 < t < 1.0:
+            d0 = seg[1, 0] - seg[0, 0]; d1 = seg[1, 1] - seg[0, 1]; d2 = seg[1, 2] - seg[0, 2]
+            length = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            if length > 0.0:
+                touches.axis[c, 0] = d0 / length; touches.axis[c, 1] = d1 / length; touches.axis[c, 2] = d2 / length
+        touches.count[0] = c + 1
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -170,7 +178,7 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
         react[1] -= fmag * n1
         react[2] -= fmag * n2
         if tool.touches.on:
-            record_touch(tool.touches, 0, i, n0, n1, n2, held)
+            record_touch(tool.touches, 0, i, n0, n1, n2, held, seg, ts)
         if not fixed[i]:
             acc[i, 0] += fmag * n0 * inv_mass
             acc[i, 1] += fmag * n1 * inv_mass

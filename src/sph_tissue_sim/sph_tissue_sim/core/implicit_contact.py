@@ -22,6 +22,11 @@ system). The tangential (curvature) part of the
 penalty's stiffness stays explicit, and a contact that would release within the sub-step is
 still held by its linearisation until the next one. The reaction on the tool gets the same
 correction, so the tool and the tissue exchange equal and opposite impulses.
+
+A contact whose friction sticks (:func:`~.contact.stick_slip`) is held by its tangential spring
+too, ``f'' = f - dt k P Phi_t v''`` with ``P`` the projection on its friction's tangent plane: its
+``n n^T`` above becomes ``n n^T + P`` in the stiffness terms (the dashpot stays normal). Sliding
+contacts pull with a constant ``mu |f_n|`` and stay explicit.
 """
 
 from __future__ import annotations
@@ -95,7 +100,8 @@ def _spread(c, t, amount, out):
 
 @njit(cache=True, fastmath=True, inline='always')
 def _tangential_velocity(c, t, vel):
-    """``(I - n_t n_t^T) Phi_t vel``: the contact point's velocity across its normal."""
+    """``P_t Phi_t vel``, ``P_t = I - n_t n_t^T - a_t a_t^T``: the contact point's velocity across
+    its normal (and, inside a shaft, across the tool's axis ``a_t``: the friction's tangent plane)."""
     j = c.touches.idx[t]
     if c.touches.kind[t] == 0:
         u0 = vel[j, 0]; u1 = vel[j, 1]; u2 = vel[j, 2]
@@ -106,8 +112,10 @@ def _tangential_velocity(c, t, vel):
             w = c.w_val[k]
             u0 += w * vel[i, 0]; u1 += w * vel[i, 1]; u2 += w * vel[i, 2]
     n0 = c.touches.normal[t, 0]; n1 = c.touches.normal[t, 1]; n2 = c.touches.normal[t, 2]
+    a0 = c.touches.axis[t, 0]; a1 = c.touches.axis[t, 1]; a2 = c.touches.axis[t, 2]
     un = n0 * u0 + n1 * u1 + n2 * u2
-    return u0 - un * n0, u1 - un * n1, u2 - un * n2
+    ua = a0 * u0 + a1 * u1 + a2 * u2
+    return u0 - un * n0 - ua * a0, u1 - un * n1 - ua * a1, u2 - un * n2 - ua * a2
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -126,9 +134,10 @@ def _spread_vector(c, t, f0, f1, f2, out):
 @njit(cache=True, fastmath=True)
 def contact_residual(c, inv_m, dt, v, dv, r):
     """``r += -(1/m) sum_t Phi^T [dt^2 K_t Phi v + (dt^2 K_t + dt c n n^T) Phi dv]``, ``K_t = k n n^T``
-    (``k I`` where the friction sticks: :attr:`~.state.Touches.held`): the contacts' share of the
+    (``k (n n^T + P_t)`` where the friction sticks: :attr:`~.state.Touches.held`, ``P_t`` of
+    :func:`_tangential_velocity`): the contacts' share of the
     residual at ``v* = v + dv`` (``dv`` zero off the solved set); keeps each touch's ``n . Phi v``
-    and ``(I - n n^T) Phi v`` in ``c.vn``, ``c.vt`` for :func:`contact_reaction`."""
+    and ``P_t Phi v`` in ``c.vn``, ``c.vt`` for :func:`contact_reaction`."""
     for t in range(c.touches.count[0]):
         kk, cc = _law(c, t)
         vn = _point_normal_velocity(c, t, v)
@@ -183,7 +192,7 @@ def make_touches(cap: int):
     from .state import Touches
 
     return Touches(True, np.zeros(cap, dtype=np.int8), np.zeros(cap, dtype=np.int32), np.zeros((cap, 3)),
-                   np.zeros(1, dtype=np.int64), np.zeros(cap, dtype=np.bool_))
+                   np.zeros(1, dtype=np.int64), np.zeros(cap, dtype=np.bool_), np.zeros((cap, 3)))
 
 
 def contact_terms(touches, samples, k_ball: float, c_ball: float, react: np.ndarray,

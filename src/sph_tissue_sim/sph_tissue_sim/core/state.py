@@ -112,7 +112,8 @@ class Touches(NamedTuple):
     """The contacts of the last sub-step that pushed (for an implicit contact update,
     :mod:`.implicit_contact`): ``kind[t]`` 0 for a particle's ball, 1 for a surface sample, ``idx[t]``
     the particle or sample, ``normal[t]`` its unit normal, ``held[t]`` whether its friction sticks
-    (its tangential spring acts too); ``count[0]`` of them. ``on`` False: the contact kernels
+    (its tangential spring acts too) and ``axis[t]`` the tool's axis where the closest point is
+    inside a shaft (the spring then does not act along it; zero elsewhere); ``count[0]`` of them. ``on`` False: the contact kernels
     record nothing."""
 
     on: bool
@@ -121,12 +122,13 @@ class Touches(NamedTuple):
     normal: np.ndarray     # (cap, 3)
     count: np.ndarray      # (1,) int64
     held: np.ndarray       # (cap,) bool
+    axis: np.ndarray       # (cap, 3)
 
 
 def no_touches() -> Touches:
     """Touches that record nothing (explicit contact)."""
     return Touches(False, np.zeros(1, dtype=np.int8), np.zeros(1, dtype=np.int32), np.zeros((1, 3)),
-                   np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.bool_))
+                   np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.bool_), np.zeros((1, 3)))
 
 
 class ToolPath(NamedTuple):

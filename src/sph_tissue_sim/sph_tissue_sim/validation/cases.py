@@ -483,8 +483,9 @@ def thickness_along(model: TissueModel, point: np.ndarray, n: np.ndarray, radius
     through the particles within ``radius`` [m] of the line (their centres lie half a spacing
     inside both faces)."""
     rel = model.positions - np.asarray(point, dtype=float)
-    line = _across_rows(rel, n) < radius
-    along = rel[line] @ n
+    along = rel[_across_rows(rel, n) < radius] @ n
+    if len(along) == 0:
+        raise ValueError(f'thickness_along: no particle within {radius} m of the line through {point}')
     return float(along.max() - along.min() + model.spacing)
 
 
