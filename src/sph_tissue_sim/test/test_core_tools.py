@@ -113,6 +113,7 @@ def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
     here), not the tip's (zero)."""
     from sph_tissue_sim.core.contact import contact_forces
     from sph_tissue_sim.core.state import Body, Motion, ToolPath, no_touches
+    from sph_tissue_sim.core.grasp import no_grip
     from sph_tissue_sim.core.surface_contact import no_samples
 
     X = np.array([[0.1, 0.0, -0.004]])              # 4 mm below the far end of a 100 mm shaft
@@ -124,7 +125,7 @@ def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
         body = Body(X, np.zeros(1, dtype=np.bool_), 1.0 / inv_mass, inv_mass)
         motion = Motion(X.copy(), np.zeros((1, 3)), np.zeros((1, 3)))
         tool = ToolPath(seg, seg, True, reach, k, c, no_samples(1), no_touches(), 0.0, np.zeros((1, 3)),
-                        np.zeros(1, dtype=np.bool_))
+                        np.zeros(1, dtype=np.bool_), 0, no_grip())
         overlap = contact_forces(body, motion, np.zeros(1, dtype=np.int32), 1, tool, seg, seg_vel,
                                  react)
         # normal n = (0, 0, -1) at t = 1: relative normal velocity -(0 - v_far) . ... = v_far

@@ -89,10 +89,10 @@ def touch_normal(i, x, seg, reach):
 
 
 @njit(cache=True, inline='always')
-def record_touch(touches, kind, idx, n0, n1, n2, held, seg, t):
-    """Append a pushing contact to ``touches`` (:class:`~.state.Touches`); ``held``: its friction
-    sticks (the tangential spring acts too), ``t``: where on the tool's segment ``seg`` its closest
-    point lies (inside a shaft the anchor slides with it along the axis)."""
+def record_touch(touches, kind, idx, n0, n1, n2, held, seg, t, slot):
+    """Append a pushing contact of instrument ``slot`` to ``touches`` (:class:`~.state.Touches`);
+    ``held``: its friction sticks (the tangential spring acts too), ``t``: where on the tool's
+    segment ``seg`` its closest point lies (inside a shaft the anchor slides with it along the axis)."""
     c = touches.count[0]
     if c < touches.idx.shape[0]:
         touches.kind[c] = kind
@@ -101,6 +101,7 @@ def record_touch(touches, kind, idx, n0, n1, n2, held, seg, t):
         touches.normal[c, 1] = n1
         touches.normal[c, 2] = n2
         touches.held[c] = held
+        touches.tool[c] = slot
         touches.axis[c, 0] = 0.0; touches.axis[c, 1] = 0.0; touches.axis[c, 2] = 0.0
         if held and 0.0 < t < 1.0:
             d0 = seg[1, 0] - seg[0, 0]; d1 = seg[1, 1] - seg[0, 1]; d2 = seg[1, 2] - seg[0, 2]
@@ -178,7 +179,7 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
         react[1] -= fmag * n1
         react[2] -= fmag * n2
         if tool.touches.on:
-            record_touch(tool.touches, 0, i, n0, n1, n2, held, seg, ts)
+            record_touch(tool.touches, 0, i, n0, n1, n2, held, seg, ts, tool.slot)
         if not fixed[i]:
             acc[i, 0] += fmag * n0 * inv_mass
             acc[i, 1] += fmag * n1 * inv_mass

@@ -43,7 +43,7 @@ class ContactTerms(NamedTuple):
 
     ``touches`` (:class:`~.state.Touches`) is the record the contact kernels write; ``w_start,
     w_idx, w_val`` the samples' weights; ``k_ball, c_ball`` and ``k_sample, c_sample`` the contact
-    laws; ``react`` (3,) the frame's reaction accumulator; ``vn`` (cap,) each touch's normal
+    laws; ``react`` (K, 3) the frame's reaction accumulator, a row per instrument; ``vn`` (cap,) each touch's normal
     velocity at the sub-step's start and ``vt`` (cap, 3) its tangential one (scratch).
     """
 
@@ -175,16 +175,18 @@ def contact_reaction(c, dt, dv):
         kk, cc = _law(c, t)
         d = _point_normal_velocity(c, t, dv)
         g = dt * kk * (c.vn[t] + d) + cc * d
-        c.react[0] += g * c.touches.normal[t, 0]
-        c.react[1] += g * c.touches.normal[t, 1]
-        c.react[2] += g * c.touches.normal[t, 2]
+        k = c.touches.tool[t]
+        c.react[k, 0] += g * c.touches.normal[t, 0]
+        c.react[k, 1] += g * c.touches.normal[t, 1]
+        c.react[k, 2] += g * c.touches.normal[t, 2]
     for t in range(c.touches.count[0]):
         if c.touches.held[t]:
             kk, cc = _law(c, t)
             w0, w1, w2 = _tangential_velocity(c, t, dv)
-            c.react[0] += dt * kk * (c.vt[t, 0] + w0)
-            c.react[1] += dt * kk * (c.vt[t, 1] + w1)
-            c.react[2] += dt * kk * (c.vt[t, 2] + w2)
+            k = c.touches.tool[t]
+            c.react[k, 0] += dt * kk * (c.vt[t, 0] + w0)
+            c.react[k, 1] += dt * kk * (c.vt[t, 1] + w1)
+            c.react[k, 2] += dt * kk * (c.vt[t, 2] + w2)
 
 
 def make_touches(cap: int):
@@ -192,7 +194,8 @@ def make_touches(cap: int):
     from .state import Touches
 
     return Touches(True, np.zeros(cap, dtype=np.int8), np.zeros(cap, dtype=np.int32), np.zeros((cap, 3)),
-                   np.zeros(1, dtype=np.int64), np.zeros(cap, dtype=np.bool_), np.zeros((cap, 3)))
+                   np.zeros(1, dtype=np.int64), np.zeros(cap, dtype=np.bool_), np.zeros((cap, 3)),
+                   np.zeros(cap, dtype=np.int32))
 
 
 def contact_terms(touches, samples, k_ball: float, c_ball: float, react: np.ndarray,
@@ -207,4 +210,4 @@ def no_contact_terms() -> ContactTerms:
     from .state import no_touches
 
     return ContactTerms(no_touches(), np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0),
-                        0.0, 0.0, 0.0, 0.0, np.zeros(3), np.zeros(1), np.zeros((1, 3)))
+                        0.0, 0.0, 0.0, 0.0, np.zeros((1, 3)), np.zeros(1), np.zeros((1, 3)))

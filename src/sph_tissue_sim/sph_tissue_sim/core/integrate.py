@@ -55,7 +55,7 @@ def move_layers(x, v, fixed, layer, layer_w, n_layer, touch, touch_w, n_touch, c
 @njit(cache=True, nogil=True)
 def frame_state_ok(x, v, sph, n_sph, layer, n_layer, v_limit, react):
     """False if a moved particle's position or velocity is non-finite or a speed exceeds
-    ``v_limit`` [m/s], or the reaction on the tool is non-finite.
+    ``v_limit`` [m/s], or a reaction on a tool (``react``, flat) is non-finite.
 
     Compiled without ``fastmath``: under fast-math LLVM assumes no NaN or inf and may fold these
     tests to "finite" (seen with numba: ``isfinite`` answered True for a NaN).
@@ -71,7 +71,10 @@ def frame_state_ok(x, v, sph, n_sph, layer, n_layer, v_limit, react):
                 return False
             if not (math.isfinite(x[i, 0]) and math.isfinite(x[i, 1]) and math.isfinite(x[i, 2])):
                 return False
-    return math.isfinite(react[0]) and math.isfinite(react[1]) and math.isfinite(react[2])
+    for a in range(react.shape[0]):
+        if not math.isfinite(react[a]):
+            return False
+    return True
 
 
 def substep_bounds(h: float, wave_speed: float, rho: float, eta_long: float, cfl: float) -> dict:

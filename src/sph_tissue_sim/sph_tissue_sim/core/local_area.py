@@ -418,6 +418,17 @@ class LocalArea:
                                              reach, margin)
         return deepest
 
+    def hold(self, idx: np.ndarray) -> int:
+        """Centre the area on particles a tool holds, for a frame in which it touches nothing (a
+        grasp that lifts): they are the touched ones, of equal weight; returns one of them (the
+        area's contact particle)."""
+        n = min(len(idx), len(self.touch))
+        self.touch[:n] = idx[:n]
+        self.touch_w[:n] = 1.0
+        self.n_touch = n
+        self.centre[:] = self.X[idx].mean(axis=0)
+        return int(idx[0])
+
     def prepare(self, body: Body, seg0: np.ndarray | None, seg1: np.ndarray | None, reach: float, margin: float,
                 contact: int, Dr: float, on_contact: bool) -> tuple[Sets, int, int]:
         """The sets of a local frame; returns ``(sets, n_interaction, n_relaxing)``.

@@ -1,4 +1,5 @@
-"""One solver for every scheme and mode: ``Solver(model, material, config).step(tool_pos, dt, tool_rot)``.
+"""One solver for every scheme and mode: ``Solver(model, material, config).step(tool_pos, dt, tool_rot)``,
+or with several instruments on one tissue ``Solver(..., instruments=2).step_tools([(pos, rot), None], dt)``.
 
 Schemes (index order = ``SimMetrics.SCHEME_*``): ``paper`` (updated-Lagrangian SPH, eqs. 11-16),
 ``tlsph`` (total-Lagrangian SPH, the default) and ``mass_spring`` (the paper's Table 1 baseline).
@@ -7,9 +8,9 @@ local interaction area, see :mod:`.local_area`).
 
 A frame of ``dt`` seconds is split into sub-steps bounded by the CFL, viscous and (when a tool is
 given) contact limits;
-the tool (a shape from :mod:`.tools`, posed by its tip position and orientation) moves linearly
+each tool (a shape from :mod:`.tools`, posed by its tip position and orientation) moves linearly
 from its previous to its new pose across the sub-steps, and the force
-returned is the mean reaction of the tissue on the tool over the frame, clamped to ``force_limit``.
+returned for it is the mean reaction of the tissue on it over the frame, clamped to ``force_limit``.
 """
 
 from __future__ import annotations
@@ -28,7 +29,9 @@ from .contact_kinds import BallContact, make_contact
 from .surface_contact import nearest_sample_gap
 from .errors import ConfigError, ModelError, SimError
 from .far_field import make_far_field
+from .grasp import GRASP_REGION, grasp_region, no_grip
 from .implicit_contact import contact_terms, make_touches
+from .instrument import Instrument, ToolResult
 from .backward_euler import BackwardSolve
 from .compliance import OrganCompliance
 from .integrate import frame_state_ok, substep_bounds, substeps_for
@@ -41,7 +44,7 @@ from .paper import PaperScheme
 from .protocols import STATUS_OK
 from .springs import MassSpringScheme
 from .stability import DASHPOT_RATE_EVERY, DashpotRate
-from .state import Body, Loads, Motion, Sets, ToolPath, Topology
+from .state import Body, Grip, Loads, Motion, Sets, ToolPath, Topology
 from .tlsph import TlsphScheme
 from .tools import NO_ROTATION, TOOLS, make_tool
 
@@ -72,6 +75,8 @@ RELAX_DISP_TOL, RELAX_VEL_TOL = 2e-4, 2e-3
 VELOCITY_LIMIT = 50.0
 #: [m] tool positions farther than this from the model centre are refused
 MAX_TOOL_DISTANCE = 10.0
+#: instruments on one tissue at most
+MAX_INSTRUMENTS = 8
 #: [s] low pass on the far field's load: with the samples as the surface the 30k liver's shell and
 #: force rang (1 N per frame) without it; the default contact stays smooth either way
 FAR_FIELD_TAU = 0.003
@@ -131,6 +136,9 @@ class SolverConfig:
                               'the tissue, balls and surface samples (0: frictionless; 0.3 holds the touched '
                               'particle to 0.1 mm at a 10 mm press but stiffens the shallow press by a third)',
                               (0.0, 2.0), rebuild=None)
+    grasp_limit: float = setting(0.5, '[N] a grasped particle pulled harder than this lets go: the grasp '
+                                 'slips one particle at a time instead of tearing the tissue', (0.001, 10.0),
+                                 node=False, rebuild=None)
     max_tool_speed: float = setting(1.0, '[m/s] the simulated tool follows the request at most this fast '
                                     '(a hand stays below 1 m/s; 1000: no limit)', (0.01, 1000.0), rebuild=None)
     force_limit: float = setting(HARD_FORCE_LIMIT, '[N] norm clamp of the force sent to the device (Omni '
@@ -191,13 +199,10 @@ class SolverConfig:
 
 @dataclass
 class StepResult:
-    """Outcome of one :meth:`Solver.step` (tissue frame, SI units)."""
+    """Outcome of one :meth:`Solver.step` (tissue frame, SI units); ``force``, ``contact_index`` and
+    the other tool fields are the first instrument's (:attr:`tools` has each one's)."""
 
-    force: np.ndarray                 # (3,) [N] reaction of the tissue on the tool, clamped
-    force_raw: np.ndarray             # (3,) [N] before clamping
-    clamped: bool
-    contact_index: int                # -1 without contact
-    penetration: float                # [m] overlap of the deepest contacted particle
+    tools: tuple                      # a ToolResult per instrument
     substeps: int
     substep_dt: float                 # [s]
     n_interaction: int
@@ -207,10 +212,36 @@ class StepResult:
     kinetic_energy: float             # [J]
     wall_time: float                  # [s]
     substeps_capped: bool = False     # the frame needed more than max_substeps (time lagged)
-    tool_lag: float = 0.0             # [m] requested minus simulated tool position (max_tool_speed)
-    tool_segment: np.ndarray | None = None   # (2, 3) [m] the tool's segment after the step (None: no tool)
     k1: float = 0.0                   # interaction radius factor used (local mode)
     n_active: int = 0                 # particles integrated this frame
+
+    @property
+    def force(self) -> np.ndarray:
+        return self.tools[0].force
+
+    @property
+    def force_raw(self) -> np.ndarray:
+        return self.tools[0].force_raw
+
+    @property
+    def clamped(self) -> bool:
+        return self.tools[0].clamped
+
+    @property
+    def contact_index(self) -> int:
+        return self.tools[0].contact_index
+
+    @property
+    def penetration(self) -> float:
+        return self.tools[0].penetration
+
+    @property
+    def tool_lag(self) -> float:
+        return self.tools[0].tool_lag
+
+    @property
+    def tool_segment(self) -> np.ndarray | None:
+        return self.tools[0].segment
 
 
 def organ_far_field(cfg: SolverConfig, X: np.ndarray, fixed: np.ndarray, scheme, spacing: float,
@@ -253,6 +284,8 @@ class Solver:
         config: solver settings (validated here).
         background: the organ's far field solves its responses on a worker thread, so a touch
             never waits for one (not repeatable bit for bit: sim_node's live timing).
+        instruments: how many tools touch the tissue at once (each of the config's shape; more
+            than one needs ``mode: global``).
 
     Raises:
         ModelError: empty model.
@@ -261,12 +294,17 @@ class Solver:
     """
 
     def __init__(self, model: TissueModel, material: Material, config: SolverConfig | None = None,
-                 background: bool = False) -> None:
+                 background: bool = False, instruments: int = 1) -> None:
         if model is None or len(model.positions) == 0:
             raise ModelError('the model has no particles')
         if not isinstance(material, Material):
             raise ConfigError(f'material must be a Material, got {type(material).__name__}')
         self.config = cfg = (config or SolverConfig()).validate()
+        if isinstance(instruments, bool) or not isinstance(instruments, int) or not 1 <= instruments <= MAX_INSTRUMENTS:
+            raise ConfigError(f'instruments must be an integer in [1, {MAX_INSTRUMENTS}], got {instruments!r}')
+        if instruments > 1 and cfg.mode != 'global':
+            raise ConfigError(f'{instruments} instruments need mode global (the local area follows one tool), '
+                              f'got mode {cfg.mode}')
         self.background = background
         self.model = model
         self.n = model.n_particles
@@ -291,7 +329,8 @@ class Solver:
         self.v = np.zeros((self.n, 3))
         self.acc = np.zeros((self.n, 3))
         self.motion = Motion(self.x, self.v, self.acc)
-        self.react = np.zeros(3)
+        self.react = np.zeros((instruments, 3))      # the reaction on each tool [N]
+        self._overlap = np.zeros(instruments)          # and each tool's overlap in the last sub-step [m]
         self.abort = np.zeros(1, dtype=np.int8)   # set by interrupt() from another thread
         self.loads = Loads(np.zeros(0, dtype=np.int32), np.zeros((0, 3)), 0)
         pm = cfg.parallel_min_particles
@@ -302,10 +341,11 @@ class Solver:
         self.backward = BackwardSolve(self.scheme if stiffness else None, self.n,
                                       IMPLICIT_TOL if stiffness else CONTACT_TOL,
                                       IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER)
-        self.touches = make_touches(self.n + self.contact.n_samples)
-        #: friction's anchors (contact.stick_slip): the particles', then the samples'
-        self.anchor = np.zeros((self.n + self.contact.n_samples, 3))
-        self.stuck = np.zeros(self.n + self.contact.n_samples, dtype=np.bool_)
+        # every instrument's pushing contacts, for one backward solve
+        # (a particle both touched and held is recorded twice)
+        self.touches = make_touches(instruments * (2 * self.n + self.contact.n_samples))
+        self.instruments = [Instrument(self.n + self.contact.n_samples) for _ in range(instruments)]
+        self._no_grip = no_grip()
         self._touch_vn = np.zeros(len(self.touches.idx))
         self._touch_vt = np.zeros((len(self.touches.idx), 3))
         self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
@@ -399,12 +439,8 @@ class Solver:
             self.dashpot_rate.reset()
         self.sim_time = 0.0
         self.f_prev = 0.0
-        self.stuck[:] = False
-        #: backstop samples: one has pushed the tool, and the tool has touched the tissue ever since
-        #: (the local area is the samples')
-        self.samples_push = False
-        self.tool_prev: np.ndarray | None = None     # the tip position [m] of the previous frame
-        self.seg_prev: np.ndarray | None = None      # and the tool's segment (2, 3)
+        for hand in self.instruments:
+            hand.reset()
         self.last_result: StepResult | None = None
         self._last_sets: Sets | None = None           # the sets of the last finished frame
 
@@ -449,6 +485,25 @@ class Solver:
         return self.n
 
     @property
+    def n_instruments(self) -> int:
+        return len(self.instruments)
+
+    @property
+    def tool_prev(self) -> np.ndarray | None:
+        """The first instrument's tip [m] after the last frame (None: lifted)."""
+        return self.instruments[0].tip
+
+    @property
+    def seg_prev(self) -> np.ndarray | None:
+        """The first instrument's segment (2, 3) [m] after the last frame (None: lifted)."""
+        return self.instruments[0].segment
+
+    @property
+    def samples_push(self) -> bool:
+        """Local mode: a backstop sample has pushed the tool since it touched (the area is the samples')."""
+        return self.instruments[0].samples_push
+
+    @property
     def far_field_in_use(self) -> str:
         """Local mode's far field as built: ``organ``, ``half_space`` or ``none`` (global mode,
         or ``far_field`` 0): :func:`organ_far_field` decides between the first two."""
@@ -476,15 +531,16 @@ class Solver:
         return out
 
     # ------------------------------------------------------------------ stepping
-    def _check_inputs(self, tool_pos, dt) -> np.ndarray | None:
+    def _check_dt(self, dt) -> float:
         try:
             dt = float(dt)
         except (TypeError, ValueError) as exc:
             raise InvalidInput(f'dt must be a number, got {dt!r}') from exc
         if not (math.isfinite(dt) and 0.0 < dt <= 1.0):
             raise InvalidInput(f'dt must be in (0, 1] s, got {dt}')
-        if tool_pos is None:
-            return None
+        return dt
+
+    def _check_position(self, tool_pos) -> np.ndarray:
         try:
             tool = np.asarray(tool_pos, dtype=np.float64).reshape(3)
         except (TypeError, ValueError) as exc:
@@ -515,12 +571,36 @@ class Solver:
             raise InvalidInput(f'tool rotation is not a rotation matrix: {rot.tolist()}')
         return rot
 
-    def _limit_sweep(self, seg: np.ndarray, max_travel: float) -> float:
+    def _check_poses(self, poses) -> list:
+        """Each instrument's (tip, rotation), or None where it is lifted; raises InvalidInput."""
+        try:
+            poses = list(poses)
+        except TypeError as exc:
+            raise InvalidInput(f'poses must be a sequence of (position, rotation) or None, got {poses!r}') from exc
+        if len(poses) != len(self.instruments):
+            raise InvalidInput(f'{len(poses)} poses for {len(self.instruments)} instruments')
+        checked = []
+        for pose in poses:
+            if pose is None:
+                checked.append(None)
+                continue
+            try:
+                pos, rot = pose
+            except (TypeError, ValueError) as exc:
+                raise InvalidInput(f'a pose is (position, rotation) or None, got {pose!r}') from exc
+            if pos is None:
+                checked.append(None)
+                continue
+            tip = self._check_position(pos)
+            checked.append((tip, self._check_rotation(rot)))
+        return checked
+
+    def _limit_sweep(self, prev: np.ndarray, seg: np.ndarray, max_travel: float) -> float:
         """Move the far end of a shaft (``seg[1]``, in place) at most ``max_travel`` [m] from where
-        it was, keeping the shaft's length: a fast twist of a long tool would otherwise sweep its
-        far end through the tissue in one frame. Returns the distance left to the request [m]."""
-        prev = self.seg_prev[1]
-        far, lag = self._limit_travel(prev, seg[1], max_travel)
+        it was (``prev[1]``), keeping the shaft's length: a fast twist of a long tool would
+        otherwise sweep its far end through the tissue in one frame. Returns the distance left to
+        the request [m]."""
+        far, lag = self._limit_travel(prev[1], seg[1], max_travel)
         if lag > 0.0:
             length = math.dist(seg[1].tolist(), seg[0].tolist())
             d = far - seg[0]
@@ -529,18 +609,65 @@ class Solver:
                 seg[1] = seg[0] + d * (length / n)
         return lag
 
+    def _hand(self, k: int) -> Instrument:
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 0 <= k < len(self.instruments):
+            raise InvalidInput(f'instrument {k!r} is not one of the {len(self.instruments)} instruments')
+        return self.instruments[int(k)]
+
+    @property
+    def grasp_reach(self) -> float:
+        """[m] an instrument that closes holds the free particles whose centres lie this close to its
+        segment (:mod:`.grasp`)."""
+        return GRASP_REGION * self.contact.contact_reach
+
+    def grasp(self, k: int = 0) -> int:
+        """Close instrument ``k`` on the tissue: it holds the free particles within
+        :attr:`grasp_reach` of its tool (replacing what it held) until :meth:`release`, until it is
+        lifted, or each until pulled harder than ``grasp_limit``. Returns how many it holds: 0 for
+        a lifted instrument or a grasp on nothing."""
+        hand = self._hand(k)
+        if hand.segment is None:
+            hand.let_go()
+            return 0
+        idx = grasp_region(self.x, self.fixed, hand.segment, self.grasp_reach)
+        hand.hold(idx, (self.x[idx] - hand.tip) @ hand.rotation)   # rows of R^T (x - tip)
+        return len(idx)
+
+    def release(self, k: int = 0) -> int:
+        """Open instrument ``k``: it lets go of everything; returns how many particles it held (0:
+        a release without a grasp)."""
+        return self._hand(k).let_go()
+
+    def _grip(self, hand: Instrument, rot: np.ndarray) -> Grip:
+        """What ``hand`` holds across this frame, its anchors turned from the last frame's
+        orientation to ``rot``."""
+        if not len(hand.grip_idx):
+            return self._no_grip
+        prev = hand.rotation if hand.rotation is not None else rot
+        return Grip(hand.grip_idx, len(hand.grip_idx), hand.grip_local @ prev.T, hand.grip_local @ rot.T,
+                    hand.grip_held, self.config.grasp_limit)
+
     def step(self, tool_pos, dt: float, tool_rot=None) -> StepResult:
         """Advance the tissue by ``dt`` seconds with the tool's tip at ``tool_pos`` (tissue frame, m)
         and its orientation ``tool_rot`` (3x3 rotation matrix, tissue frame; None: identity).
 
         ``tool_pos=None`` means no tool. Raises :class:`InvalidInput` (state untouched) for
         non-finite/absurd inputs and :class:`SimError` (state restored) if the step went unstable.
+        A solver of several instruments steps with :meth:`step_tools`.
         """
+        if len(self.instruments) != 1:
+            raise InvalidInput(f'this solver has {len(self.instruments)} instruments: step_tools() poses them all')
+        return self.step_tools((None if tool_pos is None else (tool_pos, tool_rot),), dt)
+
+    def step_tools(self, poses, dt: float) -> StepResult:
+        """Advance the tissue by ``dt`` seconds with every instrument at its pose: ``poses`` holds,
+        per instrument, ``(tip position, rotation)`` (tissue frame; rotation None: identity) or
+        None (lifted). One frame for all: each tool's reaction is in ``StepResult.tools``.
+        Errors as :meth:`step`."""
         t0 = time.perf_counter()
-        tool = self._check_inputs(tool_pos, dt)
-        dt = float(dt)
+        dt = self._check_dt(dt)
+        poses = self._check_poses(poses)
         cfg = self.config
-        tool_on = tool is not None
         dt_max = self.dt_max
         if self.dashpot_rate is not None:
             dt_max = min(dt_max, self.dashpot_rate.bound())
@@ -549,39 +676,61 @@ class Solver:
             m = self.material
             dt_max = min(dt_max, cfg.cfl * self.h / math.sqrt((m.K + 4.0 * m.G * growth / 3.0) / m.rho))
         n_sub, sub_dt, capped = substeps_for(dt, dt_max, cfg.max_substeps)
-        tool_lag = 0.0
-        if tool_on:
-            rot = self._check_rotation(tool_rot)
-            if self.tool_prev is not None:
-                tool, tool_lag = self._limit_travel(self.tool_prev, tool, cfg.max_tool_speed * dt)
-            seg1 = self.tool.segment(tool, rot)
-            if self.seg_prev is not None and self.tool.oriented:
-                tool_lag = max(tool_lag, self._limit_sweep(seg1, cfg.max_tool_speed * dt))
-            seg0 = self.seg_prev if self.seg_prev is not None else seg1
-        else:
-            seg0 = seg1 = np.stack([self.centre, self.centre])
-        if not tool_on:
-            self.stuck[:] = False      # a new touch starts a new anchor
-        path = ToolPath(seg0, seg1, tool_on, self.contact.ball_reach, cfg.contact_stiffness,
-                        self.contact_damping, self.samples, self.touches,
-                        cfg.friction, self.anchor, self.stuck)
-        if cfg.mode == 'global':
-            res = self._global_step(path, n_sub, sub_dt, dt)
-        else:
-            res = self._local_step(path, n_sub, sub_dt, dt)
+        paths, tips, rots, lags = [], [], [], []
+        for k, (hand, pose) in enumerate(zip(self.instruments, poses)):
+            lag = 0.0
+            grip = self._no_grip
+            rot = None
+            if pose is not None:
+                tip, rot = pose
+                if hand.tip is not None:
+                    tip, lag = self._limit_travel(hand.tip, tip, cfg.max_tool_speed * dt)
+                seg1 = self.tool.segment(tip, rot)
+                if hand.segment is not None and self.tool.oriented:
+                    lag = max(lag, self._limit_sweep(hand.segment, seg1, cfg.max_tool_speed * dt))
+                seg0 = hand.segment if hand.segment is not None else seg1
+                grip = self._grip(hand, rot)
+            else:
+                tip = None
+                seg0 = seg1 = np.stack([self.centre, self.centre])
+                hand.stuck[:] = False      # a new touch starts a new anchor
+                hand.let_go()              # and a lifted instrument holds nothing
+            tips.append(tip)
+            rots.append(rot)
+            lags.append(lag)
+            paths.append(ToolPath(seg0, seg1, pose is not None, self.contact.ball_reach, cfg.contact_stiffness,
+                                  self.contact_damping, self.samples, self.touches,
+                                  cfg.friction, hand.anchor, hand.stuck, k, grip))
+        paths = tuple(paths)
+        held = [hand.grip_held.copy() for hand in self.instruments]
+        try:
+            if cfg.mode == 'global':
+                contacts, res = self._global_step(paths, n_sub, sub_dt, dt)
+            else:
+                contacts, res = self._local_step(paths, n_sub, sub_dt, dt)
+        except SimError:
+            for hand, flags in zip(self.instruments, held):
+                hand.grip_held[:] = flags      # the slips belong to the discarded frame
+            raise
         if self.dashpot_rate is not None:
             self.dashpot_rate.update(self.body, self.x, self._last_sets, sub_dt)
-        force_raw = self.react.copy()
-        force, clamped = clamp_norm(force_raw, cfg.force_limit)
-        f0, f1, f2 = force.tolist()
+        tools = []
+        for k, hand in enumerate(self.instruments):
+            force_raw = self.react[k].copy()
+            force, clamped = clamp_norm(force_raw, cfg.force_limit)
+            on = paths[k].on
+            tools.append(ToolResult(force, force_raw, clamped, int(contacts[k]),
+                                    float(max(self._overlap[k], 0.0)), lags[k], paths[k].seg1 if on else None,
+                                    hand.holding))
+            hand.tip = tips[k]
+            hand.segment = paths[k].seg1 if on else None
+            hand.rotation = rots[k]
+            hand.contact = int(contacts[k])
+        f0, f1, f2 = tools[0].force.tolist()
         self.f_prev = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
-        self.tool_prev = tool if tool_on else None
-        self.seg_prev = seg1 if tool_on else None
         self.sim_time += n_sub * sub_dt
-        result = StepResult(force=force, force_raw=force_raw, clamped=clamped, substeps=n_sub,
-                            substep_dt=sub_dt, wall_time=time.perf_counter() - t0,
-                            substeps_capped=capped, tool_lag=tool_lag,
-                            tool_segment=seg1 if tool_on else None, **res)
+        result = StepResult(tools=tuple(tools), substeps=n_sub, substep_dt=sub_dt,
+                            wall_time=time.perf_counter() - t0, substeps_capped=capped, **res)
         self.last_result = result
         return result
 
@@ -597,14 +746,14 @@ class Solver:
         f = max_travel / dist
         return np.array([p0 + f * d0, p1 + f * d1, p2 + f * d2]), dist - max_travel
 
-    def _sticky_contact(self, seg: np.ndarray, reach: float) -> int:
-        """Keep the previous contact particle while the tool still touches it.
+    def _sticky_contact(self, hand: Instrument, seg: np.ndarray, reach: float) -> int:
+        """Keep ``hand``'s previous contact particle while its tool still touches it.
 
         The interaction area is centred on the contact particle; letting it hop between equally
         deep neighbours every frame would re-centre the area and release kinematically moved layer
         particles into full SPH far from equilibrium.
         """
-        prev = self.last_result.contact_index if self.last_result is not None else -1
+        prev = hand.contact
         if prev >= 0:
             u = contact_vector_py(prev, self.x, seg)
             if u[0] * u[0] + u[1] * u[1] + u[2] * u[2] < reach * reach:
@@ -618,8 +767,8 @@ class Solver:
             self.touches, self.samples, self.config.contact_stiffness, self.contact_damping, self.react,
             self._touch_vn, self._touch_vt))
 
-    def _frame(self, sets: Sets, path: ToolPath, n_sub: int, sub_dt: float, dt: float, mode: str) -> float:
-        """One frame on ``sets`` (:func:`~.frame.run`); returns the last overlap [m].
+    def _frame(self, sets: Sets, paths: tuple, n_sub: int, sub_dt: float, dt: float, mode: str) -> None:
+        """One frame on ``sets`` (:func:`~.frame.run`); each tool's last overlap [m] in ``_overlap``.
 
         On a blow-up (non-finite or too fast, checked outside the fast-math kernels with
         :func:`~.integrate.frame_state_ok`), a torn body or an interrupt the moved particles go
@@ -627,68 +776,78 @@ class Solver:
         """
         self.area.save(self.x, self.v, sets)
         self.scheme.start_frame(self.sim_time, sub_dt)
-        status, overlap = frame.run(self.scheme, self.substep_integrator(sub_dt), self.body, self.motion, sets,
-                                    path, self.loads, n_sub, dt, self.react, self.abort,
-                                    self.area.active, self.area.n_active)
+        status = frame.run(self.scheme, self.substep_integrator(sub_dt), self.body, self.motion, sets,
+                           paths, self.loads, n_sub, dt, self.react, self._overlap, self.abort,
+                           self.area.active, self.area.n_active)
         ok = (status == STATUS_OK and self.abort[0] == 0
               and frame_state_ok(self.x, self.v, sets.sph, sets.n_sph, sets.layer, sets.n_layer,
-                                 VELOCITY_LIMIT, self.react))
+                                 VELOCITY_LIMIT, self.react.reshape(-1)))
         self.scheme.frame_done(ok)
         if not ok:
             self.area.restore(self.x, self.v, sets)
             self.react[:] = 0.0
-            self.stuck[:] = False      # the anchors belong to the discarded frame
+            for hand in self.instruments:
+                hand.stuck[:] = False      # the anchors belong to the discarded frame
             if self.abort[0] != 0:
                 raise StepInterrupted(f'{self.config.scheme} {mode} step interrupted; state restored')
             raise SimError(f'{self.config.scheme} {mode} step went unstable (non-finite, torn apart or '
                            f'speed > {VELOCITY_LIMIT} m/s); state restored')
         self._last_sets = sets
-        return overlap
 
-    def _global_step(self, path: ToolPath, n_sub: int, sub_dt: float, dt: float) -> dict:
-        contact = -1
-        if path.on:
-            contact = self._sticky_contact(path.seg1, self.contact.detect_reach)
-            if contact < 0:
-                contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, self.contact.detect_reach)
-        sets = self.area.global_sets(contact)
-        overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'global')
+    def _global_step(self, paths: tuple, n_sub: int, sub_dt: float, dt: float) -> tuple[list, dict]:
+        contacts = []
+        for hand, path in zip(self.instruments, paths):
+            contact = -1
+            if path.on:
+                contact = self._sticky_contact(hand, path.seg1, self.contact.detect_reach)
+                if contact < 0:
+                    contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, self.contact.detect_reach)
+            contacts.append(contact)
+        sets = self.area.global_sets(contacts[0])
+        self._frame(sets, paths, n_sub, sub_dt, dt, 'global')
         md, ke = active_stats(self.x, self.X, self.v, sets.sph, sets.n_sph, self.mass)
-        return dict(contact_index=int(contact), penetration=float(max(overlap, 0.0)),
-                    n_interaction=sets.n_sph, n_layer=np.zeros(self.config.n_layers, dtype=np.int64),
-                    n_relaxing=0, max_displacement=float(md), kinetic_energy=float(ke), k1=0.0,
-                    n_active=sets.n_sph)
+        return contacts, dict(n_interaction=sets.n_sph, n_layer=np.zeros(self.config.n_layers, dtype=np.int64),
+                              n_relaxing=0, max_displacement=float(md), kinetic_energy=float(ke), k1=0.0,
+                              n_active=sets.n_sph)
 
-    def _local_step(self, path: ToolPath, n_sub: int, sub_dt: float, dt: float) -> dict:
+    def _local_step(self, paths: tuple, n_sub: int, sub_dt: float, dt: float) -> tuple[list, dict]:
         cfg = self.config
         area = self.area
+        hand, path = self.instruments[0], paths[0]     # one instrument (the constructor's check)
         margin = RELAX_DISP_TOL
         area.n_touch = 0
         contact = -1
         if path.on:
             deepest = area.detect(self.x, path.seg1, self.contact.detect_reach, margin)
-            contact = self._sticky_contact(path.seg1, self.contact.detect_reach)
+            contact = self._sticky_contact(hand, path.seg1, self.contact.detect_reach)
             if contact < 0:
                 contact = deepest
+        if contact < 0 and path.grip.n:
+            held = path.grip.idx[path.grip.held]
+            if len(held):
+                contact = area.hold(held)
         k1 = min(max(cfg.k1_gain * self.f_prev, cfg.k1_min), cfg.k1_max)
-        reach, Dr = self.contact.area(self.samples_push, self.organ is not None, k1 * self.h, self.h)
+        reach, Dr = self.contact.area(hand.samples_push, self.organ is not None, k1 * self.h, self.h)
+        if path.grip.n:
+            # what it holds is solved: it sits within the grasp's reach plus its spring's stretch
+            reach = max(reach, self.grasp_reach + cfg.grasp_limit / cfg.contact_stiffness + self.model.spacing)
         sets, n_inter, n_relax = area.prepare(self.body, path.seg0 if path.on else None, path.seg1,
                                               reach, margin, contact, Dr, cfg.scheme == 'paper')
-        area.far_field(self.body, self.x, sets, self.react, cfg.far_field, -math.expm1(-dt / FAR_FIELD_TAU),
+        area.far_field(self.body, self.x, sets, self.react[0], cfg.far_field, -math.expm1(-dt / FAR_FIELD_TAU),
                        self.far)
-        overlap = self._frame(sets, path, n_sub, sub_dt, dt, 'local')
+        self._frame(sets, paths, n_sub, sub_dt, dt, 'local')
+        overlap = self._overlap[0]
         push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
                                               self.samples, 0.0) < 0.0
         # and while the tool still touches: shrinking the area as the samples slide past a
         # deep tool (the tissue giving way) made the 30k liver's step blow up at 28.5 mm
-        self.samples_push = push or (self.samples_push and overlap > 0.0)
+        hand.samples_push = push or (hand.samples_push and overlap > 0.0)
         n_active_frame = area.n_active
         md, ke = area.stats(self.x, self.v, self.mass)
         area.release(self.x, self.v, RELAX_DISP_TOL, RELAX_VEL_TOL)
-        return dict(contact_index=int(contact), penetration=float(max(overlap, 0.0)),
-                    n_interaction=int(n_inter), n_layer=area.layer_counts[:cfg.n_layers].copy(),
-                    n_relaxing=int(n_relax), max_displacement=float(md), kinetic_energy=float(ke),
-                    k1=float(k1), n_active=int(n_active_frame))
+        return [contact], dict(n_interaction=int(n_inter), n_layer=area.layer_counts[:cfg.n_layers].copy(),
+                               n_relaxing=int(n_relax), max_displacement=float(md), kinetic_energy=float(ke),
+                               k1=float(k1), n_active=int(n_active_frame))
 
 
 def warmup(scheme: str | None = None, integrator: str = 'explicit') -> float:

@@ -112,9 +112,10 @@ class Touches(NamedTuple):
     """The contacts of the last sub-step that pushed (for an implicit contact update,
     :mod:`.implicit_contact`): ``kind[t]`` 0 for a particle's ball, 1 for a surface sample, ``idx[t]``
     the particle or sample, ``normal[t]`` its unit normal, ``held[t]`` whether its friction sticks
-    (its tangential spring acts too) and ``axis[t]`` the tool's axis where the closest point is
-    inside a shaft (the spring then does not act along it; zero elsewhere); ``count[0]`` of them. ``on`` False: the contact kernels
-    record nothing."""
+    (its tangential spring acts too), ``axis[t]`` the tool's axis where the closest point is
+    inside a shaft (the spring then does not act along it; zero elsewhere) and ``tool[t]`` the
+    instrument that pushes it; ``count[0]`` of them. ``on`` False: the contact kernels record
+    nothing."""
 
     on: bool
     kind: np.ndarray       # (cap,) int8
@@ -123,12 +124,27 @@ class Touches(NamedTuple):
     count: np.ndarray      # (1,) int64
     held: np.ndarray       # (cap,) bool
     axis: np.ndarray       # (cap, 3)
+    tool: np.ndarray       # (cap,) int32
 
 
 def no_touches() -> Touches:
     """Touches that record nothing (explicit contact)."""
     return Touches(False, np.zeros(1, dtype=np.int8), np.zeros(1, dtype=np.int32), np.zeros((1, 3)),
-                   np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.bool_), np.zeros((1, 3)))
+                   np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.bool_), np.zeros((1, 3)),
+                   np.zeros(1, dtype=np.int32))
+
+
+class Grip(NamedTuple):
+    """The particles a tool holds (:mod:`.grasp`): ``idx[t]`` for ``t < n`` while ``held[t]``, each
+    pulled towards the tool's tip plus ``off0[t]`` at the frame's start and ``off1[t]`` at its end
+    [m] (the anchor turned with the tool), let go above ``limit`` [N]."""
+
+    idx: np.ndarray        # (G,) int32
+    n: int
+    off0: np.ndarray       # (G, 3) [m]
+    off1: np.ndarray       # (G, 3) [m]
+    held: np.ndarray       # (G,) bool, cleared by the kernel when a particle slips
+    limit: float           # [N]
 
 
 class ToolPath(NamedTuple):
@@ -146,6 +162,8 @@ class ToolPath(NamedTuple):
     anchor: np.ndarray     # (N + S, 3) [m] where a stuck particle (0..N-1) or sample (N + s) sits
                            # relative to the tool's closest point
     stuck: np.ndarray      # (N + S,) bool: it holds an anchor (it touched in the last sub-step)
+    slot: int              # which of the solver's instruments this is (the row of its reaction)
+    grip: Grip             # the particles it holds (none: n = 0)
 
 
 class Loads(NamedTuple):

@@ -1,0 +1,126 @@
+"""Several instruments on one tissue: one frame for all, each tool its own reaction."""
+
+import numpy as np
+import pytest
+
+from sph_tissue_sim.core.errors import ConfigError
+from sph_tissue_sim.core.material import liver_default
+from sph_tissue_sim.core.models import make_block
+from sph_tissue_sim.core.solver import InvalidInput, Solver, SolverConfig
+
+SPACING = 0.005
+GLOBAL = SolverConfig(mode='global')
+
+
+def _block(fix: str = 'bottom'):
+    return make_block(8, 8, 5, spacing=SPACING, fix=fix)
+
+
+def _over(model, xy, gap: float = 0.0) -> np.ndarray:
+    """The tool tip ``gap`` [m] above the first touch of the top face at ``xy`` (offsets from the
+    face's centre)."""
+    X = model.positions
+    c = X.mean(axis=0)
+    return np.array([c[0] + xy[0], c[1] + xy[1], X[:, 2].max() + SPACING + 0.005 + gap])
+
+
+def test_a_lifted_second_instrument_leaves_the_first_ones_forces_as_they_were_bit_for_bit():
+    model = _block()
+    one = Solver(model, liver_default(), GLOBAL)
+    two = Solver(model, liver_default(), GLOBAL, instruments=2)
+    start = _over(model, (0.0, 0.0))
+    for k in range(60):
+        tip = start - [0.0, 0.0, 1e-4 * k]
+        a = one.step(tip, 1e-3)
+        b = two.step_tools([(tip, None), None], 1e-3)
+        assert np.array_equal(a.force, b.tools[0].force)
+        assert np.array_equal(b.tools[1].force, np.zeros(3))
+    assert a.force[2] > 0.05
+    assert np.array_equal(one.positions, two.positions)
+    assert b.tools[1].segment is None and b.tools[1].contact_index == -1
+
+
+def test_two_instruments_pressing_and_pulling_a_floating_block_take_the_opposite_of_its_momentum():
+    """No boundary, no gravity: the only forces on the block are the two tools', so its momentum
+    changes by minus the impulse the tools take, sum_k F_k dt, frame by frame (the implicit
+    contact's and the grasp's corrections included). The first tool grasps the top and pulls
+    while the second presses the bottom 20 mm beside it and drags sideways."""
+    model = _block(fix='none')
+    solver = Solver(model, liver_default(), SolverConfig(mode='global', friction=0.3), instruments=2)
+    top = _over(model, (-0.01, 0.0), -0.0005)
+    X = model.positions
+    bottom = np.array([top[0] + 0.02, top[1], X[:, 2].min() - SPACING - 0.005])
+    flip = np.diag([1.0, -1.0, -1.0])             # its +z (a capsule's shaft) points down
+    impulse = np.zeros(3)
+    pull = press_peak = drag = 0.0
+    for k in range(150):
+        if k == 10:
+            assert solver.grasp(0) > 0
+        lift = 3e-5 * max(k - 10, 0)
+        press = 1e-4 * min(k, 40)
+        res = solver.step_tools([(top + [0.0, 0.0, lift], None), (bottom + [1e-5 * k, 0.0, press], flip)], 1e-3)
+        impulse += (res.tools[0].force_raw + res.tools[1].force_raw) * 1e-3
+        pull = min(pull, res.tools[0].force[2])
+        press_peak = min(press_peak, res.tools[1].force[2])
+        drag = max(drag, abs(res.tools[1].force[0]))
+    momentum = solver.mass * solver.velocities.sum(axis=0)
+    print(f'pull {pull:.4f} N, press {press_peak:.4f} N, drag {drag:.4f} N; momentum {momentum} kg m/s, '
+          f'tools\' impulse {impulse} N s')
+    assert res.tools[0].grasped > 0
+    assert pull < -0.01                  # the grasp pulls the first tool down
+    assert press_peak < -0.1             # the press pushes the second one down
+    assert drag > 1e-3                   # and the drag holds it back
+    np.testing.assert_allclose(momentum, -impulse, rtol=0, atol=1e-9 * np.abs(impulse).max())
+
+
+def test_two_instruments_at_mirrored_places_feel_mirrored_forces():
+    model = _block()
+    solver = Solver(model, liver_default(), GLOBAL, instruments=2)
+    left, right = _over(model, (-0.0075, 0.0)), _over(model, (0.0075, 0.0))
+    for k in range(80):
+        dz = [0.0, 0.0, 1e-4 * min(k, 50)]
+        res = solver.step_tools([(left - dz, None), (right - dz, None)], 1e-3)
+    f0, f1 = res.tools[0].force, res.tools[1].force
+    print(f'left {f0} N, right {f1} N')
+    assert f0[2] > 0.1
+    np.testing.assert_allclose(f1, f0 * [-1.0, 1.0, 1.0], rtol=1e-6, atol=1e-9)
+    assert f0[0] != 0.0          # each pushes the block away from the other: not the same force
+
+
+def test_the_instruments_friction_anchors_are_their_own():
+    """One instrument lifted forgets its anchors; the other's hold."""
+    model = _block()
+    solver = Solver(model, liver_default(), SolverConfig(mode='global', friction=0.3), instruments=2)
+    a, b = _over(model, (-0.01, 0.0), -0.002), _over(model, (0.01, 0.0), -0.002)
+    for _ in range(20):
+        solver.step_tools([(a, None), (b, None)], 1e-3)
+    assert solver.instruments[0].stuck.any() and solver.instruments[1].stuck.any()
+    solver.step_tools([None, (b, None)], 1e-3)
+    assert not solver.instruments[0].stuck.any() and solver.instruments[1].stuck.any()
+
+
+@pytest.mark.parametrize('count', [0, 9, 1.5, True])
+def test_an_instrument_count_out_of_range_is_refused(count):
+    with pytest.raises(ConfigError, match='instruments'):
+        Solver(_block(), liver_default(), GLOBAL, instruments=count)
+
+
+def test_several_instruments_in_local_mode_are_refused_with_the_reason():
+    with pytest.raises(ConfigError, match='mode global'):
+        Solver(_block(), liver_default(), SolverConfig(mode='local'), instruments=2)
+
+
+def test_poses_that_do_not_match_the_instruments_are_refused_and_change_nothing():
+    model = _block()
+    solver = Solver(model, liver_default(), GLOBAL, instruments=2)
+    tip = _over(model, (0.0, 0.0), -0.002)
+    solver.step_tools([(tip, None), None], 1e-3)
+    x, held = solver.positions.copy(), solver.instruments[0].tip.copy()
+    for poses in ([(tip, None)], [(tip, None)] * 3, [tip, None], [(tip + np.nan, None), None],
+                  [(tip, np.full((3, 3), 2.0)), None], 7):
+        with pytest.raises(InvalidInput):
+            solver.step_tools(poses, 1e-3)
+    with pytest.raises(InvalidInput, match='2 instruments'):
+        solver.step(tip, 1e-3)
+    assert np.array_equal(solver.positions, x)
+    assert np.array_equal(solver.instruments[0].tip, held) and solver.instruments[1].tip is None
