@@ -37,7 +37,7 @@ def test_a_lifted_second_instrument_leaves_the_first_ones_forces_as_they_were_bi
         assert np.array_equal(b.tools[1].force, np.zeros(3))
     assert a.force[2] > 0.05
     assert np.array_equal(one.positions, two.positions)
-    assert b.tools[1].segment is None and b.tools[1].contact_index == -1
+    assert b.tools[1].tool_segment is None and b.tools[1].contact_index == -1
 
 
 def test_two_instruments_pressing_and_pulling_a_floating_block_take_the_opposite_of_its_momentum():

@@ -24,7 +24,7 @@ class ToolResult:
     contact_index: int                # -1 without contact
     penetration: float                # [m] overlap of the deepest contacted particle or sample
     tool_lag: float = 0.0             # [m] requested minus simulated tool position (max_tool_speed)
-    segment: np.ndarray | None = None  # (2, 3) [m] the tool's segment after the step (None: lifted)
+    tool_segment: np.ndarray | None = None  # (2, 3) [m] the tool's segment after the step (None: lifted)
     grasped: int = 0                  # particles it holds after the step
 
 

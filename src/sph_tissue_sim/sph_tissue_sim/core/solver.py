@@ -241,7 +241,7 @@ class StepResult:
 
     @property
     def tool_segment(self) -> np.ndarray | None:
-        return self.tools[0].segment
+        return self.tools[0].tool_segment
 
 
 def organ_far_field(cfg: SolverConfig, X: np.ndarray, fixed: np.ndarray, scheme, spacing: float,
