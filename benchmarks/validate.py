@@ -36,6 +36,12 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
   over 2 % while the tool advances at its speed: ``cases.largest_fall``), no step may go unstable,
   no particle may pass over the tool and the first-touched particle may slide at most 1 mm by
   10 mm. Two processes.
+* ``grasp``: a 3 x 3 particle column (bottom fixed, 70 mm tall) grasped at its top layer and lifted
+  1 mm (global): the pull against a bar's E A d / L (within 10 %); a block grasped and lifted 2 mm,
+  local against global (within 5 %); a grasp lifted 3 mm, held and released: the work the tool did
+  is dissipated (>= 0) and the block returns to rest; two instruments on a block with no boundary,
+  one grasping and pulling, one pressing and dragging: the block's momentum against the impulse
+  the tools took (equal and opposite to rounding).
 
 Writes to ``--out`` (default ``benchmarks/results/validate``): ``validate.csv`` (one row per
 measure: measured, reference, error, target, met), ``validate.md`` (the same as a table, with the
@@ -70,7 +76,7 @@ from tissue_common.force import HARD_FORCE_LIMIT
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKS = ('creep', 'uniaxial', 'relaxation', 'cantilever', 'hertz', 'local_global', 'drag', 'press',
-          'press_set')
+          'press_set', 'grasp')
 COLUMNS = ('check', 'case', 'measured', 'reference', 'unit', 'error_pct', 'target', 'met')
 
 #: places on the liver's top (x, y) [m] and depths [m] of the local-vs-global presses
@@ -325,6 +331,42 @@ def check_drag(quick: bool, out: Path) -> list[dict]:
             row('drag', f'{case}: mean Fz, local against global', fz_l, fz_g, 'N', 'reported', None),
             row('drag', f'{case}: ripple of Fz / mean Fz, local against global', _ripple(f_l[:, 2]) / fz_l,
                 _ripple(f_g[:, 2]) / fz_g, '-', 'reported', None)]
+
+
+def check_grasp(quick: bool, out: Path) -> list[dict]:
+    material = liver_default()
+    column = cases.grasp_column(8 if quick else 14)
+    f, held = cases.grasp_lift(column, material, solver_config(mode='global'), 0.001)
+    pull, expected = -f[-100:, 2].mean(), cases.column_pull(column, material, 0.001)
+    block = make_block(10, 10, 6, spacing=cases.SPACING, fix='bottom')
+    lifted = {mode: cases.grasp_lift(block, material, solver_config(mode=mode), 0.002, ramp=0.5, hold=0.3)[0]
+              for mode in ('global', 'local')}
+    lg = {mode: -lifted[mode][-100:, 2].mean() for mode in lifted}
+    work, rest, kinetic = cases.grasp_release(make_block(6, 6, 5, spacing=cases.SPACING, fix='bottom'), material,
+                                              solver_config(mode='global'))
+    momentum, impulse, _ = cases.two_hands_on_a_floating_block(solver_config(mode='global'))
+    balance = float(np.linalg.norm(momentum + impulse) / np.linalg.norm(impulse))
+    fig, ax = _figure()
+    t = np.arange(1, len(f) + 1) * 1e-3
+    ax.plot(t, -f[:, 2] * 1e3, color='#1f77b4', label=f'column, {held} particles grasped, lifted 1 mm')
+    ax.axhline(expected * 1e3, color='k', ls=':', label='E A d / L')
+    for mode, colour in (('global', '#d62728'), ('local', '#2ca02c')):
+        ax.plot(np.arange(1, len(lifted[mode]) + 1) * 1e-3, -lifted[mode][:, 2] * 1e3, color=colour, lw=1.0,
+                label=f'block lifted 2 mm, {mode}')
+    ax.set_xlabel('t [s]')
+    ax.set_ylabel('pull on the tool [mN]')
+    ax.set_title('grasp and lift')
+    _save(fig, ax, out / 'validate_grasp.png')
+    nz = column.info['shape'][2]
+    return [row('grasp', f'column 3 x 3 x {nz} lifted 1 mm: pull against E A d / L', pull, expected, 'N',
+                '|error| <= 10 %', abs(pull / expected - 1.0) <= 0.10),
+            row('grasp', 'block lifted 2 mm: local against global', lg['local'], lg['global'], 'N', '|error| <= 5 %',
+                abs(lg['local'] / lg['global'] - 1.0) <= 0.05),
+            row('grasp', 'grasp, lift 3 mm, release: work the tool did on the tissue', work * 1e6, None, 'uJ', '>= 0',
+                work >= 0.0),
+            row('grasp', 'then the largest displacement at rest', rest * 1e3, None, 'mm', '<= 0.05 mm', rest <= 5e-5),
+            row('grasp', 'two instruments on a floating block: |momentum + impulse| / |impulse|', balance, None, '-',
+                '<= 1e-6', balance <= 1e-6)]
 
 
 def _ripple(f: np.ndarray, window: int = 51) -> float:
@@ -586,7 +628,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     runners = {'creep': check_creep, 'uniaxial': check_uniaxial, 'relaxation': check_relaxation, 'cantilever': check_cantilever,
                'hertz': check_hertz, 'local_global': check_local_global, 'drag': check_drag,
-               'press': check_press, 'press_set': check_press_set}
+               'press': check_press, 'press_set': check_press_set, 'grasp': check_grasp}
     rows, pngs = [], []
     t_all = time.perf_counter()
     for i, name in enumerate(chosen, start=1):

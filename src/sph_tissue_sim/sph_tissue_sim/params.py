@@ -13,6 +13,7 @@ The builders import no rclpy, so they are tested without ROS.
 
 from __future__ import annotations
 
+import re
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -99,6 +100,15 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                'the hand put in (a late solver is felt softer, not '
                                'active; stiffer tissue is felt this stiff)',
                                RENDERER_RANGES['energy_bound_stiffness'], False, 'renderer'),
+    # -- instruments ------------------------------------------------------------------------------
+    'instruments': ([''], 'the instruments on the tissue, each name a namespace of its own omni/pose, '
+                          'omni/force_feedback, omni/state (grasp: button1) and tissue/metrics ([""]: '
+                          'one, no namespace); several need mode global and haptic_mode multirate',
+                    None, True, None),
+    'instrument_offsets': ([0.0, 0.0, 0.0], '[m] tissue-frame offset of each instrument\'s device '
+                                            'origin, added to translation: three numbers per instrument '
+                                            'in the order of instruments (missing ones: 0)', None, True,
+                           None),
     # -- device -> tissue -------------------------------------------------------------------------
     'device_frame': ('omni_base', 'frame of accepted poses (and of the force replies)', None, False,
                      None),
@@ -155,6 +165,16 @@ def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
     if choice:
         return choice
     default = table[name][0]
+    if name == 'instruments':
+        return check_instruments(value)
+    if name == 'instrument_offsets':
+        try:
+            arr = np.asarray(list(value), dtype=np.float64)
+        except (TypeError, ValueError):
+            return f'parameter {name} must be a list of numbers, got {value!r}'
+        if arr.ndim != 1 or len(arr) % 3 or not np.all(np.isfinite(arr)):
+            return f'parameter {name} must be finite numbers, three per instrument, got {list(value)!r}'
+        return None
     if isinstance(default, list):
         try:
             arr = np.asarray(list(value), dtype=np.float64)
@@ -163,6 +183,40 @@ def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
         if arr.shape != (len(default),) or not np.all(np.isfinite(arr)):
             return f'parameter {name} must be {len(default)} finite numbers, got {list(value)!r}'
     return None
+
+
+#: an instrument's name: one namespace token (a letter, then letters, digits and underscores)
+INSTRUMENT_NAME = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
+
+
+def check_instruments(names) -> str | None:
+    """Error text unless ``names`` is [''] (one instrument, no namespace) or distinct valid names."""
+    try:
+        names = [str(n) for n in names] if not isinstance(names, str) else None
+    except TypeError:
+        names = None
+    if not names:
+        return f'parameter instruments must be a list of names, got {names!r}'
+    if names == ['']:
+        return None
+    bad = [n for n in names if not INSTRUMENT_NAME.fullmatch(n)]
+    if bad:
+        return (f'parameter instruments: {bad[0]!r} is not a valid namespace (a letter, then letters, digits '
+                f'and underscores)')
+    if len(set(names)) != len(names):
+        twice = sorted(n for n in set(names) if names.count(n) > 1)
+        return f'parameter instruments: {twice[0]!r} is named twice'
+    return None
+
+
+def instrument_translations(p: dict) -> list[list[float]]:
+    """Each instrument's ``translation`` (the shared one plus its ``instrument_offsets``)."""
+    offsets = list(p['instrument_offsets'])
+    out = []
+    for k in range(len(p['instruments'])):
+        extra = offsets[3 * k:3 * k + 3] or [0.0, 0.0, 0.0]
+        out.append([float(a) + float(b) for a, b in zip(p['translation'], extra)])
+    return out
 
 
 # -- builders (no rclpy) ----------------------------------------------------------------------------
@@ -222,6 +276,13 @@ def build_config(p: dict) -> SolverConfig:
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')
+    if len(p['instruments']) > 1:
+        if cfg.mode != 'global':
+            raise ConfigError(f'{len(p["instruments"])} instruments need mode global (the local area follows '
+                              f'one tool), got mode {cfg.mode}')
+        if p['haptic_mode'] != 'multirate':
+            raise ConfigError(f'{len(p["instruments"])} instruments need haptic_mode multirate, got '
+                              f'{p["haptic_mode"]}')
     return cfg
 
 

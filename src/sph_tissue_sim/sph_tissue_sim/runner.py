@@ -53,6 +53,7 @@ import numpy as np
 from tissue_common.force import clamp_norm
 from tissue_common.throttle import EventThrottle
 
+from .channel import Channel
 from .cloud import CloudBuffer
 from .core.errors import ConfigError, SimError
 from .core.solver import InvalidInput, Solver, SolverConfig, StepInterrupted, StepResult, check_material
@@ -60,7 +61,7 @@ from .haptics.multirate import MultiRate, SolverJob
 from .haptics.renderer import HapticRenderer
 from .mapping import DeviceMapping, anchor_point, check_position
 from .params import (NEXT_STEP_SETTINGS, SIM_PARAMS, build_config, build_material, build_renderer,
-                     check_value, solves_in_background)
+                     check_value, instrument_translations, solves_in_background)
 from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 
 STEP_TIME_HISTORY = 100_000
@@ -93,23 +94,25 @@ class Change:
     what: str = 'applied'
 
 
-def make_solver(model, material, config: SolverConfig, nominal_dt: float, background: bool = False) -> Solver:
+def make_solver(model, material, config: SolverConfig, nominal_dt: float, background: bool = False,
+                instruments: int = 1) -> Solver:
     """A solver whose scheme can actually step (a probe step without tool, then back to rest).
     ``background``: the organ's far field solves its responses on a worker thread.
 
     Raises:
         ConfigError: invalid settings, or a scheme this build cannot run yet.
     """
-    solver = Solver(model, material, config, background=background)
-    solver.step(None, nominal_dt)
+    solver = Solver(model, material, config, background=background, instruments=instruments)
+    solver.step_tools([None] * instruments, nominal_dt)
     solver.reset()
     return solver
 
 
-def make_mapping(p: dict, solver: Solver) -> DeviceMapping:
-    """The device -> tissue map of the parameters, anchored on ``solver``'s model."""
+def make_mapping(p: dict, solver: Solver, k: int = 0) -> DeviceMapping:
+    """Instrument ``k``'s device -> tissue map of the parameters, anchored on ``solver``'s model."""
     anchor = anchor_point(solver.model.positions, solver.model.spacing, solver.contact_reach, p['anchor'])
-    return DeviceMapping.build(p['rotation'], p['translation'], p['workspace_scale'], p['force_scale'], anchor)
+    return DeviceMapping.build(p['rotation'], instrument_translations(p)[k], p['workspace_scale'],
+                               p['force_scale'], anchor)
 
 
 def pose_history(p: dict, runner: 'Runner') -> tuple[int, bool, str]:
@@ -130,23 +133,24 @@ def pose_history(p: dict, runner: 'Runner') -> tuple[int, bool, str]:
     return depth, bool(p['reliable']), note
 
 
-def metrics_values(res: StepResult, solver: Solver, haptic) -> dict:
-    """SimMetrics' fields of a step (vectors as (x, y, z) tuples) but the haptic mode; ``haptic``: the
-    renderer's :class:`~.haptics.multirate.HapticStatus`, or None (direct)."""
+def metrics_values(res: StepResult, solver: Solver, haptic, k: int = 0) -> dict:
+    """SimMetrics' fields of a step for instrument ``k`` (vectors as (x, y, z) tuples) but the haptic
+    mode; ``haptic``: its renderer's :class:`~.haptics.multirate.HapticStatus`, or None (direct)."""
+    tool = res.tools[k]
     v = {'step_wall_time': float(res.wall_time), 'sim_time': float(solver.sim_time),
          'substeps': int(res.substeps), 'substep_dt': float(res.substep_dt),
          'n_particles': int(solver.n_particles), 'n_interaction': int(res.n_interaction),
-         'n_layer': [int(k) for k in res.n_layer], 'n_relaxing': int(res.n_relaxing),
-         'contact_index': int(res.contact_index), 'penetration': float(res.penetration),
-         'contact_force': tuple(float(f) for f in res.force), 'tool_radius': float(solver.tool.radius),
+         'n_layer': [int(n) for n in res.n_layer], 'n_relaxing': int(res.n_relaxing),
+         'contact_index': int(tool.contact_index), 'penetration': float(tool.penetration),
+         'contact_force': tuple(float(f) for f in tool.force), 'tool_radius': float(solver.tool.radius),
          'max_displacement': float(res.max_displacement), 'kinetic_energy': float(res.kinetic_energy),
          'scheme': solver.config.scheme_index, 'mode': solver.config.mode_index}
-    if res.tool_segment is not None:
-        tip, shaft = res.tool_segment[0], res.tool_segment[1] - res.tool_segment[0]
+    if tool.tool_segment is not None:
+        tip, shaft = tool.tool_segment[0], tool.tool_segment[1] - tool.tool_segment[0]
         length = float(np.linalg.norm(shaft))
         axis = shaft / length if length > 0.0 else shaft
         v.update(tool_position=tuple(float(x) for x in tip), tool_axis=tuple(float(x) for x in axis),
-                 tool_length=length)
+                 tool_length=length, n_grasped=int(tool.grasped))
     if haptic is not None:
         v.update(solver_rate=haptic.solver_rate, model_age=haptic.model_age, coupling_stretch=haptic.stretch,
                  energy_in=haptic.energy, energy_in_min=haptic.energy_min, added_damping=haptic.damping)
@@ -158,7 +162,17 @@ def _nothing(*_args) -> None:
 
 
 class Runner:
-    """The loop of one tissue: ``on_pose`` for every pose, ``cloud_tick`` at the cloud's rate."""
+    """The loop of one tissue: ``on_pose`` for every pose (of instrument ``k``), ``cloud_tick`` at the
+    cloud's rate, ``on_grasp`` when a jaw closes or opens.
+
+    Several instruments (parameter ``instruments``, multirate only): each pose is answered at once
+    by its instrument's renderer (:class:`~.channel.Channel`) and the solver steps all the tools
+    together: live from its thread at each one's newest proxy (an instrument without a new pose
+    stays where it was); lockstep in rounds, one pose of each instrument in the instruments' order,
+    in the thread that delivered the round's last pose, so a replay repeats bit for bit.
+    ``send_force(stamp, frame_id, force, k)`` and ``send_metrics(stamp, result, solver, haptic, k)``
+    name the instrument ``k``.
+    """
 
     def __init__(self, p: dict, model, solver: Solver, send_force: Callable = _nothing,
                  send_metrics: Callable = _nothing, send_cloud: Callable = _nothing,
@@ -167,16 +181,16 @@ class Runner:
         self.model = model
         self.solver = solver
         self.send_force, self.send_metrics, self.send_cloud, self.log = send_force, send_metrics, send_cloud, log
-        self.mapping = make_mapping(p, solver)
-        self.clock = StampClock(p['nominal_dt'], p['max_dt'])
         self.lockstep = p['timing_mode'] == 'lockstep'
-        self.use_thread = p['step_thread']
+        names = list(p['instruments'])
+        if len(names) != solver.n_instruments:
+            raise ConfigError(f'{len(names)} instruments but a solver for {solver.n_instruments}')
+        # several instruments step in rounds (lockstep) or from the solver thread (live)
+        self.use_thread = p['step_thread'] and len(names) == 1
         # multirate: the renderer answers each pose; the solver refreshes its contact model after
         # every solver_every-th pose (lockstep, in order) or from its own thread (live)
-        self.haptic: MultiRate | None = None
-        if p['haptic_mode'] == 'multirate':
-            self.haptic = MultiRate(HapticRenderer(build_renderer(p)), p['solver_every'] if self.lockstep else 0,
-                                    p['max_dt'])
+        self.channels = [Channel(k, name, make_mapping(p, solver, k), StampClock(p['nominal_dt'], p['max_dt']),
+                                 self._make_haptic(p)) for k, name in enumerate(names)]
         self.counts = collections.Counter()
         self._log_throttle = EventThrottle()
         self._pose_lock = threading.Lock()       # the stamp clock and the last answer (multirate)
@@ -188,7 +202,6 @@ class Runner:
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self._solver_thread: threading.Thread | None = None
-        self._last_force_dev = np.zeros(3)
         self.last_stamp = None                   # the stamp of the newest step (the cloud's)
         self._step_count = 0
         self._cloud_lock = threading.Lock()      # one cloud packed and sent at a time
@@ -196,6 +209,25 @@ class Runner:
         self._cloud_due = False                  # a cloud was due while a step held the solver
         self.cloud = CloudBuffer(solver.n_particles, p['tissue_frame'])
         self._pack_cloud()  # compiles (or loads) its kernel now, not at the first cloud
+
+    def _make_haptic(self, p: dict) -> MultiRate | None:
+        if p['haptic_mode'] != 'multirate':
+            return None
+        return MultiRate(HapticRenderer(build_renderer(p)), p['solver_every'] if self.lockstep else 0, p['max_dt'])
+
+    @property
+    def haptic(self) -> MultiRate | None:
+        """The first instrument's renderer hand-off (None: direct)."""
+        return self.channels[0].haptic
+
+    @property
+    def mapping(self) -> DeviceMapping:
+        """The first instrument's device map."""
+        return self.channels[0].mapping
+
+    @property
+    def clock(self) -> StampClock:
+        return self.channels[0].clock
 
     @property
     def live_multirate(self) -> bool:
@@ -253,7 +285,11 @@ class Runner:
             self.log(level, f'{text} ({n} so far)')
 
     # -- pose intake -------------------------------------------------------------------------------
-    def on_pose(self, pose: Pose) -> None:
+    def on_pose(self, pose: Pose, k: int = 0) -> None:
+        """A pose of instrument ``k`` (its index in ``instruments``)."""
+        if len(self.channels) > 1:
+            self._on_instrument_pose(pose, self.channels[k])
+            return
         if not self.use_thread or self.live_multirate:
             # multirate live: answering costs microseconds, so answer here; the solver has its thread
             # stepping here: poses that arrive meanwhile wait in the reader history, which keeps
@@ -275,6 +311,28 @@ class Runner:
             self._inbox.append(pose)
             self._cv.notify()
 
+    def _on_instrument_pose(self, pose: Pose, ch: Channel) -> None:
+        """Several instruments: live, answer at once (the solver thread follows); lockstep, wait for
+        a round (one pose of each instrument) and answer it in the instruments' order."""
+        self.counts['poses'] += 1
+        if not self.lockstep:
+            self.handle(pose, ch)
+            return
+        with self._cv:
+            if len(ch.inbox) >= self.p['lockstep_queue_limit']:
+                ch.inbox.popleft()
+                self.counts['overflow'] += 1
+                self.throttled('overflow', 'error', f'lockstep: {ch.label} is {self.p["lockstep_queue_limit"]} '
+                               f'poses ahead of the others: dropped its oldest')
+            ch.inbox.append(pose)
+            while all(c.inbox for c in self.channels):
+                for c in self.channels:
+                    self.handle(c.inbox.popleft(), c)
+                if self.haptic.due():
+                    self._solve()
+                    if self._cloud_due:
+                        self.send_cloud_once()
+
     def _work(self) -> None:
         while not self._stop.is_set():
             with self._cv:
@@ -285,18 +343,20 @@ class Runner:
                 pose = self._inbox.popleft()
             self.handle(pose)
 
-    def handle(self, pose: Pose) -> None:
-        """Answer one pose (and step, as the mode says); never raises."""
+    def handle(self, pose: Pose, ch: Channel | None = None) -> None:
+        """Answer one pose of ``ch`` (default: the first instrument), and step as the mode says;
+        never raises."""
+        ch = ch or self.channels[0]
         try:
-            self._process(pose)
+            self._process(pose, ch)
         except Exception:  # noqa: BLE001  (a bug must not kill the loop or leave the device pushing)
             self.throttled('internal', 'error', 'internal error while stepping, answered zero '
                            'force:\n' + traceback.format_exc())
-            self._answer_with(pose, np.zeros(3))
+            self._answer_with(pose, np.zeros(3), ch)
 
     # -- one frame ---------------------------------------------------------------------------------
-    def _answer_with(self, pose: Pose, force: np.ndarray) -> None:
-        self.send_force(pose.stamp, pose.frame_id or self.p['device_frame'], force)
+    def _answer_with(self, pose: Pose, force: np.ndarray, ch: Channel) -> None:
+        self.send_force(pose.stamp, pose.frame_id or self.p['device_frame'], force, ch.index)
 
     def _reject_reason(self, pose: Pose) -> str | None:
         frame = pose.frame_id
@@ -304,43 +364,46 @@ class Runner:
             return f'frame {frame!r} is not {self.p["device_frame"]!r}'
         return check_position(pose.position, self.p['max_device_distance'])
 
-    def _process(self, pose: Pose) -> None:
+    def _process(self, pose: Pose, ch: Channel) -> None:
         reason = self._reject_reason(pose)
         if reason is not None:
-            self._reject(pose, f'rejected pose ({reason}): answered zero force, tissue not stepped')
+            self._reject(pose, f'rejected pose ({reason}): answered zero force, tissue not stepped', ch)
             return
-        if self.haptic is not None:
-            self._answer(pose)
+        if ch.haptic is not None:
+            self._answer(pose, ch)
             return
         with self._lock:
-            tool = self._tool_pose(pose)
+            tool = self._tool_pose(pose, ch)
             if tool is None:
                 return
-            res = self._step(*tool)
-            force_dev = np.zeros(3) if res is None else self._to_device(res.force_raw)
-            self._last_force_dev = force_dev
+            point, dt, rot = tool
+            self._grasp_as_asked()
+            res = self._step([(point, rot)], dt)
+            force_dev = np.zeros(3) if res is None else self._to_device(res.force_raw, ch)
+            ch.last_force = force_dev
             self.last_stamp = pose.stamp
             metrics = self._metrics_due(res)
-        self._answer_with(pose, force_dev)
+        self._answer_with(pose, force_dev, ch)
         if metrics:
-            self.send_metrics(pose.stamp, res, self.solver, None)
+            self.send_metrics(pose.stamp, res, self.solver, None, 0)
         if self._cloud_due:
             self.send_cloud_once()
 
-    def _answer(self, pose: Pose) -> None:
+    def _answer(self, pose: Pose, ch: Channel) -> None:
         """Multirate: answer the pose from the renderer at once; the solver follows (lockstep: here,
-        every solver_every poses; live: its thread is woken)."""
+        every solver_every poses, or after the round of several instruments; live: its thread is
+        woken)."""
         with self._pose_lock:
-            tool = self._tool_pose(pose)
+            tool = self._tool_pose(pose, ch)
             if tool is None:
                 return
-            out = self.haptic.answer(*tool, pose.stamp)
-            force_dev = self._to_device(out.force)
-            self._last_force_dev = force_dev
-        self._answer_with(pose, force_dev)
+            out = ch.haptic.answer(*tool, pose.stamp)
+            force_dev = self._to_device(out.force, ch)
+            ch.last_force = force_dev
+        self._answer_with(pose, force_dev, ch)
         if not self.lockstep:
             self._wake.set()
-        elif self.haptic.due():
+        elif len(self.channels) == 1 and ch.haptic.due():
             self._solve()
             if self._cloud_due:
                 self.send_cloud_once()
@@ -371,19 +434,58 @@ class Runner:
             self.log('warn', f'solver thread priority unchanged ({exc})')
 
     def _solve(self) -> None:
-        job: SolverJob | None = self.haptic.take()
-        if job is None:
+        """Step the solver with every instrument at its renderer's proxy (an instrument without a new
+        pose where it was, one that never sent a pose lifted) and refresh the renderers that asked."""
+        jobs: list[SolverJob | None] = [ch.haptic.take() for ch in self.channels]
+        if not any(jobs):
             return
         with self._lock:
-            if not self.haptic.current(job):
+            if not all(ch.haptic.current(job) for ch, job in zip(self.channels, jobs) if job is not None):
                 return   # taken before a reset (or a rebuilt solver) while this thread waited for the lock
-            res = self._step(job.point, job.dt, job.rotation)
+            for ch, job in zip(self.channels, jobs):
+                if job is not None:
+                    ch.tool = (job.point, job.rotation)
+            newest = max((job for job in jobs if job is not None), key=lambda job: job.dt)
+            self._grasp_as_asked()
+            res = self._step([ch.tool for ch in self.channels], newest.dt)
             if res is not None:
-                self.haptic.refresh(job, res)
-                self.last_stamp = job.stamp
+                for ch, job, tool in zip(self.channels, jobs, res.tools):
+                    ch.holding = tool.grasped
+                    if job is not None:
+                        ch.haptic.refresh(job, tool)
+                self.last_stamp = newest.stamp
             metrics = self._metrics_due(res)
         if metrics:
-            self.send_metrics(job.stamp, res, self.solver, self.haptic.status())
+            for ch, job in zip(self.channels, jobs):
+                self.send_metrics(job.stamp if job is not None else newest.stamp, res, self.solver,
+                                  ch.haptic.status(), ch.index)
+
+    # -- grasp ---------------------------------------------------------------------------------------
+    def on_grasp(self, k: int, closed: bool) -> None:
+        """Instrument ``k``'s jaw closes (``closed``) or opens: applied before the next solver step."""
+        ch = self.channels[k]
+        if ch.closed != bool(closed):
+            ch.closed = bool(closed)
+            self._wake.set()
+
+    def _grasp_as_asked(self) -> None:
+        """Close or open each instrument as its device asks (caller holds the solver lock). A jaw
+        that closed on nothing, or whose grasp slipped away, holds nothing until it opens again."""
+        for ch in self.channels:
+            if ch.closed and not ch.gripping:
+                ch.gripping = True
+                ch.holding = n = self.solver.grasp(ch.index)
+                self.counts['grasps'] += 1
+                if n:
+                    self.log('info', f'{ch.label} grasped {n} particles')
+                else:
+                    self.throttled('grasp_nothing', 'warn', f'{ch.label} closed on nothing: no particle '
+                                   f'within {self.solver.grasp_reach * 1e3:.1f} mm of its tool')
+            elif not ch.closed and ch.gripping:
+                ch.gripping = False
+                ch.holding = 0
+                n = self.solver.release(ch.index)
+                self.log('info', f'{ch.label} opened' + (f' and let go of {n} particles' if n else ''))
 
     def _metrics_due(self, res: StepResult | None) -> bool:
         if res is None:
@@ -391,60 +493,61 @@ class Runner:
         self._step_count += 1
         return self._step_count % self.p['metrics_decimation'] == 0
 
-    def _reject(self, pose: Pose, text: str) -> None:
+    def _reject(self, pose: Pose, text: str, ch: Channel) -> None:
         """Answer zero force for a pose that must not move the tool."""
         self.counts['rejected'] += 1
         self.throttled('reject', 'warn', text)
-        if self.haptic is not None:
-            self.haptic.zero_held()
-        self._answer_with(pose, np.zeros(3))
+        if ch.haptic is not None:
+            ch.haptic.zero_held()
+        self._answer_with(pose, np.zeros(3), ch)
 
-    def _tool_pose(self, pose: Pose) -> tuple | None:
+    def _tool_pose(self, pose: Pose, ch: Channel) -> tuple | None:
         """(tool position, dt, rotation) in the tissue frame for a pose, or None when the pose was
         answered already (a repeated stamp, or a refused orientation)."""
-        dt = self._advance(pose)
+        dt = self._advance(pose, ch)
         if dt is None:
             return None
         try:
-            rot = self._rotation(pose)
+            rot = self._rotation(pose, ch)
         except InvalidInput as exc:
-            self._reject(pose, f'refused the input ({exc}): answered zero force')
+            self._reject(pose, f'refused the input ({exc}): answered zero force', ch)
             return None
-        return self.mapping.to_tissue(pose.position), dt, rot
+        return ch.mapping.to_tissue(pose.position), dt, rot
 
-    def _advance(self, pose: Pose) -> float | None:
+    def _advance(self, pose: Pose, ch: Channel) -> float | None:
         """The pose's step [s] from its stamp, or None after answering a repeated stamp with the
         previous force."""
-        dt, kind = self.clock.advance(pose.stamp_ns)
+        dt, kind = ch.clock.advance(pose.stamp_ns)
         if kind == REPEAT:
-            self._answer_with(pose, self._last_force_dev)
+            self._answer_with(pose, ch.last_force, ch)
             return None
         if kind == BACKWARDS:
             self.throttled('backwards', 'warn', f'pose stamp went backwards (to {pose.stamp_ns} ns): '
-                           f'stepping {self.clock.nominal_dt * 1e3:g} ms')
+                           f'stepping {ch.clock.nominal_dt * 1e3:g} ms')
         elif kind == JUMP:
             self.throttled('jump', 'warn', f'pose stamp jumped by more than max_dt: step '
-                           f'clamped to {self.clock.max_dt * 1e3:g} ms')
+                           f'clamped to {ch.clock.max_dt * 1e3:g} ms')
         return dt
 
-    def _rotation(self, pose: Pose) -> np.ndarray | None:
+    def _rotation(self, pose: Pose, ch: Channel) -> np.ndarray | None:
         """The stylus orientation in the tissue frame, for a tool that has one (else None)."""
         if not self.solver.tool.oriented:
             return None
         try:
-            return self.mapping.rotation_to_tissue(pose.orientation)
+            return ch.mapping.rotation_to_tissue(pose.orientation)
         except ValueError as exc:
             raise InvalidInput(f'stylus orientation: {exc}') from exc
 
-    def _to_device(self, force_tissue: np.ndarray) -> np.ndarray:
+    def _to_device(self, force_tissue: np.ndarray, ch: Channel) -> np.ndarray:
         # clamped once, as sent (force_scale may enlarge the tissue's force)
-        return clamp_norm(self.mapping.force_to_device(force_tissue), self.p['force_limit'])[0]
+        return clamp_norm(ch.mapping.force_to_device(force_tissue), self.p['force_limit'])[0]
 
-    def _step(self, tool: np.ndarray, dt: float, rot) -> StepResult | None:
-        """One solver step (caller holds the solver lock); None when it was refused or failed."""
+    def _step(self, poses: list, dt: float) -> StepResult | None:
+        """One solver step with each instrument at its ``(point, rotation)`` or lifted (None); the
+        caller holds the solver lock. None when it was refused or failed."""
         solver = self.solver
         try:
-            res = solver.step(tool, dt, rot)
+            res = solver.step_tools(poses, dt)
         except InvalidInput as exc:
             self.counts['rejected'] += 1
             self.throttled('invalid', 'warn', f'step refused the input ({exc}): answered zero force')
@@ -472,13 +575,18 @@ class Runner:
         return res
 
     def _rest(self) -> None:
-        """The tissue back to rest and the device's past forgotten (caller holds the solver lock)."""
+        """The tissue back to rest and the devices' past forgotten (caller holds the solver lock);
+        what was held is let go (a closed jaw grasps again at the next step)."""
         self.solver.reset()
         with self._pose_lock:
-            self.clock.reset()
-            self._last_force_dev = np.zeros(3)
-            if self.haptic is not None:
-                self.haptic.reset()
+            for ch in self.channels:
+                ch.clock.reset()
+                ch.last_force = np.zeros(3)
+                ch.tool = None
+                ch.holding = 0
+                ch.gripping = False
+                if ch.haptic is not None:
+                    ch.haptic.reset()
 
     # -- particles -------------------------------------------------------------------------------
     def cloud_tick(self) -> None:
@@ -570,15 +678,15 @@ class Runner:
             solver = None
             if 'solver' in kinds:
                 solver = make_solver(self.model, material or self.solver.material, config, new['nominal_dt'],
-                                     background=solves_in_background(new))
+                                     background=solves_in_background(new), instruments=len(self.channels))
             elif material is not None:
                 check_material(self.solver.config, material)
-            mapping = None
+            mappings = None
             if 'mapping' in kinds or solver is not None:
-                mapping = make_mapping(new, solver or self.solver)
+                mappings = [make_mapping(new, solver or self.solver, ch.index) for ch in self.channels]
             elif 'force_scale' in changed:
-                mapping = DeviceMapping(self.mapping.rotation, self.mapping.origin, self.mapping.scale,
-                                        float(new['force_scale']))
+                mappings = [DeviceMapping(ch.mapping.rotation, ch.mapping.origin, ch.mapping.scale,
+                                          float(new['force_scale'])) for ch in self.channels]
         except SimError as exc:  # ConfigError, ModelError, or the probe step of a new solver failed
             return Change(False, f'refused: {exc}', changed)
         with self._solver_now():
@@ -591,37 +699,44 @@ class Runner:
             # the next-step settings, validated with the rest by build_config
             self.solver.config = dataclasses.replace(
                 self.solver.config, **{n: getattr(config, n) for n in NEXT_STEP_SETTINGS})
-            if mapping is not None:
-                self.mapping = mapping
-            self.clock.nominal_dt = float(new['nominal_dt'])
-            self.clock.max_dt = float(new['max_dt'])
-            if renderer is not None:
-                with self._pose_lock:
-                    if 'renderer' in kinds:   # new gains: the device's past no longer applies
-                        self.haptic.reset()
-                        self.haptic.renderer = HapticRenderer(renderer)
-                    self.haptic.renderer.set_force_limit(renderer.force_limit)
-                    self.haptic.max_dt = float(new['max_dt'])
-                    if self.lockstep:
-                        self.haptic.every = int(new['solver_every'])
+            for ch in self.channels:
+                if mappings is not None:
+                    ch.mapping = mappings[ch.index]
+                ch.clock.nominal_dt = float(new['nominal_dt'])
+                ch.clock.max_dt = float(new['max_dt'])
+                if renderer is not None:
+                    with self._pose_lock:
+                        if 'renderer' in kinds:   # new gains: the device's past no longer applies
+                            ch.haptic.reset()
+                            ch.haptic.renderer = HapticRenderer(renderer)
+                        ch.haptic.renderer.set_force_limit(renderer.force_limit)
+                        ch.haptic.max_dt = float(new['max_dt'])
+                        if self.lockstep:
+                            ch.haptic.every = int(new['solver_every'])
             self.p = new
         what = ('solver rebuilt, tissue at rest' if solver is not None else
                 'material swapped' if material is not None else 'applied')
-        return Change(True, '', changed, mapping is not None or solver is not None or 'device_frame' in changed,
+        return Change(True, '', changed, mappings is not None or solver is not None or 'device_frame' in changed,
                       what)
 
     # -- words -----------------------------------------------------------------------------------
     def describe(self) -> str:
         """The tissue, the solver, the contact and the rendering in one line."""
         s, m, c = self.solver, self.solver.material, self.solver.config
-        o = self.mapping.origin
         return (f'model {self.model.name} ({s.n_particles} particles, {int(s.fixed.sum())} fixed, '
                 f'spacing {self.model.spacing * 1e3:.2f} mm, h {s.smoothing_length * 1e3:.2f} mm), '
                 f'tool {s.tool.name} (radius {s.tool.radius * 1e3:g} mm), scheme {c.scheme}, mode {c.mode}, '
                 f'{self._describe_contact()}, material {m.name} (E {m.E:.4g} Pa, nu {m.nu:g}, eta_shear '
                 f'{m.eta_shear:g} Pa s), timing {self.p["timing_mode"]}, haptic {self._describe_haptic()}, '
-                f'force_limit {self.p["force_limit"]:g} N, device origin -> tissue ({o[0]:.4f}, {o[1]:.4f}, '
-                f'{o[2]:.4f}) m')
+                f'force_limit {self.p["force_limit"]:g} N, ' + self._describe_origins())
+
+    def _describe_origins(self) -> str:
+        def at(ch: Channel) -> str:
+            o = ch.mapping.origin
+            return f'({o[0]:.4f}, {o[1]:.4f}, {o[2]:.4f}) m'
+        if len(self.channels) == 1:
+            return f'device origin -> tissue {at(self.channels[0])}'
+        return 'instruments ' + ', '.join(f'{ch.name} (device origin -> tissue {at(ch)})' for ch in self.channels)
 
     def _describe_contact(self) -> str:
         s = self.solver

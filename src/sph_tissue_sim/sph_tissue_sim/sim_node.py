@@ -6,7 +6,13 @@ core) and answers every step with ``omni/force_feedback`` (geometry_msgs/WrenchS
 of the tissue on the tool in the device frame, clamped to ``force_limit``; header stamp and frame
 are the pose's, so the round trip can be measured). Publishes ``tissue/particles``
 (sensor_msgs/PointCloud2, see :mod:`.cloud`) at ``particles_rate`` and ``tissue/metrics``
-(tissue_msgs/SimMetrics) per step; serves ``tissue/reset`` (tissue_msgs/srv/ResetTissue).
+(tissue_msgs/SimMetrics) per step; serves ``tissue/reset`` (tissue_msgs/srv/ResetTissue). A
+closed stylus button (``omni/state``, tissue_msgs/DeviceState ``button1``) grasps the tissue in
+reach of the tool until it opens.
+
+Several instruments on one tissue (parameter ``instruments``, e.g. ``[left, right]``): each name is
+a namespace with its own ``<name>/omni/pose``, ``<name>/omni/force_feedback``, ``<name>/omni/state``
+and ``<name>/tissue/metrics``; the particles, the reset and the parameters stay the node's.
 
 The haptic and timing modes (parameters ``haptic_mode``, ``timing_mode``) and the threads they
 use are described in :mod:`.runner`, which runs the loop; this module translates messages and
@@ -35,7 +41,7 @@ from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_
                                       stop_on_signals)
 from tissue_common.params import declare_all
 from tissue_common.stamps import stamp_to_ns
-from tissue_msgs.msg import SimMetrics
+from tissue_msgs.msg import DeviceState, SimMetrics
 from tissue_msgs.srv import ResetTissue
 
 from .core.compliance import close_all
@@ -47,6 +53,11 @@ from .startup import numba_cache_stats, one_blas_thread, startup_report
 
 EXIT_OK, EXIT_INPUT = 0, 1
 SWITCH_INTERVAL = 2e-4  # [s]
+
+
+def _within(namespace: str, topic: str) -> str:
+    """``topic`` in an instrument's namespace (relative, so the node's own namespace still applies)."""
+    return f'{namespace}/{topic}' if namespace else topic
 
 
 class SimNode(Node):
@@ -67,8 +78,9 @@ class SimNode(Node):
                 warmup(config.scheme, config.integrator)
             except SimError as exc:  # the probe step below still compiles what this model needs
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
+        names = list(p['instruments'])
         solver = make_solver(self.model, build_material(p), config, p['nominal_dt'],
-                             background=solves_in_background(p))
+                             background=solves_in_background(p), instruments=len(names))
         self.runner = Runner(p, self.model, solver, self._send_force, self._send_metrics, self._send_cloud,
                              self._log)
         self.compile_time = time.perf_counter() - t0
@@ -81,9 +93,12 @@ class SimNode(Node):
         io_qos = QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
                             reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT)
         self.io_qos = io_qos
-        self.force_pub = self.create_publisher(WrenchStamped, 'omni/force_feedback', io_qos)
-        self.metrics_pub = self.create_publisher(SimMetrics, 'tissue/metrics', QoSProfile(
-            depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE))
+        metrics_qos = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
+                                 reliability=ReliabilityPolicy.RELIABLE)
+        self.force_pubs = [self.create_publisher(WrenchStamped, _within(name, 'omni/force_feedback'), io_qos)
+                           for name in names]
+        self.metrics_pubs = [self.create_publisher(SimMetrics, _within(name, 'tissue/metrics'), metrics_qos)
+                             for name in names]
         self.cloud_pub = self.create_publisher(PointCloud2, 'tissue/particles', QoSProfile(
             depth=2, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE))
         # where the device sits in the tissue scene: latched, and on /tf_static where tf2 is installed
@@ -99,7 +114,12 @@ class SimNode(Node):
         self.cloud_timer = None
         self._set_cloud_timer(p['particles_rate'])
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.pose_sub = self.create_subscription(PoseStamped, 'omni/pose', self._on_pose, io_qos)
+        self.pose_subs = [self.create_subscription(PoseStamped, _within(name, 'omni/pose'),
+                                                   lambda msg, k=k: self._on_pose(msg, k), io_qos)
+                          for k, name in enumerate(names)]
+        self.state_subs = [self.create_subscription(DeviceState, _within(name, 'omni/state'),
+                                                    lambda msg, k=k: self.runner.on_grasp(k, msg.button1), 10)
+                           for k, name in enumerate(names)]
 
     def _publish_device_frame(self) -> None:
         m = self.runner.mapping
@@ -152,31 +172,31 @@ class SimNode(Node):
         else:
             log.info(text)
 
-    def _on_pose(self, msg: PoseStamped) -> None:
+    def _on_pose(self, msg: PoseStamped, k: int = 0) -> None:
         h, pos, q = msg.header, msg.pose.position, msg.pose.orientation
         self.runner.on_pose(Pose(h.stamp, stamp_to_ns(h.stamp), h.frame_id, (pos.x, pos.y, pos.z),
-                                 (q.x, q.y, q.z, q.w)))
+                                 (q.x, q.y, q.z, q.w)), k)
 
-    def _send_force(self, stamp, frame_id: str, force: np.ndarray) -> None:
+    def _send_force(self, stamp, frame_id: str, force: np.ndarray, k: int = 0) -> None:
         msg = self._wrench_msg  # reused: building a message costs more than the step of a small area
         msg.header.stamp = stamp
         msg.header.frame_id = frame_id
         f = msg.wrench.force
         f.x, f.y, f.z = (float(v) for v in force)
-        self.force_pub.publish(msg)
+        self.force_pubs[k].publish(msg)
 
-    def _send_metrics(self, stamp, res, solver, haptic) -> None:
+    def _send_metrics(self, stamp, res, solver, haptic, k: int = 0) -> None:
         m = self._metrics_msg
         m.header.stamp = stamp
         m.header.frame_id = self.p['tissue_frame']
         m.haptic_mode = SimMetrics.HAPTIC_DIRECT if haptic is None else SimMetrics.HAPTIC_MULTIRATE
-        for name, value in metrics_values(res, solver, haptic).items():
+        for name, value in metrics_values(res, solver, haptic, k).items():
             if isinstance(value, tuple):
                 target = getattr(m, name)
                 target.x, target.y, target.z = value
             else:
                 setattr(m, name, value)
-        self.metrics_pub.publish(m)
+        self.metrics_pubs[k].publish(m)
 
     def _send_cloud(self, stamp) -> None:
         if stamp is None:

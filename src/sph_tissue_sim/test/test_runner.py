@@ -21,13 +21,15 @@ MS = 1_000_000
 
 def make_runner(**over) -> tuple[Runner, list]:
     """A runner on the 256-particle block; what it sends lands in the returned list as
-    ('force', stamp, frame, force), ('metrics', stamp, haptic status) or ('log', level, text)."""
+    ('force', stamp, frame, force, instrument), ('metrics', stamp, haptic status, instrument),
+    ('cloud', stamp) or ('log', level, text)."""
     p = {name: spec[0] for name, spec in SIM_PARAMS.items()} | BLOCK | {'force_limit': LIMIT, **over}
     model = build_model(p)
-    solver = make_solver(model, build_material(p), build_config(p), p['nominal_dt'])
+    solver = make_solver(model, build_material(p), build_config(p), p['nominal_dt'],
+                         instruments=len(p['instruments']))
     out = []
-    runner = Runner(p, model, solver, lambda stamp, frame, f: out.append(('force', stamp, frame, np.array(f))),
-                    lambda stamp, res, s, h: out.append(('metrics', stamp, h)),
+    runner = Runner(p, model, solver, lambda stamp, frame, f, k=0: out.append(('force', stamp, frame, np.array(f), k)),
+                    lambda stamp, res, s, h, k=0: out.append(('metrics', stamp, h, k)),
                     lambda stamp: out.append(('cloud', stamp)), lambda level, text: out.append(('log', level, text)))
     return runner, out
 
@@ -62,8 +64,8 @@ def test_lockstep_answers_every_pose_in_order_with_its_own_stamp_and_a_force_wit
 def test_live_direct_with_a_stepping_thread_steps_the_newest_pose_and_counts_the_rest_dropped():
     runner, out = make_runner(haptic_mode='direct', timing_mode='live', step_thread=True)
     gate = threading.Lock()
-    step = runner.solver.step
-    runner.solver.step = lambda *a: (gate.acquire(), gate.release(), step(*a))[2]
+    step = runner.solver.step_tools
+    runner.solver.step_tools = lambda *a: (gate.acquire(), gate.release(), step(*a))[2]
     gate.acquire()                      # the thread's first step waits here
     runner.start()
     try:
@@ -145,3 +147,120 @@ def test_the_pose_history_keeps_every_lockstep_pose_and_one_live_pose_stepped_in
     assert depth == 1 and 'depth 5 -> 1' in note
     runner, _ = make_runner(haptic_mode='multirate', timing_mode='live', qos_depth=1)
     assert pose_history(runner.p, runner)[0] == 10
+
+
+TWO = {'instruments': ['left', 'right'], 'instrument_offsets': [-0.015, 0.0, 0.0, 0.015, 0.0, 0.0],
+       'mode': 'global'}
+
+
+def test_two_instruments_in_lockstep_are_answered_in_rounds_and_step_the_tissue_once_per_round():
+    runner, out = make_runner(**TWO, timing_mode='lockstep')
+    path = press_path(60, depth=0.006)
+    runner.on_pose(pose(0, path[0]), 0)
+    assert forces(out) == []                            # the left waits for the right's pose
+    runner.on_pose(pose(0, path[0]), 1)
+    for k, p in enumerate(path[1:], start=1):
+        runner.on_pose(pose(k, p), 0)
+        runner.on_pose(pose(k, p), 1)
+    sent = forces(out)
+    assert [(s[1], s[4]) for s in sent] == [(T0_NS + k * MS, i) for k in range(len(path)) for i in (0, 1)]
+    assert runner.counts['steps'] == len(path)
+    left, right = np.array([s[3] for s in sent if s[4] == 0]), np.array([s[3] for s in sent if s[4] == 1])
+    # two presses 30 mm apart on the block's top: each pushes its own stylus up (device +y)
+    assert left[-1][1] > 0.05 and right[-1][1] > 0.05
+    origins = [ch.mapping.origin for ch in runner.channels]
+    np.testing.assert_allclose(origins[1] - origins[0], [0.03, 0.0, 0.0], rtol=0, atol=1e-12)
+    tips = [hand.tip for hand in runner.solver.instruments]
+    assert tips[1][0] - tips[0][0] == pytest.approx(0.03, abs=1e-4)     # the tools follow (proxies)
+    metrics = [o for o in out if o[0] == 'metrics']
+    assert {o[3] for o in metrics} == {0, 1}
+
+
+def test_two_instruments_in_lockstep_repeat_bit_for_bit_whatever_order_their_poses_arrive_in():
+    path = press_path(50, depth=0.006)
+    runs = []
+    for order in ('alternating', 'left_first'):
+        runner, out = make_runner(**TWO, timing_mode='lockstep')
+        if order == 'alternating':
+            for k, p in enumerate(path):
+                runner.on_pose(pose(k, p), 0)
+                runner.on_pose(pose(k, p * [1.0, 1.0, 1.0]), 1)
+        else:
+            for k, p in enumerate(path):
+                runner.on_pose(pose(k, p), 0)
+            for k, p in enumerate(path):
+                runner.on_pose(pose(k, p), 1)
+        runs.append(sorted(((s[4], s[1], tuple(s[3])) for s in forces(out))))
+    assert runs[0] == runs[1]
+
+
+def test_a_closed_button_grasps_lifting_pulls_and_opening_lets_go():
+    runner, out = make_runner(timing_mode='lockstep', step_thread=False)
+    path = list(press_path(40, depth=0.001))
+    for k, p in enumerate(path):
+        runner.on_pose(pose(k, p))
+    runner.on_grasp(0, True)
+    up = [path[-1] + [0.0, 0.001 * (j + 1) / 10, 0.0] for j in range(40)]   # lifted 4 mm, device +y
+    for j, p in enumerate(up):
+        runner.on_pose(pose(len(path) + j, p))
+    logs = [o[2] for o in out if o[0] == 'log']
+    assert any('grasped' in text for text in logs), logs
+    assert runner.solver.instruments[0].holding > 0
+    pull = forces(out)[-1][3]
+    assert pull[1] < -0.02                             # the tissue pulls the stylus down (device -y)
+    runner.on_grasp(0, False)
+    runner.on_pose(pose(len(path) + len(up), up[-1]))
+    assert runner.solver.instruments[0].holding == 0
+    assert any('let go of' in o[2] for o in out if o[0] == 'log')
+
+
+def test_a_button_closed_over_nothing_grasps_nothing_and_says_so():
+    runner, out = make_runner(timing_mode='lockstep', step_thread=False)
+    runner.on_grasp(0, True)
+    for k in range(5):
+        runner.on_pose(pose(k, (0.0, 0.03, 0.0)))         # 30 mm above the tissue
+    assert runner.solver.instruments[0].holding == 0
+    assert any('closed on nothing' in o[2] for o in out if o[0] == 'log')
+
+
+def test_two_instruments_live_are_answered_at_once_and_the_solver_thread_steps_both():
+    runner, out = make_runner(**TWO, timing_mode='live')
+    runner.start()
+    path = press_path(200, depth=0.005)
+    sent_poses = 0
+    try:
+        # until the solver thread has stepped a while (its first step may compile for a minute)
+        deadline = time.monotonic() + 240.0
+        while (runner.counts['steps'] < 20 or sent_poses < len(path)) and time.monotonic() < deadline:
+            p = path[min(sent_poses, len(path) - 1)]
+            runner.on_pose(pose(sent_poses, p), 0)
+            runner.on_pose(pose(sent_poses, p), 1)
+            sent_poses += 1
+            time.sleep(1e-3)
+    finally:
+        assert runner.shutdown()
+    sent = forces(out)
+    assert len(sent) == 2 * sent_poses                  # every pose answered, none waits for a round
+    assert runner.counts['steps'] >= 20
+    assert all(np.linalg.norm(s[3]) <= LIMIT + 1e-12 for s in sent)
+    assert max(s[3][1] for s in sent if s[4] == 1) > 0.01
+
+
+@pytest.mark.parametrize('names, error', [(['left', 'left'], 'named twice'), (['1st'], 'not a valid namespace'),
+                                          (['a/b'], 'not a valid namespace'), ([], 'list of names'),
+                                          (['left', ''], 'not a valid namespace')])
+def test_instrument_names_that_are_not_distinct_namespaces_are_refused(names, error):
+    from sph_tissue_sim.params import check_value
+
+    assert error in check_value('instruments', names)
+
+
+def test_several_instruments_need_global_mode_and_the_multirate_renderer():
+    from sph_tissue_sim.core.errors import ConfigError
+
+    p = {name: spec[0] for name, spec in SIM_PARAMS.items()} | BLOCK | TWO
+    assert build_config(p).mode == 'global'
+    with pytest.raises(ConfigError, match='mode global'):
+        build_config(p | {'mode': 'local'})
+    with pytest.raises(ConfigError, match='multirate'):
+        build_config(p | {'haptic_mode': 'direct'})

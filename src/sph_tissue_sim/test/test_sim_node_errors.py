@@ -41,7 +41,7 @@ def make_node(**extra):
     params = {**BLOCK, 'force_limit': LIMIT, 'particles_rate': 0.0, 'warmup': False, **extra}
     n = SimNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
     n.sent = []
-    n.runner.send_force = lambda stamp, frame, f: n.sent.append(
+    n.runner.send_force = lambda stamp, frame, f, k=0: n.sent.append(
         (stamp.sec * 1_000_000_000 + stamp.nanosec, np.array(f, dtype=float)))
     try:
         yield n
@@ -80,10 +80,10 @@ def test_unstable_step_answers_zero_and_resets_the_tissue(node, monkeypatch):
     t = press(node)
     assert node.sent[-1][1][1] > 0.0 and node.runner.solver.sim_time > 0.0
 
-    def unstable(tool, dt, rot=None):
+    def unstable(poses, dt):
         raise SimError('tlsph local step went unstable')
 
-    monkeypatch.setattr(node.runner.solver, 'step', unstable)
+    monkeypatch.setattr(node.runner.solver, 'step_tools', unstable)
     node.runner.handle(pose((0.0, -0.004, 0.0), t))
     assert node.sent[-1][0] == t and np.all(node.sent[-1][1] == 0.0)
     assert node.runner.counts['sim_errors'] == 1
@@ -99,7 +99,7 @@ def test_input_refused_by_the_core_answers_zero_and_leaves_the_state(node, monke
 
     t = press(node)
     before = node.runner.solver.positions.copy()
-    monkeypatch.setattr(node.runner.solver, 'step', lambda tool, dt, rot=None: (_ for _ in ()).throw(
+    monkeypatch.setattr(node.runner.solver, 'step_tools', lambda poses, dt: (_ for _ in ()).throw(
         InvalidInput('tool position is more than 10 m from the tissue')))
     node.runner.handle(pose((0.0, -0.004, 0.0), t))
     assert np.all(node.sent[-1][1] == 0.0)
@@ -108,11 +108,11 @@ def test_input_refused_by_the_core_answers_zero_and_leaves_the_state(node, monke
 
 def test_an_unexpected_exception_answers_zero_and_the_node_goes_on(node, monkeypatch):
     t = press(node)
-    step = node.runner.solver.step
-    monkeypatch.setattr(node.runner.solver, 'step', lambda tool, dt, rot=None: 1 / 0)
+    step = node.runner.solver.step_tools
+    monkeypatch.setattr(node.runner.solver, 'step_tools', lambda poses, dt: 1 / 0)
     node.runner.handle(pose((0.0, -0.004, 0.0), t))
     assert node.sent[-1][0] == t and np.all(node.sent[-1][1] == 0.0)
-    monkeypatch.setattr(node.runner.solver, 'step', step)
+    monkeypatch.setattr(node.runner.solver, 'step_tools', step)
     node.runner.handle(pose((0.0, -0.004, 0.0), t + 1_000_000))
     assert node.sent[-1][1][1] > 0.0
 
@@ -169,10 +169,10 @@ def test_multirate_unstable_solver_step_resets_the_tissue_and_the_renderer(multi
     felt = node.sent[-1][1]
     assert felt[1] > 0.0
 
-    def unstable(tool, dt, rot=None):
+    def unstable(poses, dt):
         raise SimError('tlsph local step went unstable')
 
-    monkeypatch.setattr(node.runner.solver, 'step', unstable)
+    monkeypatch.setattr(node.runner.solver, 'step_tools', unstable)
     node.runner.handle(pose((0.0, -0.004, 0.0), t))
     # the pose was answered from the contact model before the solver failed
     assert np.all(np.isfinite(node.sent[-1][1])) and np.linalg.norm(node.sent[-1][1]) <= LIMIT

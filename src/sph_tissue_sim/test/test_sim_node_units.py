@@ -243,7 +243,7 @@ def test_every_solver_parameter_is_its_solver_config_field_with_the_same_default
         else:
             assert f.name not in SIM_PARAMS, f.name
     assert build_config(defaults()) == SolverConfig()
-    assert set(NEXT_STEP_SETTINGS) == {'friction', 'max_tool_speed', 'force_limit'}
+    assert set(NEXT_STEP_SETTINGS) == {'friction', 'grasp_limit', 'max_tool_speed', 'force_limit'}
     for name, spec in solver_params().items():
         limits = spec[2]
         if isinstance(limits, tuple) and not isinstance(limits[0], str):

@@ -138,7 +138,7 @@ class SolverConfig:
                               (0.0, 2.0), rebuild=None)
     grasp_limit: float = setting(0.5, '[N] a grasped particle pulled harder than this lets go: the grasp '
                                  'slips one particle at a time instead of tearing the tissue', (0.001, 10.0),
-                                 node=False, rebuild=None)
+                                 rebuild=None)
     max_tool_speed: float = setting(1.0, '[m/s] the simulated tool follows the request at most this fast '
                                     '(a hand stays below 1 m/s; 1000: no limit)', (0.01, 1000.0), rebuild=None)
     force_limit: float = setting(HARD_FORCE_LIMIT, '[N] norm clamp of the force sent to the device (Omni '

@@ -511,3 +511,94 @@ def gives_way(depth: np.ndarray, force: np.ndarray, tolerance: float = 0.02) -> 
     within that tolerance): where the tissue stops holding the tool."""
     fell = np.flatnonzero(np.maximum.accumulate(force) - force > tolerance * float(np.max(force, initial=0.0)))
     return float(depth[fell[0]]) if len(fell) else math.inf
+
+
+# -- grasp and two instruments --------------------------------------------------------------------
+def cosine_ramp(t: float, ramp: float) -> float:
+    """0 -> 1 over ``ramp`` [s] along a half cosine (a hand's start and stop), 1 after."""
+    return 0.5 - 0.5 * math.cos(math.pi * min(t / ramp, 1.0))
+
+
+def grasp_column(nz: int = 14, fix: str = 'bottom') -> TissueModel:
+    """A column 3 x 3 particles wide (``SPACING``): the default tool just touching its top grasps its
+    top layer and nothing below (the layer's corners lie 11.8 mm from the tip, the grasp reaches 12)."""
+    return make_block(3, 3, nz, spacing=SPACING, fix=fix)
+
+
+def grasp_touch(solver: Solver) -> np.ndarray:
+    """The tool's tip 0.5 mm into the contact above the top face's centre of ``solver``'s model."""
+    X = solver.model.positions
+    c = X.mean(axis=0)
+    near = np.linalg.norm(X[:, :2] - c[:2], axis=1) < solver.model.spacing
+    return np.array([c[0], c[1], X[near, 2].max() + solver.contact_reach - 0.0005])
+
+
+def grasp_lift(model: TissueModel, material: Material, config: SolverConfig, rise: float,
+               ramp: float = 0.6, hold: float = 0.4, dt: float = 1e-3) -> tuple[np.ndarray, int]:
+    """Close the tool on the top of ``model`` above its centre, lift it ``rise`` [m] over ``ramp``
+    [s] and hold ``hold`` [s]; returns (the reaction on the tool per frame [N] (n, 3), particles
+    grasped)."""
+    solver = Solver(model, material, config)
+    tip = grasp_touch(solver)
+    solver.step(tip, dt)
+    held = solver.grasp()
+    forces = []
+    for k in range(int(round((ramp + hold) / dt))):
+        forces.append(solver.step(tip + [0.0, 0.0, rise * cosine_ramp((k + 1) * dt, ramp)], dt).force_raw)
+    return np.array(forces), held
+
+
+def column_pull(model: TissueModel, material: Material, rise: float) -> float:
+    """Linear elasticity's pull [N] of a column held by its top layer and lifted ``rise`` [m]: a bar of
+    modulus E, section A (its particles' share) and length L (bottom to top layer): E A rise / L."""
+    X = model.positions
+    top = np.isclose(X[:, 2], X[:, 2].max())
+    area = np.count_nonzero(top) * model.spacing ** 2
+    return material.E * area * rise / float(X[:, 2].max() - X[:, 2].min())
+
+
+def grasp_release(model: TissueModel, material: Material, config: SolverConfig, rise: float = 0.003,
+                  dt: float = 1e-3) -> tuple[float, float, float]:
+    """Grasp the top of ``model``, lift ``rise`` [m] over 0.3 s, hold to 0.4 s, release, take the
+    tool away and let the tissue settle 0.5 s: returns (the work the tool did on the tissue [J],
+    then its largest displacement [m] and kinetic energy [J])."""
+    solver = Solver(model, material, config)
+    tip = grasp_touch(solver)
+    solver.step(tip, dt)
+    solver.grasp()
+    path = [tip + [0.0, 0.0, rise * cosine_ramp((k + 1) * dt, 0.3)] for k in range(500)]
+    path += [path[-1] + [0.0, 0.0, 2e-5 * (k + 1)] for k in range(500)]
+    work, prev = 0.0, tip
+    for k, p in enumerate(path):
+        if k == 400:
+            solver.release()
+        res = solver.step(p, dt)
+        work += float(-res.force_raw @ (p - prev))
+        prev = p
+    for _ in range(500):
+        res = solver.step(None, dt)
+    return work, res.max_displacement, res.kinetic_energy
+
+
+def two_hands_on_a_floating_block(config: SolverConfig, frames: int = 150,
+                                  dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An 8 x 8 x 5 block with no boundary: one instrument grasps its top and pulls up, the other
+    presses its bottom 20 mm beside it and drags sideways. Returns (the block's momentum [kg m/s],
+    the impulse the two tools took [N s], the peak force on each tool [N] (2,)): with the tools'
+    forces the only ones on the block, momentum = -impulse."""
+    model = make_block(8, 8, 5, spacing=SPACING, fix='none')
+    solver = Solver(model, Material.from_shear(1800.0, 0.45, 3.0), config, instruments=2)
+    X = model.positions
+    top = grasp_touch(solver) - [0.01, 0.0, 0.0]
+    bottom = np.array([top[0] + 0.02, top[1], X[:, 2].min() - solver.contact_reach])
+    flip = np.diag([1.0, -1.0, -1.0])
+    impulse, peak = np.zeros(3), np.zeros(2)
+    for k in range(frames):
+        if k == 10:
+            solver.grasp(0)
+        lift = 3e-5 * max(k - 10, 0)
+        res = solver.step_tools([(top + [0.0, 0.0, lift], None),
+                                 (bottom + [1e-5 * k, 0.0, 1e-4 * min(k, 40)], flip)], dt)
+        impulse += (res.tools[0].force_raw + res.tools[1].force_raw) * dt
+        peak = np.maximum(peak, [np.linalg.norm(t.force_raw) for t in res.tools])
+    return solver.mass * solver.velocities.sum(axis=0), impulse, peak

@@ -1,0 +1,40 @@
+"""One instrument's path through sim_node: its device's poses in, its forces out.
+
+sim_node serves one instrument or several on one tissue (parameter ``instruments``). Each has a
+:class:`Channel`: its device map, the clock of its pose stamps, its haptic renderer, the last force
+it sent, where it last asked the solver to put its tool and whether its jaw should be closed. The
+:class:`~.runner.Runner` steps the solver once for all of them.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .haptics.multirate import MultiRate
+from .mapping import DeviceMapping
+from .timing import StampClock
+
+
+@dataclass
+class Channel:
+    """One instrument (see the module docstring); ``index`` is its slot in the solver."""
+
+    index: int
+    name: str                               # its namespace ('': none)
+    mapping: DeviceMapping
+    clock: StampClock
+    haptic: MultiRate | None                # None: direct (one instrument only)
+    last_force: np.ndarray = field(default_factory=lambda: np.zeros(3))   # device frame [N]
+    tool: tuple | None = None               # (point, rotation) it last asked for (tissue frame)
+    closed: bool = False                    # the jaw should hold (the device's button)
+    gripping: bool = False                  # the solver was told so (it grasped, since it last opened)
+    holding: int = 0                        # particles it holds after the last step
+    inbox: collections.deque = field(default_factory=collections.deque)   # poses waiting for a round
+
+    @property
+    def label(self) -> str:
+        """How logs name it."""
+        return f'instrument {self.name}' if self.name else 'the instrument'

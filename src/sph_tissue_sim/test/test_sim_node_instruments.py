@@ -1,0 +1,89 @@
+"""sim_node with two instruments on one tissue, as a real process over DDS: each namespace its own
+poses, forces, metrics and grasp button."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from sim_probe import START_TIMEOUT, T0_NS, SimProbe, force_of, press_path, qos, sim
+
+pytestmark = pytest.mark.ros
+
+TWO = {'instruments': ['left', 'right'], 'instrument_offsets': [-0.015, 0.0, 0.0, 0.015, 0.0, 0.0],
+       'mode': 'global'}
+
+
+def _button(node, topic: str):
+    from tissue_msgs.msg import DeviceState
+
+    return node.create_publisher(DeviceState, topic, qos(True, 10))
+
+
+def test_two_instruments_are_each_answered_on_their_own_topics_and_one_grasps_and_lifts(rclpy_node):
+    from tissue_msgs.msg import DeviceState
+
+    ns = '/hands/'
+    with sim({**TWO, 'timing_mode': 'lockstep'}, ros_args=['-r', f'__ns:={ns[:-1]}']) as proc:
+        left, right = SimProbe(rclpy_node, reliable=True, ns=ns + 'left/'), SimProbe(rclpy_node, reliable=True,
+                                                                                    ns=ns + 'right/')
+        proc.wait_for_output(r'ready:', START_TIMEOUT)
+        button = _button(rclpy_node, ns + 'left/omni/state')
+        from tissue_testing import harness
+        for endpoint in (left.pose_pub, left.force_sub, left.metrics_sub, right.pose_pub, right.force_sub,
+                         right.metrics_sub, button):
+            harness.wait_for_matching(rclpy_node, endpoint)
+        assert 'instruments left (device origin' in proc.output()
+        # lockstep rounds: the left's poses wait for the right's
+        path = press_path(80, depth=0.002)
+        for k, p in enumerate(path):
+            left.publish(p, T0_NS + k * 1_000_000)
+        assert not rclpy_node.spin_until(lambda: left.force_order, 1.0)
+        for k, p in enumerate(path):
+            right.publish(p, T0_NS + k * 1_000_000)
+        n = len(path)
+        assert rclpy_node.spin_until(lambda: len(left.force_order) >= n and len(right.force_order) >= n, 60.0), \
+            proc.output()
+        assert left.force_order == right.force_order == [T0_NS + k * 1_000_000 for k in range(n)]
+        pressed = [force_of(probe.forces[left.force_order[-1]]) for probe in (left, right)]
+        assert pressed[0][1] > 0.02 and pressed[1][1] > 0.02
+        # the left closes its jaw and lifts: it feels the pull, the right keeps pressing
+        state = DeviceState()
+        state.button1 = True
+        button.publish(state)
+        # the grasp applies at the first solver step after the button's message: each round of
+        # the lift waits for its answers, so the button is read before the lift ends
+        t0 = T0_NS + n * 1_000_000
+        lift = [path[-1] + [0.0, 1e-4 * (j + 1), 0.0] for j in range(50)]          # up 5 mm (device +y)
+        for j, p in enumerate(lift):
+            stamp = t0 + j * 1_000_000
+            left.publish(p, stamp)
+            right.publish(path[-1], stamp)
+            assert rclpy_node.spin_until(lambda: stamp in left.forces and stamp in right.forces, 20.0), \
+                proc.output()
+        last = t0 + (len(lift) - 1) * 1_000_000
+        assert re.search(r'instrument left grasped \d+ particles', proc.output()), proc.output()
+        assert force_of(left.forces[last])[1] < -0.01           # pulled down towards the tissue
+        assert force_of(right.forces[last])[1] > 0.02
+        assert rclpy_node.spin_until(lambda: any(m.n_grasped > 0 for m in left.metrics), 10.0)
+        assert all(m.n_grasped == 0 for m in right.metrics)
+        assert proc.stop() == 0
+    assert 'Traceback' not in proc.output()
+
+
+@pytest.mark.parametrize('params, message', [
+    ({'instruments': ['left', 'left'], 'mode': 'global'}, r"'left' is named twice"),
+    ({'instruments': ['left', '2nd'], 'mode': 'global'}, r"'2nd' is not a valid namespace"),
+    ({'instruments': ['left', 'right']}, r'2 instruments need mode global'),
+    ({'instruments': ['left', 'right'], 'mode': 'global', 'haptic_mode': 'direct'}, r'need haptic_mode multirate'),
+    ({'instruments': ['left', 'right'], 'mode': 'global', 'instrument_offsets': [0.0, 0.0]},
+     r'three per instrument'),
+])
+def test_bad_instruments_exit_with_code_2_and_say_why(ros_domain, params, message):
+    with sim({**params, 'warmup': False}) as proc:
+        assert proc.wait(60) == 2
+        out = proc.output()
+    assert re.search(r'invalid parameters: .*' + message, out), out
+    assert 'Traceback' not in out
