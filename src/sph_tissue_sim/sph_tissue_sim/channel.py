@@ -2,7 +2,8 @@
 
 sim_node serves one instrument or several on one tissue (parameter ``instruments``). Each has a
 :class:`Channel`: its device map, the clock of its pose stamps, its haptic renderer, the last force
-it sent, where it last asked the solver to put its tool and whether its jaw should be closed. The
+it sent, its newest pose's stamp, where it last asked the solver to put its tool and whether its
+jaw should be closed. The
 :class:`~.runner.Runner` steps the solver once for all of them.
 """
 
@@ -31,7 +32,7 @@ class Channel:
     tool: tuple | None = None               # (point, rotation) it last asked for (tissue frame)
     closed: bool = False                    # the jaw should hold (the device's button)
     gripping: bool = False                  # the solver was told so (it grasped, since it last opened)
-    holding: int = 0                        # particles it holds after the last step
+    newest_ns: int | None = None            # the stamp of its newest pose answered [ns]
     inbox: collections.deque = field(default_factory=collections.deque)   # poses waiting for a round
 
     @property

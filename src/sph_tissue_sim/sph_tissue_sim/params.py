@@ -105,6 +105,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                           'omni/force_feedback, omni/state (grasp: button1) and tissue/metrics ([""]: '
                           'one, no namespace); several need mode global and haptic_mode multirate',
                     None, True, None),
+    'grasp_button': (0, 'the stylus button (omni/state DeviceState button1 or button2) that closes the '
+                        'instrument\'s jaw on the tissue in reach: 1 | 2 | 0 off (the bundled sessions '
+                        'press button 1 as a marker; a lockstep replay does not yet repeat a grasp bit for '
+                        'bit)', (0, 2), True, None),
     'instrument_offsets': ([0.0, 0.0, 0.0], '[m] tissue-frame offset of each instrument\'s device '
                                             'origin, added to translation: three numbers per instrument '
                                             'in the order of instruments (missing ones: 0)', None, True,
@@ -191,12 +195,13 @@ INSTRUMENT_NAME = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
 
 def check_instruments(names) -> str | None:
     """Error text unless ``names`` is [''] (one instrument, no namespace) or distinct valid names."""
+    given = names
     try:
         names = [str(n) for n in names] if not isinstance(names, str) else None
     except TypeError:
         names = None
     if not names:
-        return f'parameter instruments must be a list of names, got {names!r}'
+        return f'parameter instruments must be a list of names, got {given!r}'
     if names == ['']:
         return None
     bad = [n for n in names if not INSTRUMENT_NAME.fullmatch(n)]

@@ -145,12 +145,14 @@ def metrics_values(res: StepResult, solver: Solver, haptic, k: int = 0) -> dict:
          'contact_force': tuple(float(f) for f in tool.force), 'tool_radius': float(solver.tool.radius),
          'max_displacement': float(res.max_displacement), 'kinetic_energy': float(res.kinetic_energy),
          'scheme': solver.config.scheme_index, 'mode': solver.config.mode_index}
+    v.update(tool_position=(0.0, 0.0, 0.0), tool_axis=(0.0, 0.0, 0.0), tool_length=0.0,
+             n_grasped=int(tool.grasped))      # a lifted tool's (the message is reused)
     if tool.tool_segment is not None:
         tip, shaft = tool.tool_segment[0], tool.tool_segment[1] - tool.tool_segment[0]
         length = float(np.linalg.norm(shaft))
         axis = shaft / length if length > 0.0 else shaft
         v.update(tool_position=tuple(float(x) for x in tip), tool_axis=tuple(float(x) for x in axis),
-                 tool_length=length, n_grasped=int(tool.grasped))
+                 tool_length=length)
     if haptic is not None:
         v.update(solver_rate=haptic.solver_rate, model_age=haptic.model_age, coupling_stretch=haptic.stretch,
                  energy_in=haptic.energy, energy_in_min=haptic.energy_min, added_damping=haptic.damping)
@@ -203,6 +205,8 @@ class Runner:
         self._worker: threading.Thread | None = None
         self._solver_thread: threading.Thread | None = None
         self.last_stamp = None                   # the stamp of the newest step (the cloud's)
+        self._rounds = 0                         # lockstep rounds of several instruments
+        self._stepped_ns: int | None = None      # several instruments: the newest pose stamp stepped
         self._step_count = 0
         self._cloud_lock = threading.Lock()      # one cloud packed and sent at a time
         self._wall = np.zeros(STEP_TIME_HISTORY)   # ring of step wall times [s] for the totals
@@ -287,6 +291,9 @@ class Runner:
     # -- pose intake -------------------------------------------------------------------------------
     def on_pose(self, pose: Pose, k: int = 0) -> None:
         """A pose of instrument ``k`` (its index in ``instruments``)."""
+        if not 0 <= k < len(self.channels):
+            self.throttled('instrument', 'error', f'a pose for instrument {k}, which is not configured: ignored')
+            return
         if len(self.channels) > 1:
             self._on_instrument_pose(pose, self.channels[k])
             return
@@ -328,10 +335,16 @@ class Runner:
             while all(c.inbox for c in self.channels):
                 for c in self.channels:
                     self.handle(c.inbox.popleft(), c)
-                if self.haptic.due():
-                    self._solve()
-                    if self._cloud_due:
-                        self.send_cloud_once()
+                # rounds, not one renderer's poses: a rejected pose must not stop everyone's steps
+                self._rounds += 1
+                if self._rounds % self.p['solver_every'] == 0:
+                    try:
+                        self._solve()
+                        if self._cloud_due:
+                            self.send_cloud_once()
+                    except Exception:  # noqa: BLE001  (the poses were answered; the loop must go on)
+                        self.throttled('internal', 'error', 'internal error in a lockstep step:\n'
+                                       + traceback.format_exc())
 
     def _work(self) -> None:
         while not self._stop.is_set():
@@ -400,6 +413,7 @@ class Runner:
             out = ch.haptic.answer(*tool, pose.stamp)
             force_dev = self._to_device(out.force, ch)
             ch.last_force = force_dev
+            ch.newest_ns = pose.stamp_ns
         self._answer_with(pose, force_dev, ch)
         if not self.lockstep:
             self._wake.set()
@@ -445,12 +459,11 @@ class Runner:
             for ch, job in zip(self.channels, jobs):
                 if job is not None:
                     ch.tool = (job.point, job.rotation)
-            newest = max((job for job in jobs if job is not None), key=lambda job: job.dt)
+            newest, dt = self._step_time(jobs)
             self._grasp_as_asked()
-            res = self._step([ch.tool for ch in self.channels], newest.dt)
+            res = self._step([ch.tool for ch in self.channels], dt)
             if res is not None:
                 for ch, job, tool in zip(self.channels, jobs, res.tools):
-                    ch.holding = tool.grasped
                     if job is not None:
                         ch.haptic.refresh(job, tool)
                 self.last_stamp = newest.stamp
@@ -460,9 +473,28 @@ class Runner:
                 self.send_metrics(job.stamp if job is not None else newest.stamp, res, self.solver,
                                   ch.haptic.status(), ch.index)
 
+    def _step_time(self, jobs: list) -> tuple[SolverJob, float]:
+        """The newest of ``jobs`` and the pose time [s] the step simulates: one instrument, the time
+        its renderer served; several, the time from the newest pose stepped to the newest pose now
+        (one clock: each instrument's own time since its last job would count the time between
+        two devices' poses twice)."""
+        if len(self.channels) == 1:
+            return jobs[0], jobs[0].dt
+        taken = [(ch.newest_ns, job) for ch, job in zip(self.channels, jobs) if job is not None]
+        newest_ns, newest = max(taken, key=lambda pair: pair[0])
+        last, self._stepped_ns = self._stepped_ns, newest_ns if self._stepped_ns is None else max(
+            self._stepped_ns, newest_ns)
+        dt = max(job.dt for _, job in taken) if last is None else (newest_ns - last) * 1e-9
+        if not dt > 0.0:   # no pose newer than the last step (a stamp went backwards): one nominal step
+            dt = self.channels[0].clock.nominal_dt
+        return newest, min(dt, self.channels[0].clock.max_dt)
+
     # -- grasp ---------------------------------------------------------------------------------------
     def on_grasp(self, k: int, closed: bool) -> None:
         """Instrument ``k``'s jaw closes (``closed``) or opens: applied before the next solver step."""
+        if not 0 <= k < len(self.channels):
+            self.throttled('instrument', 'error', f'a grasp for instrument {k}, which is not configured: ignored')
+            return
         ch = self.channels[k]
         if ch.closed != bool(closed):
             ch.closed = bool(closed)
@@ -474,7 +506,7 @@ class Runner:
         for ch in self.channels:
             if ch.closed and not ch.gripping:
                 ch.gripping = True
-                ch.holding = n = self.solver.grasp(ch.index)
+                n = self.solver.grasp(ch.index)
                 self.counts['grasps'] += 1
                 if n:
                     self.log('info', f'{ch.label} grasped {n} particles')
@@ -483,7 +515,6 @@ class Runner:
                                    f'within {self.solver.grasp_reach * 1e3:.1f} mm of its tool')
             elif not ch.closed and ch.gripping:
                 ch.gripping = False
-                ch.holding = 0
                 n = self.solver.release(ch.index)
                 self.log('info', f'{ch.label} opened' + (f' and let go of {n} particles' if n else ''))
 
@@ -565,10 +596,11 @@ class Runner:
             return None
         self._wall[self.counts['steps'] % STEP_TIME_HISTORY] = res.wall_time
         self.counts['steps'] += 1
-        if res.tool_lag > TOOL_LAG_LOG:
+        lag = max(tool.tool_lag for tool in res.tools)
+        if lag > TOOL_LAG_LOG:
             self.throttled('tool_lag', 'warn', f'the device moved faster than max_tool_speed '
                            f'({solver.config.max_tool_speed:g} m/s): the simulated tool '
-                           f'follows {res.tool_lag * 1e3:.1f} mm behind')
+                           f'follows {lag * 1e3:.1f} mm behind')
         if res.substeps_capped:
             self.throttled('capped', 'warn', f'frame needed more than max_substeps '
                            f'({solver.config.max_substeps}): simulated time lags')
@@ -578,13 +610,15 @@ class Runner:
         """The tissue back to rest and the devices' past forgotten (caller holds the solver lock);
         what was held is let go (a closed jaw grasps again at the next step)."""
         self.solver.reset()
+        self._stepped_ns = None
+        self._rounds = 0
         with self._pose_lock:
             for ch in self.channels:
                 ch.clock.reset()
                 ch.last_force = np.zeros(3)
                 ch.tool = None
-                ch.holding = 0
                 ch.gripping = False
+                ch.newest_ns = None
                 if ch.haptic is not None:
                     ch.haptic.reset()
 

@@ -6,9 +6,9 @@ core) and answers every step with ``omni/force_feedback`` (geometry_msgs/WrenchS
 of the tissue on the tool in the device frame, clamped to ``force_limit``; header stamp and frame
 are the pose's, so the round trip can be measured). Publishes ``tissue/particles``
 (sensor_msgs/PointCloud2, see :mod:`.cloud`) at ``particles_rate`` and ``tissue/metrics``
-(tissue_msgs/SimMetrics) per step; serves ``tissue/reset`` (tissue_msgs/srv/ResetTissue). A
-closed stylus button (``omni/state``, tissue_msgs/DeviceState ``button1``) grasps the tissue in
-reach of the tool until it opens.
+(tissue_msgs/SimMetrics) per step; serves ``tissue/reset`` (tissue_msgs/srv/ResetTissue). With
+``grasp_button`` 1 or 2 that stylus button (``omni/state``, tissue_msgs/DeviceState) grasps the
+tissue in reach of the tool until it opens.
 
 Several instruments on one tissue (parameter ``instruments``, e.g. ``[left, right]``): each name is
 a namespace with its own ``<name>/omni/pose``, ``<name>/omni/force_feedback``, ``<name>/omni/state``
@@ -117,9 +117,11 @@ class SimNode(Node):
         self.pose_subs = [self.create_subscription(PoseStamped, _within(name, 'omni/pose'),
                                                    lambda msg, k=k: self._on_pose(msg, k), io_qos)
                           for k, name in enumerate(names)]
-        self.state_subs = [self.create_subscription(DeviceState, _within(name, 'omni/state'),
-                                                    lambda msg, k=k: self.runner.on_grasp(k, msg.button1), 10)
-                           for k, name in enumerate(names)]
+        button = p['grasp_button']
+        self.state_subs = [self.create_subscription(
+            DeviceState, _within(name, 'omni/state'),
+            lambda msg, k=k: self.runner.on_grasp(k, msg.button1 if button == 1 else msg.button2), 10)
+            for k, name in enumerate(names)] if button else []
 
     def _publish_device_frame(self) -> None:
         m = self.runner.mapping

@@ -273,3 +273,11 @@ def test_a_cloud_that_fails_to_publish_is_logged_and_the_next_one_goes_out(multi
     assert sent == [None, node.runner.solver.n_particles]
     assert node.runner._log_throttle.counts['cloud'] == 1
 
+
+
+def test_the_grasp_button_is_read_only_where_it_is_chosen(ros_domain):
+    """The bundled sessions press button 1 as a marker: by default no button grasps."""
+    with make_node() as n:
+        assert n.state_subs == []
+    with make_node(grasp_button=2, instruments=['left', 'right'], mode='global') as n:
+        assert [s.topic_name for s in n.state_subs] == ['/left/omni/state', '/right/omni/state']

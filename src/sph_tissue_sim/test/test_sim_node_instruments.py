@@ -26,7 +26,7 @@ def test_two_instruments_are_each_answered_on_their_own_topics_and_one_grasps_an
     from tissue_msgs.msg import DeviceState
 
     ns = '/hands/'
-    with sim({**TWO, 'timing_mode': 'lockstep'}, ros_args=['-r', f'__ns:={ns[:-1]}']) as proc:
+    with sim({**TWO, 'timing_mode': 'lockstep', 'grasp_button': 1}, ros_args=['-r', f'__ns:={ns[:-1]}']) as proc:
         left, right = SimProbe(rclpy_node, reliable=True, ns=ns + 'left/'), SimProbe(rclpy_node, reliable=True,
                                                                                     ns=ns + 'right/')
         proc.wait_for_output(r'ready:', START_TIMEOUT)

@@ -822,17 +822,18 @@ class Solver:
             contact = self._sticky_contact(hand, path.seg1, self.contact.detect_reach)
             if contact < 0:
                 contact = deepest
+        centre = contact
         if contact < 0 and path.grip.n:
             held = path.grip.idx[path.grip.held]
             if len(held):
-                contact = area.hold(held)
+                centre = area.hold(held)      # the area's centre; nothing touches (contact stays -1)
         k1 = min(max(cfg.k1_gain * self.f_prev, cfg.k1_min), cfg.k1_max)
         reach, Dr = self.contact.area(hand.samples_push, self.organ is not None, k1 * self.h, self.h)
         if path.grip.n:
             # what it holds is solved: it sits within the grasp's reach plus its spring's stretch
             reach = max(reach, self.grasp_reach + cfg.grasp_limit / cfg.contact_stiffness + self.model.spacing)
         sets, n_inter, n_relax = area.prepare(self.body, path.seg0 if path.on else None, path.seg1,
-                                              reach, margin, contact, Dr, cfg.scheme == 'paper')
+                                              reach, margin, centre, Dr, cfg.scheme == 'paper')
         area.far_field(self.body, self.x, sets, self.react[0], cfg.far_field, -math.expm1(-dt / FAR_FIELD_TAU),
                        self.far)
         self._frame(sets, paths, n_sub, sub_dt, dt, 'local')

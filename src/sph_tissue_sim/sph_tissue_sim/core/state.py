@@ -114,7 +114,7 @@ class Touches(NamedTuple):
     the particle or sample, ``normal[t]`` its unit normal, ``held[t]`` whether its friction sticks
     (its tangential spring acts too), ``axis[t]`` the tool's axis where the closest point is
     inside a shaft (the spring then does not act along it; zero elsewhere) and ``tool[t]`` the
-    instrument that pushes it; ``count[0]`` of them. ``on`` False: the contact kernels record
+    instrument whose contact or grasp it is; ``count[0]`` of them. ``on`` False: the contact kernels record
     nothing."""
 
     on: bool
