@@ -264,3 +264,25 @@ def test_several_instruments_need_global_mode_and_the_multirate_renderer():
         build_config(p | {'mode': 'local'})
     with pytest.raises(ConfigError, match='multirate'):
         build_config(p | {'haptic_mode': 'direct'})
+
+
+def test_two_live_instruments_half_a_period_apart_simulate_the_pose_time_once():
+    """Each device's poses 1 ms apart, the second's half a period after the first's: the solver's
+    steps add up to the pose time that passed, not to each device's own time counted again."""
+    runner, out = make_runner(**TWO, timing_mode='live')
+    runner.start()
+    n = 400
+    try:
+        for k in range(n):
+            p = (0.0, 0.01, 0.0)                     # above the tissue: cheap steps
+            runner.on_pose(pose(k, p), 0)
+            time.sleep(5e-4)
+            runner.on_pose(Pose(T0_NS + k * MS + MS // 2, T0_NS + k * MS + MS // 2, 'omni_base', p,
+                                (0.0, 0.0, 0.0, 1.0)), 1)
+            time.sleep(5e-4)
+    finally:
+        assert runner.shutdown()
+    span = (n - 1) * 1e-3 + 5e-4
+    print(f'{runner.counts["steps"]} steps simulated {runner.solver.sim_time:.4f} s of {span:.4f} s of poses')
+    assert runner.counts['steps'] > 10
+    assert runner.solver.sim_time <= span + runner.p['max_dt']
