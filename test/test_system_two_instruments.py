@@ -1,4 +1,5 @@
-"""The user's guide, checked: two instruments side by side in namespaces, and CRTK names by remapping.
+"""The user's guide, checked: two instruments side by side in namespaces, two devices on one tissue,
+and CRTK names by remapping.
 
 Two complete loops (omni_driver with its scripted stylus + sim_node on a small block) run at once on
 one ROS domain, one under /left and one under /right, each with its own frame names; each loop's
@@ -76,3 +77,49 @@ def test_two_instruments_in_namespaces_keep_their_loops_apart(rclpy_node):
                                          for m in seen[ns]['force'])
         assert all(m.header.frame_id == f'{ns}/omni_base' for m in seen[ns]['pose'].values())
     assert all(c.header.frame_id == 'left/omni_base' for c in cps)
+
+
+def test_two_devices_on_one_tissue_are_each_answered_for_their_own_press(rclpy_node):
+    """The guide's two devices on one tissue: one sim_node with instruments [left, right] (global
+    mode) and a scripted driver in each namespace: each is answered, both press the same block 30 mm
+    apart, and each namespace's metrics follow its own device."""
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from tissue_msgs.msg import SimMetrics
+
+    deep = QoSProfile(depth=10000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
+    seen = {ns: {'force': [], 'metrics': []} for ns in ('left', 'right')}
+    for ns in seen:
+        rclpy_node.create_subscription(
+            WrenchStamped, f'/{ns}/omni/force_feedback', lambda m, ns=ns: seen[ns]['force'].append(m), deep)
+        rclpy_node.create_subscription(SimMetrics, f'/{ns}/tissue/metrics',
+                                       lambda m, ns=ns: seen[ns]['metrics'].append(m), 100)
+    sim = graph.sim('live', golden=False, params={
+        **BLOCK, 'mode': 'global', 'instruments': ['left', 'right'],
+        'instrument_offsets': [-0.015, 0.0, 0.0, 0.015, 0.0, 0.0]}, name='sim_hands').start()
+    procs = [sim]
+    try:
+        sim.wait_for_output(graph.SIM_READY, timeout=240)
+        for ns, z0 in (('left', 0.0), ('right', 0.001)):
+            procs.append(harness.NodeProcess('haptic_omni_driver', 'omni_driver', name=f'driver_{ns}',
+                                             ros_args=['-r', f'__ns:=/{ns}'],
+                                             params={'backend': 'scripted', 'target': [0.0, z0, 0.0], **SCRIPT,
+                                                     'pull_distance': 0.0, 'sweep_length': 0.0}).start())
+
+        def pressed(ns):
+            return sum(1 for m in seen[ns]['force'] if m.wrench.force.y > 0.05) >= 50
+
+        assert rclpy_node.spin_until(lambda: pressed('left') and pressed('right'), 60), \
+            [p.output()[-1500:] for p in procs]
+    finally:
+        codes = graph.stop_all(procs, timeout=30)
+    assert codes['sim_hands'] == 0, sim.output()[-2000:]
+    # each namespace's metrics follow its own device: pressing straight down (no pull, no sweep),
+    # the tools 30 mm apart along x
+    x = {}
+    for ns in seen:
+        touching = [m for m in seen[ns]['metrics'] if m.contact_force.z > 0.05]
+        assert touching, ns
+        x[ns] = touching[-1].tool_position.x
+    assert abs(x['right'] - x['left'] - 0.03) < 0.003, x
+    assert 'instruments left (device origin' in sim.output()
