@@ -602,3 +602,23 @@ def two_hands_on_a_floating_block(config: SolverConfig, frames: int = 150,
         impulse += (res.tools[0].force_raw + res.tools[1].force_raw) * dt
         peak = np.maximum(peak, [np.linalg.norm(t.force_raw) for t in res.tools])
     return solver.mass * solver.velocities.sum(axis=0), impulse, peak
+
+
+def two_hands_on_the_liver(model: TissueModel, material: Material, config: SolverConfig, grasp_xy, press_xy,
+                           lift: float = 0.01, depth: float = 0.01, ramp: float = 0.6, hold: float = 0.3,
+                           dt: float = 1e-3) -> tuple[Solver, np.ndarray]:
+    """One instrument grasps the top of ``model`` at ``grasp_xy`` [m] and lifts it ``lift`` [m] while
+    the other presses ``depth`` [m] at ``press_xy``, both over ``ramp`` [s], then both hold
+    ``hold`` [s]. Returns (the solver, left as it ends; the reaction on each tool per frame [N]
+    (n, 2, 3))."""
+    solver = Solver(model, material, config, instruments=2)
+    a = first_touch(model, solver.contact_reach, grasp_xy) - [0.0, 0.0, 0.0005]
+    b = first_touch(model, solver.contact_reach, press_xy)
+    solver.step_tools([(a, None), (b, None)], dt)
+    solver.grasp(0)
+    forces = []
+    for k in range(int(round((ramp + hold) / dt))):
+        u = cosine_ramp((k + 1) * dt, ramp)
+        res = solver.step_tools([(a + [0.0, 0.0, lift * u], None), (b - [0.0, 0.0, depth * u], None)], dt)
+        forces.append([t.force_raw for t in res.tools])
+    return solver, np.array(forces)
