@@ -1,7 +1,8 @@
 """omni_driver: the ROS 2 node that speaks for the haptic device.
 
 Publishes ``omni/pose`` (geometry_msgs/PoseStamped, stylus tip in ``omni_base``, metres) and
-``omni/state`` (tissue_msgs/DeviceState, at ``state_rate`` and on every change), subscribes
+``omni/state`` (tissue_msgs/DeviceState, at ``state_rate`` and on every button change: that one
+stamped with the sample's stamp and sent before its pose), subscribes
 ``omni/force_feedback`` (geometry_msgs/WrenchStamped) and passes every force command through the
 safety chain (:mod:`haptic_omni_driver.safety`) before it reaches the device. Backends (parameter
 ``backend``): ``openhaptics`` (libHD), ``replay`` (rosbag2 MCAP bag), ``scripted`` (synthetic motion).
@@ -286,6 +287,11 @@ class OmniDriver(Node):
         """Publish one pose (called from the backend / servo thread)."""
         # noted before it is published: its reply may come back before publish() returns
         self.safety.note_pose(sample.stamp_ns * 1e-9)
+        if sample.buttons is not None and sample.buttons != self._buttons:
+            # before the pose and with its stamp: a simulation that grasps on a button applies the
+            # change from the next pose on, in a lockstep replay always at the same one
+            self._buttons = sample.buttons
+            self._publish_state(sample.stamp_ns)
         if sample.raw is not None:
             self.pose_pub.publish(sample.raw)
         else:
@@ -298,9 +304,6 @@ class OmniDriver(Node):
         self.n_poses += 1
         if self.p['crtk']:
             self._publish_measured(sample)
-        if sample.buttons is not None and sample.buttons != self._buttons:
-            self._buttons = sample.buttons
-            self._publish_state()
 
     def _publish_measured(self, sample: Sample) -> None:
         """CRTK measured_cp / measured_cv / measured_js of a sample, at ``crtk_rate``.
@@ -502,11 +505,15 @@ class OmniDriver(Node):
             f'rejected force command ({text}): ({f.x}, {f.y}, {f.z}), stamp {stamp.sec}.'
             f'{stamp.nanosec:09d}; {self.safety.status(now).rejected_commands} rejected so far')
 
-    def _publish_state(self) -> None:
+    def _publish_state(self, stamp_ns: int | None = None) -> None:
+        """DeviceState, stamped ``stamp_ns`` (a button change: its sample's) or now."""
         now = time.monotonic()
         status = self.safety.status(now)
         msg = DeviceState()
-        msg.header.stamp = self.get_clock().now().to_msg()
+        if stamp_ns is None:
+            msg.header.stamp = self.get_clock().now().to_msg()
+        else:
+            set_stamp(msg.header.stamp, stamp_ns)
         msg.header.frame_id = self.p['frame_id']
         msg.button1, msg.button2 = (bool(b) for b in self._buttons)
         msg.force_enabled = bool(status.force_enabled)

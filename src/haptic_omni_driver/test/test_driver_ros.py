@@ -575,3 +575,25 @@ def test_safety_parameters_change_at_run_time_and_bad_values_are_refused(rclpy_n
         n0 = len(watch.msgs)
         assert rclpy_node.spin_until(lambda: len(watch.msgs) > n0 + 3, 5)
         assert watch.msgs[-1][1].force_limit == pytest.approx(0.3)
+
+
+def test_a_button_change_is_stamped_with_the_sample_it_came_with(rclpy_node):
+    """The scripted stylus presses button 1 for its hold: the state that says so carries the stamp
+    of the pose it came with (the driver sends it before that pose), so a simulation that grasps on
+    the button grasps at the same pose of every lockstep replay."""
+    from geometry_msgs.msg import PoseStamped
+    from tissue_msgs.msg import DeviceState
+
+    poses, states = set(), []
+    rclpy_node.create_subscription(PoseStamped, 'omni/pose',
+                                   lambda m: poses.add(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec),
+                                   reliable_qos(10000))
+    rclpy_node.create_subscription(DeviceState, 'omni/state', states.append, reliable_qos(1000))
+    with driver({'backend': 'scripted', 'reliable': True, 'approach_time': 0.2, 'press_time': 0.2,
+                 'hold_time': 0.2, 'state_rate': 1.0}) as proc:
+        proc.wait_for_output(r'ready:', 30)
+        assert rclpy_node.spin_until(lambda: any(m.button1 for m in states), 30), proc.output()
+        change = next(m for m in states if m.button1)
+        stamp = change.header.stamp.sec * 1_000_000_000 + change.header.stamp.nanosec
+        assert rclpy_node.spin_until(lambda: stamp in poses, 10), 'no pose carries the change\'s stamp'
+        assert proc.stop() == 0

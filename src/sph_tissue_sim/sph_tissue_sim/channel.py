@@ -34,6 +34,7 @@ class Channel:
     gripping: bool = False                  # the solver was told so (it grasped, since it last opened)
     newest_ns: int | None = None            # the stamp of its newest pose answered [ns]
     inbox: collections.deque = field(default_factory=collections.deque)   # poses waiting for a round
+    grasps: collections.deque = field(default_factory=collections.deque)  # lockstep: (stamp ns, closed)
 
     @property
     def label(self) -> str:

@@ -107,8 +107,8 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                     None, True, None),
     'grasp_button': (0, 'the stylus button (omni/state DeviceState button1 or button2) that closes the '
                         'instrument\'s jaw on the tissue in reach: 1 | 2 | 0 off (the bundled sessions '
-                        'press button 1 as a marker; a lockstep replay does not yet repeat a grasp bit for '
-                        'bit)', (0, 2), True, None),
+                        'press button 1 as a marker); lockstep: from the first pose stamped after the '
+                        'change', (0, 2), True, None),
     'instrument_offsets': ([0.0, 0.0, 0.0], '[m] tissue-frame offset of each instrument\'s device '
                                             'origin, added to translation: three numbers per instrument '
                                             'in the order of instruments (missing ones: 0)', None, True,

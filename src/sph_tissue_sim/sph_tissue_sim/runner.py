@@ -378,6 +378,8 @@ class Runner:
         return check_position(pose.position, self.p['max_device_distance'])
 
     def _process(self, pose: Pose, ch: Channel) -> None:
+        if ch.grasps:
+            self._grasps_before(ch, pose.stamp_ns)
         reason = self._reject_reason(pose)
         if reason is not None:
             self._reject(pose, f'rejected pose ({reason}): answered zero force, tissue not stepped', ch)
@@ -490,15 +492,26 @@ class Runner:
         return newest, min(dt, self.channels[0].clock.max_dt)
 
     # -- grasp ---------------------------------------------------------------------------------------
-    def on_grasp(self, k: int, closed: bool) -> None:
-        """Instrument ``k``'s jaw closes (``closed``) or opens: applied before the next solver step."""
+    def on_grasp(self, k: int, closed: bool, stamp_ns: int | None = None) -> None:
+        """Instrument ``k``'s jaw closes (``closed``) or opens at ``stamp_ns``: live, applied before the
+        next solver step; lockstep, from the first pose stamped after it on (the driver sends a
+        button change before the pose it came with, so a replay grasps at the same pose every time)."""
         if not 0 <= k < len(self.channels):
             self.throttled('instrument', 'error', f'a grasp for instrument {k}, which is not configured: ignored')
             return
         ch = self.channels[k]
+        if self.lockstep and stamp_ns is not None:
+            ch.grasps.append((int(stamp_ns), bool(closed)))
+            return
         if ch.closed != bool(closed):
             ch.closed = bool(closed)
             self._wake.set()
+
+    @staticmethod
+    def _grasps_before(ch: Channel, stamp_ns: int) -> None:
+        """Lockstep: the jaw as the button changes stamped before ``stamp_ns`` left it."""
+        while ch.grasps and ch.grasps[0][0] < stamp_ns:
+            ch.closed = ch.grasps.popleft()[1]
 
     def _grasp_as_asked(self) -> None:
         """Close or open each instrument as its device asks (caller holds the solver lock). A jaw

@@ -120,7 +120,8 @@ class SimNode(Node):
         button = p['grasp_button']
         self.state_subs = [self.create_subscription(
             DeviceState, _within(name, 'omni/state'),
-            lambda msg, k=k: self.runner.on_grasp(k, msg.button1 if button == 1 else msg.button2), 10)
+            lambda msg, k=k: self.runner.on_grasp(k, msg.button1 if button == 1 else msg.button2,
+                                                  stamp_to_ns(msg.header.stamp)), 10)
             for k, name in enumerate(names)] if button else []
 
     def _publish_device_frame(self) -> None:

@@ -286,3 +286,24 @@ def test_two_live_instruments_half_a_period_apart_simulate_the_pose_time_once():
     print(f'{runner.counts["steps"]} steps simulated {runner.solver.sim_time:.4f} s of {span:.4f} s of poses')
     assert runner.counts['steps'] > 10
     assert runner.solver.sim_time <= span + runner.p['max_dt']
+
+
+def test_a_lockstep_grasp_applies_from_the_pose_after_its_stamp_whichever_arrives_first():
+    """The driver sends a button change before the pose it came with; DDS may still deliver the pose
+    first. Either way the grasp applies from the next pose on: the forces repeat bit for bit."""
+    path = list(press_path(40, depth=0.001))
+    path += [path[-1] + [0.0, 0.0001 * (j + 1), 0.0] for j in range(40)]   # lift 4 mm
+    change = 40                                                            # button 1 down with pose 40
+    runs = []
+    for button_first in (True, False):
+        runner, out = make_runner(timing_mode='lockstep', step_thread=False)
+        for k, p in enumerate(path):
+            if k == change and button_first:
+                runner.on_grasp(0, True, T0_NS + k * MS)
+            runner.on_pose(pose(k, p))
+            if k == change and not button_first:
+                runner.on_grasp(0, True, T0_NS + k * MS)
+        runs.append(np.array([f[3] for f in forces(out)]))
+        assert runner.solver.instruments[0].holding > 0
+    assert runs[0].tobytes() == runs[1].tobytes()
+    assert runs[0][-1][1] < -0.02                        # and it pulls
