@@ -53,6 +53,7 @@ PLAN = {
     'sweep': (1000.0, 3, 1_700_000_200_000_000_000),
     'poke': (1000.0, 4, 1_700_000_300_000_000_000),
     'long': (1000.0, 5, 1_700_000_400_000_000_000),
+    'grasp': (1000.0, 6, 1_700_000_500_000_000_000),
 }
 POSE, FORCE, STATE = '/omni/pose', '/omni/force_feedback', '/omni/state'
 
@@ -74,7 +75,7 @@ def stamp_of(raw: bytes, msgtype: str) -> int:
 def record(name: str, input_bag: Path, raw_out: Path, timeout: float) -> None:
     """Run driver (replay, lockstep) + sim (lockstep, golden params) + omni_record on a private domain."""
     env = harness.ros_env()
-    sim = graph.sim('lockstep', env=env)
+    sim = graph.sim('lockstep', env=env, params=graph.BAG_SIM_PARAMS.get(name))
     rec = graph.recorder(raw_out, env=env)
     drv = graph.driver_replay(input_bag, 'lockstep', env=env, subscribers=2,
                               params={'lockstep_timeout_action': 'abort', 'lockstep_timeout': 60.0})

@@ -149,6 +149,20 @@ def long_session(g: Geometry, rng: np.random.Generator, duration: float = 66.0) 
     return p.segments
 
 
+def grasp(g: Geometry, rng: np.random.Generator) -> list[Segment]:
+    """Touch the top 10 mm from an edge, close the jaw (button 1), lift 15 mm, hold 0.5 s, open,
+    retreat (3.4 s); replayed with ``grasp_button: 1`` (``system_graph.BAG_SIM_PARAMS``)."""
+    p = _Path(g.point(0.03, depth=-0.02))
+    p.move('approach', g.point(0.03, depth=-0.004), 0.6)
+    p.move('touch', g.point(0.03, depth=0.001), 0.4)
+    p.hold(0.2, True)
+    p.move('lift', g.point(0.03, depth=-0.015), 0.8, True)
+    p.hold(0.5, True)
+    p.hold(0.3)
+    p.move('retreat', g.point(0.03, depth=-0.03), 0.6)
+    return p.segments
+
+
 #: name -> (builder, description)
 SESSIONS: dict[str, tuple[Callable, str]] = {
     'press': (press, 'press 6 mm, hold 1 s, release'),
@@ -156,6 +170,7 @@ SESSIONS: dict[str, tuple[Callable, str]] = {
     'sweep': (sweep, 'stroke 40 mm across the surface at 3 mm depth'),
     'poke': (poke, 'five quick 4 mm pokes 5 mm apart'),
     'long': (long_session, 'about a minute of presses, pulls, sweeps and pokes over the surface'),
+    'grasp': (grasp, 'grasp the top 10 mm from an edge, lift 15 mm, hold, release'),
 }
 
 

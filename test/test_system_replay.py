@@ -56,7 +56,7 @@ def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clea
     # histories deeper than the session on the sim's force writer and the monitor's readers: the
     # driver paces the loop, and a monitor that falls behind on a busy machine must not lose replies
     depth = 2 * len(pose_stamps)
-    sim = graph.sim('lockstep', env=env, params={'qos_depth': depth})
+    sim = graph.sim('lockstep', env=env, params={'qos_depth': depth, **graph.BAG_SIM_PARAMS.get(name, {})})
     drv = graph.driver_replay(bag, 'lockstep', env=env, subscribers=3,
                               params={'diagnostics_rate': 5.0})
     procs = [drv, sim, viz]

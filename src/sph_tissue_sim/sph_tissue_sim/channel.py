@@ -10,6 +10,7 @@ jaw should be closed. The
 from __future__ import annotations
 
 import collections
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,7 +35,8 @@ class Channel:
     gripping: bool = False                  # the solver was told so (it grasped, since it last opened)
     newest_ns: int | None = None            # the stamp of its newest pose answered [ns]
     inbox: collections.deque = field(default_factory=collections.deque)   # poses waiting for a round
-    grasps: collections.deque = field(default_factory=collections.deque)  # lockstep: (stamp ns, closed)
+    grasps: list = field(default_factory=list)  # lockstep: the button's changes (stamp ns, closed), in order
+    grasp_lock: threading.Lock = field(default_factory=threading.Lock)
 
     @property
     def label(self) -> str:

@@ -39,6 +39,7 @@ gap longer than ``max_dt`` is clamped to it; an unstable step answers zero and r
 
 from __future__ import annotations
 
+import bisect
 import collections
 import contextlib
 import dataclasses
@@ -501,17 +502,33 @@ class Runner:
             return
         ch = self.channels[k]
         if self.lockstep and stamp_ns is not None:
-            ch.grasps.append((int(stamp_ns), bool(closed)))
+            self._queue_grasp(ch, int(stamp_ns), bool(closed))
             return
         if ch.closed != bool(closed):
             ch.closed = bool(closed)
             self._wake.set()
 
     @staticmethod
+    def _queue_grasp(ch: Channel, stamp_ns: int, closed: bool) -> None:
+        """Keep ``ch.grasps`` in stamp order with only the changes: a state that repeats the button
+        (the driver's periodic one, stamped by the wall clock) changes nothing and is dropped, so a
+        change is applied at its stamp whichever arrived first."""
+        with ch.grasp_lock:
+            q = ch.grasps
+            i = bisect.bisect_right([stamp for stamp, _ in q], stamp_ns)
+            before = q[i - 1][1] if i else ch.closed
+            if closed == before:
+                return
+            q.insert(i, (stamp_ns, closed))
+            if i + 1 < len(q) and q[i + 1][1] == closed:
+                del q[i + 1]
+
+    @staticmethod
     def _grasps_before(ch: Channel, stamp_ns: int) -> None:
         """Lockstep: the jaw as the button changes stamped before ``stamp_ns`` left it."""
-        while ch.grasps and ch.grasps[0][0] < stamp_ns:
-            ch.closed = ch.grasps.popleft()[1]
+        with ch.grasp_lock:
+            while ch.grasps and ch.grasps[0][0] < stamp_ns:
+                ch.closed = ch.grasps.pop(0)[1]
 
     def _grasp_as_asked(self) -> None:
         """Close or open each instrument as its device asks (caller holds the solver lock). A jaw

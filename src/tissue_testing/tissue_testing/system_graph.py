@@ -30,7 +30,10 @@ REPO_ROOT = harness.REPO_ROOT
 BAGS = REPO_ROOT / 'bags'
 #: sim_node parameters the goldens in bags/ were recorded with (a ROS 2 params file)
 GOLDEN_SIM_PARAMS = BAGS / 'golden_sim_params.yaml'
-SHORT_BAGS = ('press', 'pull', 'sweep', 'poke')
+SHORT_BAGS = ('press', 'pull', 'sweep', 'poke', 'grasp')
+#: sim_node parameters a golden was recorded with beyond GOLDEN_SIM_PARAMS (the other sessions press
+#: button 1 as a marker: only the grasp session grasps with it)
+BAG_SIM_PARAMS = {'grasp': {'grasp_button': 1}}
 #: the kind of CPU the goldens were made on (:func:`host_kind`), written by bags/make_bags.py
 GOLDEN_HOST = BAGS / 'golden_host.json'
 
