@@ -308,16 +308,19 @@ class Runner:
         with self._cv:
             self.counts['poses'] += 1
             if self.lockstep:
-                if len(self._inbox) >= self.p['lockstep_queue_limit']:
-                    self._inbox.popleft()
-                    self.counts['overflow'] += 1
-                    self.throttled('overflow', 'error', f'lockstep queue full ({self.p["lockstep_queue_limit"]} '
-                                   f'poses): dropped the oldest')
+                self._make_room(self._inbox, 'lockstep queue full')
             elif self._inbox:
                 self.counts['dropped'] += len(self._inbox)
                 self._inbox.clear()
             self._inbox.append(pose)
             self._cv.notify()
+
+    def _make_room(self, inbox: collections.deque, why: str) -> None:
+        """Drop ``inbox``'s oldest pose when it holds ``lockstep_queue_limit`` (caller holds ``_cv``)."""
+        if len(inbox) >= self.p['lockstep_queue_limit']:
+            inbox.popleft()
+            self.counts['overflow'] += 1
+            self.throttled('overflow', 'error', f'{why} ({self.p["lockstep_queue_limit"]} poses): dropped the oldest')
 
     def _on_instrument_pose(self, pose: Pose, ch: Channel) -> None:
         """Several instruments: live, answer at once (the solver thread follows); lockstep, wait for
@@ -327,11 +330,7 @@ class Runner:
             self.handle(pose, ch)
             return
         with self._cv:
-            if len(ch.inbox) >= self.p['lockstep_queue_limit']:
-                ch.inbox.popleft()
-                self.counts['overflow'] += 1
-                self.throttled('overflow', 'error', f'lockstep: {ch.label} is {self.p["lockstep_queue_limit"]} '
-                               f'poses ahead of the others: dropped its oldest')
+            self._make_room(ch.inbox, f'lockstep: {ch.label} is that far ahead of the others')
             ch.inbox.append(pose)
             while all(c.inbox for c in self.channels):
                 for c in self.channels:

@@ -386,6 +386,12 @@ def test_runtime_parameters_are_applied_or_refused_with_a_reason(probe, rclpy_no
     ({'scheme': 'magic'}, r'scheme must be one of'),
     ({'k1_min': 9.0, 'k1_max': 2.0}, r'k1_min .* must be <= k1_max'),
     ({'rotation': [0.0, 0.0, 0.0, 0.0]}, r'rotation quaternion'),
+    ({'instruments': ['left', 'left'], 'mode': 'global'}, r"'left' is named twice"),
+    ({'instruments': ['left', '2nd'], 'mode': 'global'}, r"'2nd' is not a valid namespace"),
+    ({'instruments': ['left', 'right']}, r'2 instruments need mode global'),
+    ({'instruments': ['left', 'right'], 'mode': 'global', 'haptic_mode': 'direct'}, r'need haptic_mode multirate'),
+    ({'instruments': ['left', 'right'], 'mode': 'global', 'instrument_offsets': [0.0, 0.0]},
+     r'three per instrument'),
 ])
 def test_invalid_start_parameters_exit_with_code_2_and_say_why(ros_domain, params, message):
     with sim({**params, 'warmup': False}) as proc:
