@@ -118,3 +118,23 @@ def test_a_grasp_on_nothing_a_release_without_a_grasp_and_a_lifted_tool_hold_not
     assert solver.instruments[0].holding == 0
     with pytest.raises(InvalidInput, match='instrument'):
         solver.grasp(1)
+
+
+def test_a_twist_faster_than_the_shaft_may_sweep_turns_what_it_holds_only_as_far_as_the_shaft():
+    """max_tool_speed holds a long shaft's far end back in a fast twist; the held particles' anchors
+    turn with the shaft as it is, not as the hand asked (else they would be torn off the tool)."""
+    model = _column(6, fix='none')
+    config = SolverConfig(mode='global', tool_shape='capsule', tool_length=0.05, max_tool_speed=0.1)
+    solver = Solver(model, liver_default(), config)
+    tip = _touching(solver)
+    up = np.eye(3)                                   # the shaft points up from the tip
+    solver.step_tools([(tip, up)], 1e-3)
+    assert solver.grasp() > 0
+    a = np.radians(30.0)
+    turned = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]]) @ up
+    res = solver.step_tools([(tip, turned)], 1e-3)   # 25 mm at the far end: 0.1 mm allowed
+    hand = solver.instruments[0]
+    shaft = (res.tool_segment[1] - res.tool_segment[0]) / 0.05
+    np.testing.assert_allclose(hand.rotation[:, 2], shaft, atol=1e-12)
+    np.testing.assert_allclose(hand.rotation.T @ hand.rotation, np.eye(3), atol=1e-12)
+    assert res.tools[0].grasped == 9                 # nothing torn off

@@ -687,7 +687,10 @@ class Solver:
                     tip, lag = self._limit_travel(hand.tip, tip, cfg.max_tool_speed * dt)
                 seg1 = self.tool.segment(tip, rot)
                 if hand.segment is not None and self.tool.oriented:
-                    lag = max(lag, self._limit_sweep(hand.segment, seg1, cfg.max_tool_speed * dt))
+                    sweep = self._limit_sweep(hand.segment, seg1, cfg.max_tool_speed * dt)
+                    if sweep > 0.0:
+                        rot = _turned_to(rot, seg1)     # what it holds turns as far as the shaft did
+                    lag = max(lag, sweep)
                 seg0 = hand.segment if hand.segment is not None else seg1
                 grip = self._grip(hand, rot)
             else:
@@ -849,6 +852,23 @@ class Solver:
         return [contact], dict(n_interaction=int(n_inter), n_layer=area.layer_counts[:cfg.n_layers].copy(),
                                n_relaxing=int(n_relax), max_displacement=float(md), kinetic_energy=float(ke),
                                k1=float(k1), n_active=int(n_active_frame))
+
+
+def _turned_to(rot: np.ndarray, seg: np.ndarray) -> np.ndarray:
+    """``rot`` turned by the least rotation that takes its +z (the shaft's request) onto the axis
+    of ``seg`` (the shaft as its sweep limit left it)."""
+    a = rot[:, 2]
+    b = seg[1] - seg[0]
+    n = float(np.linalg.norm(b))
+    if n == 0.0:
+        return rot
+    b = b / n
+    v = np.cross(a, b)
+    c = float(a @ b)
+    if c <= -1.0 + 1e-12:       # turned right round: any half turn about a normal will do
+        return rot @ np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return (np.eye(3) + vx + vx @ vx / (1.0 + c)) @ rot
 
 
 def warmup(scheme: str | None = None, integrator: str = 'explicit') -> float:
