@@ -64,9 +64,10 @@ from sph_tissue_sim.runner import make_mapping, make_solver
 from tissue_common.feel import TICK, feel
 from tissue_common.force import clamp_norm
 from tissue_common.stamps import stamp_to_ns
+from tissue_testing import system_graph as graph
 
 ROOT = Path(__file__).resolve().parents[1]
-BAGS = ('press', 'pull', 'sweep', 'poke', 'long')
+BAGS = ('press', 'pull', 'sweep', 'poke', 'long', 'grasp')
 COLUMNS = ('bag', 'way', 'frames', 'steady_frames', 'dF_p99_mN', 'dF_max_mN', 'reversals', 'tick_change_pct',
            'still_tick_change_pct', 'smooth_tick_change_pct', 'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
 
@@ -80,19 +81,33 @@ def golden_params() -> dict:
     return p
 
 
-def bag_poses(name: str) -> tuple[np.ndarray, np.ndarray]:
-    """(stamps [ns] (M,), device positions [m] (M, 3)) of a bundled bag, in order."""
-    stamps, pos = [], []
-    for _, _, _, msg in read_bag(ROOT / 'bags' / name, ['/omni/pose']):
+def bag_poses(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps [ns] (M,), device positions [m] (M, 3), jaw closed at each pose (M,) bool) of a
+    bundled bag, in order. The jaw is closed where the session's ``grasp_button`` (``system_graph.
+    BAG_SIM_PARAMS``; none: never) was down in the newest state stamped before the pose, as
+    ``sim_node`` applies it in lockstep."""
+    stamps, pos, changes = [], [], []
+    button = graph.BAG_SIM_PARAMS.get(name, {}).get('grasp_button', 0)
+    for topic, _, _, msg in read_bag(ROOT / 'bags' / name, ['/omni/pose', '/omni/state']):
+        if topic == '/omni/state':
+            if button:
+                changes.append((stamp_to_ns(msg.header.stamp), bool(msg.button1 if button == 1 else msg.button2)))
+            continue
         stamps.append(stamp_to_ns(msg.header.stamp))
         q = msg.pose.position
         pos.append((q.x, q.y, q.z))
-    return np.array(stamps), np.array(pos)
+    stamps = np.array(stamps)
+    closed = np.zeros(len(stamps), dtype=bool)
+    # the states a bag holds: its changes (stamped with their poses) and the driver's periodic ones
+    # (its wall clock, far from the poses' stamps): only those within the session count
+    for stamp, down in sorted(c for c in changes if stamps[0] <= c[0] <= stamps[-1]):
+        closed[stamps > stamp] = down
+    return stamps, np.array(pos), closed
 
 
 def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int = 1,
            config: RendererConfig | None = None, delay: int = 0,
-           rtf: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+           rtf: float = 0.0, closed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Tissue-frame (positions, forces) per pose, ``way`` 'direct' or 'renderer'.
 
     The renderer's schedule: by default the lockstep one of ``sim_node`` (the solver steps at the
@@ -100,7 +115,8 @@ def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int
     repeatable: the solver takes a job (the newest proxy and the pose time since its last job, at
     most ``max_dt``) whenever it is free, and its reaction
     reaches the renderer ``delay`` poses later (``delay`` > 0), or, with ``rtf`` > 0, as from a
-    solver at that real-time factor: a job of ``dt`` pose time takes ``dt / rtf``."""
+    solver at that real-time factor: a job of ``dt`` pose time takes ``dt / rtf``. ``closed``: the
+    jaw per pose (:func:`bag_poses`), applied before the solver's next step as ``sim_node`` does."""
     solver = make_solver(sim_params.build_model(p), sim_params.build_material(p),
                          sim_params.build_config(p), p['nominal_dt'])
     mapping = make_mapping(p, solver)
@@ -111,7 +127,16 @@ def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int
     dts = np.r_[p['nominal_dt'], np.diff(stamps) * 1e-9]
     forces = np.empty_like(xs)
     pending, due = None, 0
+    gripping = False
+
+    def jaw(k: int) -> None:
+        nonlocal gripping
+        if closed is not None and closed[k] != gripping:
+            gripping = bool(closed[k])
+            solver.grasp() if gripping else solver.release()
+
     for k, (x, dt) in enumerate(zip(xs, dts)):
+        jaw(k)
         if way == 'direct':
             forces[k] = clamp_norm(solver.step(x, dt).force_raw, p['force_limit'])[0]
             continue
@@ -306,17 +331,19 @@ def main(argv=None) -> int:
               f'{q["E_in_min_uJ"]:9.2f} {q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
 
     for name in args.bags.split(','):
-        stamps, device = bag_poses(name)
+        stamps, device, closed = bag_poses(name)
         for way in ('direct', 'renderer'):
-            xs, forces = replay(p, stamps, device, way, args.every, config)
+            xs, forces = replay(p, stamps, device, way, args.every, config, closed=closed)
             if name == 'press':
                 press[way] = (xs, forces)
             row(name, way, quality(xs, forces))
         for d in delays:
-            row(name, f'live {d}', quality(*replay(p, stamps, device, 'renderer', config=config, delay=d)))
+            row(name, f'live {d}', quality(*replay(p, stamps, device, 'renderer', config=config, delay=d,
+                                                   closed=closed)))
         for r in rtfs:
-            row(name, f'rtf {r:g}', quality(*replay(p, stamps, device, 'renderer', config=config, rtf=r)))
-    stamps, device = bag_poses('poke')
+            row(name, f'rtf {r:g}', quality(*replay(p, stamps, device, 'renderer', config=config, rtf=r,
+                                                   closed=closed)))
+    stamps, device, _ = bag_poses('poke')
     for way in ('direct', 'renderer'):
         row('poke E x10', way, quality(*replay(stiff_params(p), stamps, device, way, config=config)))
     print('quasi-static force after a slow press and 1.5 s hold (block, top centre); last: direct at '

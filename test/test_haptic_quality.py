@@ -27,7 +27,7 @@ def _load():
 def test_the_renderer_removes_the_tick_spikes_and_gives_no_energy_back_on_the_press_bag():
     hq = _load()
     p = hq.golden_params()
-    stamps, device = hq.bag_poses('press')
+    stamps, device, _ = hq.bag_poses('press')
     direct = hq.quality(*hq.replay(p, stamps, device, 'direct'))
     rendered = hq.quality(*hq.replay(p, stamps, device, 'renderer'))
     # the direct force: encoder ticks become spikes, and the tissue hands energy back (-87 uJ)
@@ -46,7 +46,7 @@ def test_the_renderer_removes_the_tick_spikes_and_gives_no_energy_back_on_the_pr
 def test_a_replay_through_the_renderer_is_bit_identical_when_repeated():
     hq = _load()
     p = hq.golden_params()
-    stamps, device = hq.bag_poses('poke')
+    stamps, device, _ = hq.bag_poses('poke')
     a = hq.replay(p, stamps[:800], device[:800], 'renderer')[1]
     b = hq.replay(p, stamps[:800], device[:800], 'renderer')[1]
     assert np.array_equal(a, b) and np.abs(a).max() > 0.0
@@ -98,7 +98,7 @@ def test_on_the_live_schedule_a_reaction_16_poses_late_neither_clicks_nor_gives_
     -7.2 uJ (the stiffness learned per refresh, 20 refreshes of memory: a staircase on the way in)."""
     hq = _load()
     p = hq.golden_params()
-    stamps, device = hq.bag_poses('poke')
+    stamps, device, _ = hq.bag_poses('poke')
     q = hq.quality(*hq.replay(p, stamps, device, 'renderer', delay=16))
     assert q['reversals'] == 0
     assert q['dF_p99_mN'] <= 5.0 and q['dF_max_mN'] < 10.0
@@ -115,7 +115,7 @@ def test_a_solver_at_half_real_time_cannot_give_back_more_than_the_hand_put_in(m
     is no rougher, and the pokes are still felt."""
     hq = _load()
     p = hq.golden_params()
-    stamps, device = hq.bag_poses('poke')
+    stamps, device, _ = hq.bag_poses('poke')
     bound = hq.quality(*hq.replay(p, stamps, device, 'renderer', rtf=0.5))
     from sph_tissue_sim.haptics.passivity import EnergyBound
     monkeypatch.setattr(EnergyBound, 'limit', lambda self, spring, touching: spring)
@@ -125,3 +125,18 @@ def test_a_solver_at_half_real_time_cannot_give_back_more_than_the_hand_put_in(m
     assert bound['reversals'] == 0
     assert bound['dF_p99_mN'] <= free['dF_p99_mN']
     assert bound['peak_N'] > 0.1
+
+
+def test_the_grasp_bag_through_the_renderer_is_passive_and_feels_the_pull():
+    """The grasp session replayed with its button (the jaw closes after the touch, the tool lifts
+    15 mm, opens): the hand is pulled back towards the tissue, and the rendering never gives back
+    energy the hand did not put in."""
+    hq = _load()
+    p = hq.golden_params()
+    stamps, device, closed = hq.bag_poses('grasp')
+    assert closed.any() and not closed[0] and not closed[-1]
+    xs, forces = hq.replay(p, stamps, device, 'renderer', closed=closed)
+    rendered = hq.quality(xs, forces)
+    assert rendered['E_in_min_uJ'] >= -1.0
+    assert forces[closed].min(axis=0)[2] < -0.5            # pulled down (tissue frame) while lifting
+    assert np.abs(forces[-200:]).max() < 1e-9              # let go, lifted clear
