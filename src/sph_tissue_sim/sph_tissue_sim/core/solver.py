@@ -705,7 +705,7 @@ class Solver:
                                   self.contact_damping, self.samples, self.touches,
                                   cfg.friction, hand.anchor, hand.stuck, k, grip))
         paths = tuple(paths)
-        held = [hand.grip_held.copy() for hand in self.instruments]
+        held = [hand.grip_held.copy() if len(hand.grip_idx) else None for hand in self.instruments]
         try:
             if cfg.mode == 'global':
                 contacts, res = self._global_step(paths, n_sub, sub_dt, dt)
@@ -713,7 +713,8 @@ class Solver:
                 contacts, res = self._local_step(paths, n_sub, sub_dt, dt)
         except SimError:
             for hand, flags in zip(self.instruments, held):
-                hand.grip_held[:] = flags      # the slips belong to the discarded frame
+                if flags is not None:
+                    hand.grip_held[:] = flags  # the slips belong to the discarded frame
             raise
         if self.dashpot_rate is not None:
             self.dashpot_rate.update(self.body, self.x, self._last_sets, sub_dt)
