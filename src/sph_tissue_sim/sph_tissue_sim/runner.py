@@ -484,8 +484,8 @@ class Runner:
             return jobs[0], jobs[0].dt
         taken = [(ch.newest_ns, job) for ch, job in zip(self.channels, jobs) if job is not None]
         newest_ns, newest = max(taken, key=lambda pair: pair[0])
-        last, self._stepped_ns = self._stepped_ns, newest_ns if self._stepped_ns is None else max(
-            self._stepped_ns, newest_ns)
+        last = self._stepped_ns
+        self._stepped_ns = newest_ns if last is None else max(last, newest_ns)
         dt = max(job.dt for _, job in taken) if last is None else (newest_ns - last) * 1e-9
         if not dt > 0.0:   # no pose newer than the last step (a stamp went backwards): one nominal step
             dt = self.channels[0].clock.nominal_dt
