@@ -8,7 +8,9 @@ For each session (see ``bags/sessions.py``):
 2. the node graph runs as real processes on a private ROS_DOMAIN_ID: ``omni_driver`` replays the
    input bag in lockstep (each pose waits for the force reply), ``sim_node`` runs in lockstep with
    the golden parameters (``bags/golden_sim_params.yaml``) and ``omni_record`` records
-   ``omni/pose``, ``omni/force_feedback`` and ``omni/state`` (reliable, no loss);
+   ``omni/pose``, ``omni/force_feedback`` and ``omni/state`` (reliable, no loss); a session of
+   several instruments runs one replaying driver per instrument, each in its namespace, and the
+   recorder records every instrument's three topics;
 3. the recording is finalised into ``bags/<name>/``: the recorded CDR bytes are kept as they are;
    log times are put on the device clock (a pose at its header stamp, a force at the stamp of the
    pose it answers + 1 ns, a state 2 ns after the pose it followed: in lockstep the wall-clock
@@ -44,7 +46,7 @@ from tissue_testing import system_graph as graph  # noqa: E402
 from haptic_omni_driver.bag_reader import read_bag  # noqa: E402
 from haptic_omni_driver.bag_types import POSE_TYPE, WRENCH_TYPE, typestore  # noqa: E402
 from haptic_omni_driver.bag_writer import qos_profile, write_bag  # noqa: E402
-from sessions import SESSIONS, Geometry, session_messages  # noqa: E402
+from sessions import SESSIONS, Geometry, session_messages, session_scripts, topic  # noqa: E402
 
 #: name -> (pose rate [Hz], seed, t0 [ns]); the long session is recorded at 1 kHz too
 PLAN = {
@@ -54,8 +56,9 @@ PLAN = {
     'poke': (1000.0, 4, 1_700_000_300_000_000_000),
     'long': (1000.0, 5, 1_700_000_400_000_000_000),
     'grasp': (1000.0, 6, 1_700_000_500_000_000_000),
+    'bimanual': (1000.0, 7, 1_700_000_600_000_000_000),
 }
-POSE, FORCE, STATE = '/omni/pose', '/omni/force_feedback', '/omni/state'
+POSE, FORCE, STATE = 'omni/pose', 'omni/force_feedback', 'omni/state'
 
 
 class IncompleteRecording(RuntimeError):
@@ -72,26 +75,45 @@ def stamp_of(raw: bytes, msgtype: str) -> int:
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
+def instruments(name: str) -> tuple[str, ...]:
+    """The instruments of a session: its scripts' names, which sim_node must serve."""
+    names = tuple(session_scripts(name))
+    if names != graph.bag_instruments(name):
+        raise SystemExit(f'make_bags: {name}: the scripts are for {names}, sim_node would serve '
+                         f'{graph.bag_instruments(name)} (system_graph.BAG_SIM_PARAMS)')
+    return names
+
+
+def topics(name: str) -> list[str]:
+    """Every recorded topic of a session: pose, force and state of each instrument."""
+    return [topic(i, t) for i in instruments(name) for t in (POSE, FORCE, STATE)]
+
+
 def record(name: str, input_bag: Path, raw_out: Path, timeout: float) -> None:
-    """Run driver (replay, lockstep) + sim (lockstep, golden params) + omni_record on a private domain."""
+    """Run a driver per instrument (replay, lockstep) + sim (lockstep, golden params) + omni_record
+    on a private domain."""
     env = harness.ros_env()
     sim = graph.sim('lockstep', env=env, params=graph.BAG_SIM_PARAMS.get(name))
-    rec = graph.recorder(raw_out, env=env)
-    drv = graph.driver_replay(input_bag, 'lockstep', env=env, subscribers=2,
-                              params={'lockstep_timeout_action': 'abort', 'lockstep_timeout': 60.0})
-    procs = [sim, rec, drv]
+    rec = graph.recorder(raw_out, env=env, params={'topics': topics(name)})
+    drivers = [graph.driver_replay(input_bag, 'lockstep', env=env, subscribers=2, instrument=i,
+                                   params={'lockstep_timeout_action': 'abort', 'lockstep_timeout': 60.0})
+               for i in instruments(name)]
+    procs = [sim, rec, *drivers]
     try:
         sim.start()
         sim.wait_for_output(graph.SIM_READY, timeout=180)
         rec.start()
         rec.wait_for_output(graph.RECORD_READY, timeout=60)
-        rec.wait_for_output(graph.record_matched(FORCE), timeout=60)
+        for i in instruments(name):
+            rec.wait_for_output(graph.record_matched(topic(i, FORCE)), timeout=60)
         t0 = time.monotonic()
-        drv.start()
-        code = drv.wait(timeout)
-        if code != 0:
-            # e.g. a lockstep reply that never came on a loaded machine: the run is lost, not the session
-            raise IncompleteRecording(f'omni_driver exited with {code}:\n{drv.output()[-3000:]}')
+        for drv in drivers:
+            drv.start()
+        for drv in drivers:
+            code = drv.wait(timeout)
+            if code != 0:
+                # e.g. a lockstep reply that never came on a loaded machine: the run is lost, not the session
+                raise IncompleteRecording(f'{drv.name} exited with {code}:\n{drv.output()[-3000:]}')
         log(f'{name}: lockstep replay took {time.monotonic() - t0:.1f} s')
         time.sleep(0.5)  # the last force is in flight to the recorder as well
         rec.stop(30)
@@ -102,41 +124,51 @@ def record(name: str, input_bag: Path, raw_out: Path, timeout: float) -> None:
             p.stop()
 
 
-def finalise(raw_bag: Path, out: Path, expected_poses: int) -> dict:
-    """Re-time the recording onto the device clock and write ``out`` (zstd MCAP); returns counts."""
+def finalise(raw_bag: Path, out: Path, expected_poses: int, names: tuple[str, ...] = ('',)) -> dict:
+    """Re-time the recording of the instruments ``names`` onto the device clock and write ``out``
+    (zstd MCAP); ``expected_poses`` per instrument; returns counts."""
     msgs = list(read_bag(raw_bag, raw=True))
-    poses = [m for m in msgs if m[0] == POSE]
-    forces = [m for m in msgs if m[0] == FORCE]
-    if len(poses) != expected_poses:
-        raise IncompleteRecording(f'recorded {len(poses)} poses, the script has {expected_poses}')
-    pose_stamps = [stamp_of(m[3], POSE_TYPE) for m in poses]
-    force_stamps = [stamp_of(m[3], WRENCH_TYPE) for m in forces]
-    if sorted(force_stamps) != pose_stamps:
-        missing = len(set(pose_stamps) - set(force_stamps))
-        raise IncompleteRecording(f'{len(forces)} forces for {len(poses)} poses ({missing} poses '
-                         f'without a reply, or duplicates): not a complete lockstep recording')
     out_msgs = []
-    last_pose = pose_stamps[0]
-    for topic, msgtype, _, raw in msgs:
-        if topic == POSE:
-            last_pose = stamp_of(raw, msgtype)
-            out_msgs.append((last_pose, 0, topic, msgtype, raw))
-        elif topic == FORCE:
-            out_msgs.append((stamp_of(raw, msgtype) + 1, 1, topic, msgtype, raw))
-        else:
-            out_msgs.append((last_pose + 2, 2, topic, msgtype, raw))
-    out_msgs.sort(key=lambda m: (m[0], m[1]))
+    counts = {'poses': 0, 'forces': 0, 'states': 0}
+    qos = {}
+    for k, instrument in enumerate(names):
+        pose_topic, force_topic, state_topic = (topic(instrument, t) for t in (POSE, FORCE, STATE))
+        poses = [m for m in msgs if m[0] == pose_topic]
+        forces = [m for m in msgs if m[0] == force_topic]
+        if len(poses) != expected_poses:
+            raise IncompleteRecording(f'recorded {len(poses)} poses on {pose_topic}, the script has '
+                                      f'{expected_poses}')
+        pose_stamps = [stamp_of(m[3], POSE_TYPE) for m in poses]
+        force_stamps = [stamp_of(m[3], WRENCH_TYPE) for m in forces]
+        if sorted(force_stamps) != pose_stamps:
+            missing = len(set(pose_stamps) - set(force_stamps))
+            raise IncompleteRecording(f'{len(forces)} forces for {len(poses)} poses on {pose_topic} '
+                                      f'({missing} poses without a reply, or duplicates): not a '
+                                      f'complete lockstep recording')
+        last_pose = pose_stamps[0]
+        for name, msgtype, _, raw in msgs:
+            if name == pose_topic:
+                last_pose = stamp_of(raw, msgtype)
+                out_msgs.append((last_pose, 0, k, name, msgtype, raw))
+            elif name == force_topic:
+                out_msgs.append((stamp_of(raw, msgtype) + 1, 1, k, name, msgtype, raw))
+            elif name == state_topic:
+                out_msgs.append((last_pose + 2, 2, k, name, msgtype, raw))
+                counts['states'] += 1
+        counts['poses'] += len(poses)
+        counts['forces'] += len(forces)
+        qos.update({pose_topic: [qos_profile(True, 1000)], force_topic: [qos_profile(True, 1000)],
+                    state_topic: [qos_profile(True, 10)]})
+    # at one log time: poses, then forces, then states, each in the instruments' order
+    out_msgs.sort(key=lambda m: m[:3])
     tmp_dir = Path(tempfile.mkdtemp(prefix='make_bags_'))
     tmp = tmp_dir / out.name  # rosbags names the .mcap file after the folder
-    qos = {POSE: [qos_profile(True, 1000)], FORCE: [qos_profile(True, 1000)],
-           STATE: [qos_profile(True, 10)]}
-    write_bag(tmp, [(t, mt, log_ns, raw) for log_ns, _, t, mt, raw in out_msgs], qos=qos)
+    write_bag(tmp, [(t, mt, log_ns, raw) for log_ns, _, _, t, mt, raw in out_msgs], qos=qos)
     try:
         compress_mcap(tmp, out)
     finally:
         shutil.rmtree(tmp_dir)
-    return {'poses': len(poses), 'forces': len(forces),
-            'states': sum(1 for m in msgs if m[0] == STATE)}
+    return counts
 
 
 def compress_mcap(src: Path, dst: Path) -> None:
@@ -187,7 +219,8 @@ def make(name: str, out_dir: Path, geometry: Geometry) -> dict:
         input_bag = Path(tmp) / f'{name}_script'
         messages = session_messages(name, rate, geometry, seed, t0)
         write_bag(input_bag, messages)
-        n = sum(1 for m in messages if m[0] == POSE)
+        names = instruments(name)
+        n = sum(1 for m in messages if m[0] == topic(names[0], POSE))
         log(f'{name}: script of {n} poses ({n / rate:.1f} s at {rate:g} Hz); recording')
         for attempt in range(1, 4):
             raw = Path(tmp) / f'{name}_raw{attempt}'
@@ -195,7 +228,7 @@ def make(name: str, out_dir: Path, geometry: Geometry) -> dict:
                 shutil.rmtree(out)
             try:
                 record(name, input_bag, raw, timeout=max(120.0, 0.02 * n))
-                counts = finalise(raw, out, n)
+                counts = finalise(raw, out, n, names)
                 break
             except IncompleteRecording as exc:
                 # e.g. a lockstep reply that never came on a loaded machine
@@ -231,11 +264,11 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix='make_bags_check_') as tmp:
         for name in args.names:
             make(name, Path(tmp), geometry)
-            for topic in (POSE, FORCE):
-                new, old = stream_digest(Path(tmp) / name, topic), stream_digest(HERE / name, topic)
+            for stream in (topic(i, t) for i in instruments(name) for t in (POSE, FORCE)):
+                new, old = stream_digest(Path(tmp) / name, stream), stream_digest(HERE / name, stream)
                 same = new == old
                 bad += not same
-                log(f'check {name} {topic}: {"identical" if same else "DIFFERENT"} '
+                log(f'check {name} {stream}: {"identical" if same else "DIFFERENT"} '
                     f'({new[0]} vs {old[0]} messages)')
     return 1 if bad else 0
 

@@ -5,6 +5,10 @@ generator the ``scripted`` backend plays), sampled at the device rate with the s
 physiological tremor (8-12 Hz) and the Omni's encoder quantisation. Positions are in the device
 frame ``omni_base`` (x right, y up, z towards the user) relative to a surface point ``surface`` of
 the tissue and a pressing direction ``down`` (default -y). Deterministic for a given seed.
+
+A session of several instruments (``bimanual``) has one script per instrument, keyed by the
+instrument's name (its namespace: ``/<name>/omni/pose``); a session of one instrument is keyed by
+``''`` (``/omni/pose``).
 """
 
 from __future__ import annotations
@@ -163,7 +167,31 @@ def grasp(g: Geometry, rng: np.random.Generator) -> list[Segment]:
     return p.segments
 
 
-#: name -> (builder, description)
+def bimanual(g: Geometry, rng: np.random.Generator) -> dict[str, list[Segment]]:
+    """Two instruments, 4.5 s each: ``left`` touches the top 10 mm from an edge, closes its jaw
+    (button 1), lifts 12 mm while retracting 10 mm outwards, holds, opens, retreats; ``right`` waits
+    while the tissue is lifted, then presses 5 mm, 35 mm beside where the grasp took hold, holds and
+    releases. Positions are each device's own; ``instrument_offsets`` (``system_graph.BAG_SIM_PARAMS``)
+    place the two devices 20 mm either side of the model centre."""
+    left = _Path(g.point(-0.01, depth=-0.02))
+    left.move('approach', g.point(-0.01, depth=-0.004), 0.6)
+    left.move('touch', g.point(-0.01, depth=0.001), 0.4)
+    left.hold(0.2, True)
+    left.move('retract', g.point(-0.02, depth=-0.012), 0.8, True)
+    left.hold(1.6, True)
+    left.hold(0.3)
+    left.move('retreat', g.point(-0.02, depth=-0.03), 0.6)
+    right = _Path(g.point(-0.015, depth=-0.02))
+    right.hold(1.6)
+    right.move('approach', g.point(-0.015, depth=-0.004), 0.5)
+    right.move('press', g.point(-0.015, depth=0.005), 0.6)
+    right.hold(0.6)
+    right.move('release', g.point(-0.015, depth=-0.004), 0.5)
+    right.move('retreat', g.point(-0.015, depth=-0.02), 0.7)
+    return {'left': left.segments, 'right': right.segments}
+
+
+#: name -> (builder, description); a builder returns one script, or one per instrument by name
 SESSIONS: dict[str, tuple[Callable, str]] = {
     'press': (press, 'press 6 mm, hold 1 s, release'),
     'pull': (pull, 'press 5 mm and drag 12 mm sideways'),
@@ -171,27 +199,41 @@ SESSIONS: dict[str, tuple[Callable, str]] = {
     'poke': (poke, 'five quick 4 mm pokes 5 mm apart'),
     'long': (long_session, 'about a minute of presses, pulls, sweeps and pokes over the surface'),
     'grasp': (grasp, 'grasp the top 10 mm from an edge, lift 15 mm, hold, release'),
+    'bimanual': (bimanual, 'left grasps the top near an edge and retracts it, right presses beside it'),
 }
+
+
+def session_scripts(name: str, geometry: Geometry | None = None,
+                    seed: int = 0) -> dict[str, list[Segment]]:
+    """Each instrument's script of a session, by instrument name (``''``: the one instrument)."""
+    scripts = SESSIONS[name][0](geometry or Geometry(), np.random.default_rng(seed))
+    return scripts if isinstance(scripts, dict) else {'': scripts}
+
+
+def topic(instrument: str, name: str) -> str:
+    """The absolute topic ``name`` (e.g. ``omni/pose``) of ``instrument`` (``''``: no namespace)."""
+    return f'/{instrument}/{name}' if instrument else f'/{name}'
 
 
 def session_trajectory(name: str, rate: float = 1000.0, geometry: Geometry | None = None,
                        seed: int = 0, tremor_amplitude: float = TREMOR,
-                       quantisation: float = OMNI_QUANTISATION):
-    """Sample a session: (t [s] (M,), positions [m] (M, 3), button1 (M,), phases list[str])."""
-    builder = SESSIONS[name][0]
-    rng = np.random.default_rng(seed)
-    segments = builder(geometry or Geometry(), rng)
+                       quantisation: float = OMNI_QUANTISATION, instrument: str = ''):
+    """Sample one instrument's script of a session: (t [s] (M,), positions [m] (M, 3), button1 (M,),
+    phases list[str]). Each instrument's hand trembles on its own (seed + its index)."""
+    scripts = session_scripts(name, geometry, seed)
+    segments = scripts[instrument]
     total = sum(s.duration for s in segments)
     t = np.arange(int(round(total * rate)) + 1) / rate
     pos, buttons, phases = sample_script(segments, t)
-    pos = pos + tremor(t, tremor_amplitude, seed=seed)
+    pos = pos + tremor(t, tremor_amplitude, seed=seed + list(scripts).index(instrument))
     return t, quantise(pos, quantisation), buttons, phases
 
 
 def session_messages(name: str, rate: float = 1000.0, geometry: Geometry | None = None,
                      seed: int = 0, t0_ns: int = 1_700_000_000_000_000_000,
                      frame_id: str = 'omni_base', state_rate: float = 100.0) -> list:
-    """A session as bag messages ``[(topic, msgtype, log_ns, rosbags msg)]`` (poses + buttons)."""
+    """A session as bag messages ``[(topic, msgtype, log_ns, rosbags msg)]`` (poses + buttons of
+    each instrument, in time order)."""
     from haptic_omni_driver.bag_types import POSE_TYPE, STATE_TYPE, typestore
 
     types = typestore().types
@@ -200,16 +242,19 @@ def session_messages(name: str, rate: float = 1000.0, geometry: Geometry | None 
                          types['geometry_msgs/msg/Quaternion'])
     PoseStamped, State = types[POSE_TYPE], types[STATE_TYPE]
     Vec = types['geometry_msgs/msg/Vector3']
-    t, pos, buttons, _ = session_trajectory(name, rate, geometry, seed)
     every = max(1, int(round(rate / state_rate)))
     out = []
-    for k in range(t.size):
-        stamp = int(t0_ns + round(t[k] * 1e9))
-        header = Header(Time(*divmod(stamp, 1_000_000_000)), frame_id)
-        out.append(('/omni/pose', POSE_TYPE, stamp,
-                    PoseStamped(header, Pose(Point(*map(float, pos[k])), Quat(0.0, 0.0, 0.0, 1.0)))))
-        if k % every == 0 or (k and buttons[k] != buttons[k - 1]):
-            out.append(('/omni/state', STATE_TYPE, stamp, State(
-                header, bool(buttons[k]), False, False, False, False, True, Vec(0.0, 0.0, 0.0),
-                0.0, -1.0, 0, 'scripted', f'session {name} (seed {seed})')))
+    for instrument in session_scripts(name, geometry, seed):
+        t, pos, buttons, _ = session_trajectory(name, rate, geometry, seed, instrument=instrument)
+        pose_topic, state_topic = topic(instrument, 'omni/pose'), topic(instrument, 'omni/state')
+        for k in range(t.size):
+            stamp = int(t0_ns + round(t[k] * 1e9))
+            header = Header(Time(*divmod(stamp, 1_000_000_000)), frame_id)
+            out.append((pose_topic, POSE_TYPE, stamp, PoseStamped(
+                header, Pose(Point(*map(float, pos[k])), Quat(0.0, 0.0, 0.0, 1.0)))))
+            if k % every == 0 or (k and buttons[k] != buttons[k - 1]):
+                out.append((state_topic, STATE_TYPE, stamp, State(
+                    header, bool(buttons[k]), False, False, False, False, True, Vec(0.0, 0.0, 0.0),
+                    0.0, -1.0, 0, 'scripted', f'session {name} (seed {seed})')))
+    out.sort(key=lambda m: m[2])  # stable: one instrument's pose before its state, left before right
     return out

@@ -16,7 +16,7 @@ from haptic_omni_driver.bag_types import POSE_TYPE, STATE_TYPE, WRENCH_TYPE, typ
 
 sys.path.insert(0, str(graph.BAGS))
 import make_bags  # noqa: E402
-from sessions import Geometry, session_trajectory  # noqa: E402
+from sessions import Geometry, session_trajectory, topic  # noqa: E402
 
 ALL_BAGS = (*graph.SHORT_BAGS, 'long')
 
@@ -30,46 +30,61 @@ def test_bundled_bag_is_a_complete_golden_on_the_device_clock(name):
     from rosbags.highlevel import AnyReader
 
     bag = graph.BAGS / name
+    instruments = graph.bag_instruments(name)
     with AnyReader([bag], default_typestore=typestore()) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
         assert {c.msgtype for c in reader.connections} == {POSE_TYPE, WRENCH_TYPE, STATE_TYPE}
-    assert counts['/omni/pose'] == counts['/omni/force_feedback'] > 1000
-    assert counts['/omni/state'] > 0
+    assert set(counts) == set(make_bags.topics(name))
+    for instrument in instruments:
+        pose_topic, force_topic = topic(instrument, 'omni/pose'), topic(instrument, 'omni/force_feedback')
+        assert counts[pose_topic] == counts[force_topic] > 1000
+        assert counts[topic(instrument, 'omni/state')] > 0
 
-    poses, forces = [], []
-    for topic, _, log_ns, msg in read_bag(bag, ['/omni/pose', '/omni/force_feedback']):
-        (poses if topic == '/omni/pose' else forces).append((log_ns, _stamp(msg), msg))
-    # every pose answered exactly once, by a force carrying its stamp in the device frame
-    assert sorted(s for _, s, _ in forces) == [s for _, s, _ in poses]
-    assert all(m.header.frame_id == 'omni_base' for _, _, m in forces)
-    # log time = device time, 1 kHz: timed replay plays the session at its real rate
-    assert all(log == s for log, s, _ in poses)
-    assert np.all(np.diff([s for _, s, _ in poses]) == 1_000_000)
-    norms = np.array([np.linalg.norm([m.wrench.force.x, m.wrench.force.y, m.wrench.force.z])
-                      for _, _, m in forces])
-    assert np.all(np.isfinite(norms)) and norms.max() <= 3.3 + 1e-12
-    assert norms.max() > 0.05 and (norms == 0).any()  # contact and free motion both present
-    duration = (poses[-1][1] - poses[0][1]) * 1e-9
-    if name == 'long':
-        assert duration >= 60.0
-    # the replay backend reads it: every pose, in order, with the bag's own CDR bytes
-    events = load_replay(bag)
-    samples = [e.sample for e in events if e.sample is not None]
-    assert [s.stamp_ns for s in samples] == [s for _, s, _ in poses]
-    raw = [r for *_, r in read_bag(bag, ['/omni/pose'], raw=True)]
-    assert [s.raw for s in samples] == raw
+        poses, forces = [], []
+        for name_, _, log_ns, msg in read_bag(bag, [pose_topic, force_topic]):
+            (poses if name_ == pose_topic else forces).append((log_ns, _stamp(msg), msg))
+        # every pose answered exactly once, by a force carrying its stamp in the device frame
+        assert sorted(s for _, s, _ in forces) == [s for _, s, _ in poses]
+        assert all(m.header.frame_id == 'omni_base' for _, _, m in forces)
+        # log time = device time, 1 kHz: timed replay plays the session at its real rate
+        assert all(log == s for log, s, _ in poses)
+        assert np.all(np.diff([s for _, s, _ in poses]) == 1_000_000)
+        norms = np.array([np.linalg.norm([m.wrench.force.x, m.wrench.force.y, m.wrench.force.z])
+                          for _, _, m in forces])
+        assert np.all(np.isfinite(norms)) and norms.max() <= 3.3 + 1e-12
+        assert norms.max() > 0.05 and (norms == 0).any()  # contact and free motion both present
+        duration = (poses[-1][1] - poses[0][1]) * 1e-9
+        if name == 'long':
+            assert duration >= 60.0
+        # the replay backend reads it: every pose, in order, with the bag's own CDR bytes
+        events = load_replay(bag, pose_topic)
+        samples = [e.sample for e in events if e.sample is not None]
+        assert [s.stamp_ns for s in samples] == [s for _, s, _ in poses]
+        raw = [r for *_, r in read_bag(bag, [pose_topic], raw=True)]
+        assert [s.raw for s in samples] == raw
 
 
 @pytest.mark.parametrize('name', ALL_BAGS)
 def test_bundled_bag_poses_are_exactly_the_session_script(name):
     rate, seed, t0 = make_bags.PLAN[name]
-    _, positions, buttons, _ = session_trajectory(name, rate, Geometry(), seed)
-    got = np.array([(m.pose.position.x, m.pose.position.y, m.pose.position.z)
-                    for *_, m in read_bag(graph.BAGS / name, ['/omni/pose'])])
-    assert got.shape == positions.shape
-    assert np.array_equal(got, positions)  # bit for bit: the bag is the documented script
-    first = next(m for *_, m in read_bag(graph.BAGS / name, ['/omni/pose']))
-    assert _stamp(first) == t0
+    for instrument in graph.bag_instruments(name):
+        _, positions, buttons, _ = session_trajectory(name, rate, Geometry(), seed, instrument=instrument)
+        pose_topic = topic(instrument, 'omni/pose')
+        got = np.array([(m.pose.position.x, m.pose.position.y, m.pose.position.z)
+                        for *_, m in read_bag(graph.BAGS / name, [pose_topic])])
+        assert got.shape == positions.shape
+        assert np.array_equal(got, positions)  # bit for bit: the bag is the documented script
+        first = next(m for *_, m in read_bag(graph.BAGS / name, [pose_topic]))
+        assert _stamp(first) == t0
+
+
+def test_session_of_two_instruments_gives_each_its_own_script_and_tremor():
+    rate, seed, _ = make_bags.PLAN['bimanual']
+    left = session_trajectory('bimanual', rate, Geometry(), seed, instrument='left')
+    right = session_trajectory('bimanual', rate, Geometry(), seed, instrument='right')
+    assert left[0].shape == right[0].shape           # one round of poses each, in lockstep
+    assert left[2].any() and not right[2].any()      # only the left hand closes its jaw
+    assert not np.array_equal(left[1], right[1])
 
 
 def test_bundled_bags_stay_small():
@@ -85,7 +100,7 @@ def test_make_bags_retries_a_recording_whose_driver_gave_up(monkeypatch, tmp_pat
         if len(calls) == 1:   # the driver's lockstep wait ran out (a loaded machine)
             raise make_bags.IncompleteRecording('omni_driver exited with 3')
 
-    def finalise(raw, out, expected):
+    def finalise(raw, out, expected, names):
         out.mkdir(parents=True)
         (out / 'metadata.yaml').write_text(raw.name)
         return {'poses': expected}

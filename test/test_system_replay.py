@@ -10,6 +10,7 @@ the largest difference reported when they are not bit-identical.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import struct
@@ -28,12 +29,14 @@ pytestmark = pytest.mark.ros
 FORCE_TOLERANCE = 1e-9
 
 
-def golden(bag) -> tuple[list[int], dict[int, tuple]]:
-    """Pose stamps in order and stamp -> golden force (fx, fy, fz, tx, ty, tz) of a bundled bag."""
+def golden(bag, instrument: str = '') -> tuple[list[int], dict[int, tuple]]:
+    """Pose stamps in order and stamp -> golden force (fx, fy, fz, tx, ty, tz) of one instrument of a
+    bundled bag."""
+    ns = f'/{instrument}' if instrument else ''
     poses, forces = [], {}
-    for topic, _, _, msg in read_bag(bag, ['/omni/pose', '/omni/force_feedback']):
+    for topic, _, _, msg in read_bag(bag, [f'{ns}/omni/pose', f'{ns}/omni/force_feedback']):
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        if topic == '/omni/pose':
+        if topic.endswith('/omni/pose'):
             poses.append(stamp)
         else:
             f, t = msg.wrench.force, msg.wrench.torque
@@ -47,61 +50,85 @@ def _bits(values) -> bytes:
 
 @pytest.mark.parametrize('name', graph.SHORT_BAGS)
 def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clean(name, tmp_path):
+    """Every instrument of the bag (two for ``bimanual``, each replayed by its own driver in its
+    namespace) gets its golden forces back."""
     bag = graph.BAGS / name
-    pose_stamps, gold = golden(bag)
-    assert len(gold) == len(pose_stamps) > 1000
+    instruments = graph.bag_instruments(name)
+    goldens = [golden(bag, i) for i in instruments]
+    for pose_stamps, gold in goldens:
+        assert len(gold) == len(pose_stamps) > 1000
     env = harness.ros_env()
     report = tmp_path / 'report' if name == 'press' else None
-    viz = graph.viz(report, env=env, params={'diagnostics_rate': 5.0, 'window': 1.0})
+    viz = graph.viz(report, env=env, params={'diagnostics_rate': 5.0, 'window': 1.0,
+                                             'instruments': list(instruments)})
     # histories deeper than the session on the sim's force writer and the monitor's readers: the
     # driver paces the loop, and a monitor that falls behind on a busy machine must not lose replies
-    depth = 2 * len(pose_stamps)
+    depth = 2 * max(len(g[0]) for g in goldens)
     sim = graph.sim('lockstep', env=env, params={'qos_depth': depth, **graph.BAG_SIM_PARAMS.get(name, {})})
-    drv = graph.driver_replay(bag, 'lockstep', env=env, subscribers=3,
-                              params={'diagnostics_rate': 5.0})
-    procs = [drv, sim, viz]
+    drivers = [graph.driver_replay(bag, 'lockstep', env=env, subscribers=3, instrument=i,
+                                   params={'diagnostics_rate': 5.0}) for i in instruments]
+    procs = [*drivers, sim, viz]
     try:
         viz.start()
         sim.start()
         viz.wait_for_output(graph.VIZ_READY, timeout=60)
         sim.wait_for_output(graph.SIM_READY, timeout=180)
-        with graph.Monitor(env, reliable=True, depth=depth) as mon:
-            mon.probe_sim()
+        with contextlib.ExitStack() as stack:
+            mons = [stack.enter_context(graph.Monitor(env, reliable=True, depth=depth, namespace=i))
+                    for i in instruments]
+            for mon in mons:
+                mon.probe_sim()
             t0 = time.monotonic()
-            drv.start()
-            assert drv.wait(240) == 0, drv.output()
+            for drv in drivers:
+                drv.start()
+            for drv in drivers:
+                assert drv.wait(240) == 0, drv.output()
             replay_s = time.monotonic() - t0
-            mon.wait_for(lambda: mon.n_forces >= len(pose_stamps), 60,
-                         f'all {len(pose_stamps)} replies seen')
+            for mon, (pose_stamps, _) in zip(mons, goldens):
+                mon.wait_for(lambda: mon.n_forces >= len(pose_stamps), 60,
+                             f'all {len(pose_stamps)} replies seen')
             # diagnostics come at 5 Hz from driver and viz; wait for both once the loop ran
+            mon = mons[0]
             mon.wait_for(lambda: {'driver', 'viz'} <= mon.diagnostic_sources(), 30,
                          'diagnostics from omni_driver and viz_node')
+            got, n_forces, all_metrics = [], [], []
+            for m in mons:
+                with m.lock:
+                    got.append({s: f for s, _, f in m.wrenches})
+                    n_forces.append(m.n_forces)
+                    all_metrics.append(m.last_metrics)
             with mon.lock:
-                got = {s: f for s, _, f in mon.wrenches}
-                n_forces = mon.n_forces
                 metrics, n_metrics = mon.last_metrics, mon.metrics_count
                 cloud, n_clouds = mon.last_particles, mon.particles_count
     finally:
         codes = graph.stop_all(procs, timeout=30)
 
     # -- the golden forces, bit for bit --------------------------------------------------------
-    assert n_forces == len(pose_stamps), f'{n_forces} replies for {len(pose_stamps)} poses'
-    assert sorted(got) == pose_stamps
-    worst = max(max(abs(a - b) for a, b in zip(got[s], gold[s])) for s in pose_stamps)
-    assert worst <= FORCE_TOLERANCE, (
-        f'{name}: forces differ from the golden by up to {worst:.3e} N (tolerance '
-        f'{FORCE_TOLERANCE} N): an intended physics change needs regenerated goldens, see '
-        f'bags/README.md')
-    differing = [s for s in pose_stamps if _bits(got[s]) != _bits(gold[s])]
     made_on = json.loads(graph.GOLDEN_HOST.read_text())
-    if graph.host_kind() == made_on:
-        assert not differing, f'{len(differing)} forces not bit-identical (max diff {worst:.3e} N)'
-    elif differing:
-        warnings.warn(f'{name}: {len(differing)} forces differ in their last bits (up to {worst:.3e} N) '
-                      f'on this CPU ({graph.host_kind()}), within the tolerance; the goldens were made '
-                      f'on {made_on}')
-    peak = max(math.sqrt(sum(v * v for v in gold[s][:3])) for s in pose_stamps)
-    assert peak > 0.05, f'{name}: the session never pressed the tissue (peak {peak:.3f} N)'
+    for instrument, (pose_stamps, gold), mine, n in zip(instruments, goldens, got, n_forces):
+        what = f'{name} {instrument}'.strip()
+        assert n == len(pose_stamps), f'{what}: {n} replies for {len(pose_stamps)} poses'
+        assert sorted(mine) == pose_stamps
+        worst = max(max(abs(a - b) for a, b in zip(mine[s], gold[s])) for s in pose_stamps)
+        assert worst <= FORCE_TOLERANCE, (
+            f'{what}: forces differ from the golden by up to {worst:.3e} N (tolerance '
+            f'{FORCE_TOLERANCE} N): an intended physics change needs regenerated goldens, see '
+            f'bags/README.md')
+        differing = [s for s in pose_stamps if _bits(mine[s]) != _bits(gold[s])]
+        if graph.host_kind() == made_on:
+            assert not differing, f'{what}: {len(differing)} forces not bit-identical (max diff {worst:.3e} N)'
+        elif differing:
+            warnings.warn(f'{what}: {len(differing)} forces differ in their last bits (up to {worst:.3e} N) '
+                          f'on this CPU ({graph.host_kind()}), within the tolerance; the goldens were '
+                          f'made on {made_on}')
+        peak = max(math.sqrt(sum(v * v for v in gold[s][:3])) for s in pose_stamps)
+        assert peak > 0.05, f'{what}: the session never pressed the tissue (peak {peak:.3f} N)'
+        print(f'{what}: {len(pose_stamps)} poses replayed in lockstep in {replay_s:.2f} s, peak golden '
+              f'force {peak:.3f} N, max diff {worst:.1e} N')
+    if len(instruments) > 1:
+        # each instrument's own metrics: its tool where its device's offset puts it
+        tips = [m.tool_position.x for m in all_metrics]
+        assert tips == sorted(tips), f'instruments {instruments} at x = {tips}'
 
     # -- particles, metrics and diagnostics arrived --------------------------------------------
     assert n_metrics > 0 and metrics is not None
@@ -113,7 +140,7 @@ def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clea
     assert {'x', 'y', 'z'} <= {f.name for f in cloud.fields}
 
     # -- clean shutdown, no orphans, the viz report --------------------------------------------
-    assert codes == {'omni_driver': 0, 'sim_node': 0, 'viz_node': 0}, (
+    assert codes == {p.name: 0 for p in procs}, (
         codes, sim.output()[-2000:], viz.output()[-2000:])
     for p in procs:
         assert not graph.group_alive(p), f'{p.name} left processes behind'
@@ -129,5 +156,3 @@ def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clea
         shots = TissueSnapshots.load(report / 'tissue_snapshots.npz')
         assert shots.rest.peak < 1e-4 < shots.deepest.peak and shots.deepest.tool is not None
         assert {'tissue_rest.png', 'tissue_deepest.png', 'tissue_press.gif'} <= set(summary['files'])
-    print(f'{name}: {len(pose_stamps)} poses replayed in lockstep in {replay_s:.2f} s, peak golden '
-          f'force {peak:.3f} N, max diff {worst:.1e} N')

@@ -30,10 +30,15 @@ REPO_ROOT = harness.REPO_ROOT
 BAGS = REPO_ROOT / 'bags'
 #: sim_node parameters the goldens in bags/ were recorded with (a ROS 2 params file)
 GOLDEN_SIM_PARAMS = BAGS / 'golden_sim_params.yaml'
-SHORT_BAGS = ('press', 'pull', 'sweep', 'poke', 'grasp')
+SHORT_BAGS = ('press', 'pull', 'sweep', 'poke', 'grasp', 'bimanual')
 #: sim_node parameters a golden was recorded with beyond GOLDEN_SIM_PARAMS (the other sessions press
-#: button 1 as a marker: only the grasp session grasps with it)
-BAG_SIM_PARAMS = {'grasp': {'grasp_button': 1}}
+#: button 1 as a marker: only the grasp sessions grasp with it; several instruments need mode global,
+#: which steps every particle: a coarser block keeps that replay as quick as the others)
+BAG_SIM_PARAMS = {
+    'grasp': {'grasp_input': 'button1'},
+    'bimanual': {'grasp_input': 'button1', 'mode': 'global', 'n_particles': 1000, 'instruments': ['left', 'right'],
+                 'instrument_offsets': [-0.02, 0.0, 0.0, 0.02, 0.0, 0.0]},
+}
 #: the kind of CPU the goldens were made on (:func:`host_kind`), written by bags/make_bags.py
 GOLDEN_HOST = BAGS / 'golden_host.json'
 
@@ -65,6 +70,11 @@ VIZ_READY = r'ready: window'
 RECORD_READY = r'recording '
 
 
+def bag_instruments(name: str) -> tuple[str, ...]:
+    """The instruments (namespaces) of a bundled bag; ``('',)``: one, at the root namespace."""
+    return tuple(BAG_SIM_PARAMS.get(name, {}).get('instruments', ['']))
+
+
 def record_matched(topic: str) -> str:
     """omni_record's line once its subscription to ``topic`` (resolved, e.g. ``/omni/pose``) has
     matched a publisher: from then on nothing that publisher sends is missed."""
@@ -87,14 +97,20 @@ def sim(mode: str = 'lockstep', env: Mapping[str, str] | None = None, golden: bo
 def driver_replay(bag: str | Path, mode: str = 'lockstep', env: Mapping[str, str] | None = None,
                   rate: float = 1.0, loop: bool = False, subscribers: int = 1,
                   params: Mapping[str, object] | None = None,
-                  params_file: str | Path | None = None) -> harness.NodeProcess:
-    """omni_driver replaying ``bag`` (lockstep: reliable, wait for each reply; timed: 1 kHz)."""
+                  params_file: str | Path | None = None, instrument: str = '') -> harness.NodeProcess:
+    """omni_driver replaying ``bag`` (lockstep: reliable, wait for each reply; timed: 1 kHz);
+    ``instrument``: the one it plays, in that namespace, from the bag's topics of that name."""
     p = {'backend': 'replay', 'bag': str(bag), 'replay_mode': mode, 'rate': float(rate),
          'loop': loop, 'exit_on_end': not loop, 'wait_for_subscribers': subscribers,
          'lockstep_timeout': 30.0, 'lockstep_timeout_action': 'continue'}
+    ros_args: list[str] = []
+    if instrument:
+        p.update(pose_topic_in_bag=f'/{instrument}/omni/pose', state_topic_in_bag=f'/{instrument}/omni/state')
+        ros_args = ['-r', f'__ns:=/{instrument}']
     p.update(params or {})
     return harness.NodeProcess('haptic_omni_driver', 'omni_driver', env=env, params=p,
-                               params_file=params_file)
+                               params_file=params_file, name=f'omni_driver_{instrument}' if instrument
+                               else 'omni_driver', ros_args=ros_args)
 
 
 def driver_device(backend: str, env: Mapping[str, str] | None = None, subscribers: int = 1,
@@ -181,8 +197,10 @@ class Monitor:
     """
 
     def __init__(self, domain_env: Mapping[str, str] | None = None, keep: bool = True,
-                 reliable: bool = False, depth: int = 1000, loop: bool = True) -> None:
+                 reliable: bool = False, depth: int = 1000, loop: bool = True,
+                 namespace: str = '') -> None:
         self.env = domain_env
+        self.namespace = namespace   # an instrument's: its omni/* and tissue/* topics
         self.keep = keep
         self.loop = loop
         self.reliable = reliable   # reliable pose/force readers: no loss, match reliable writers only
@@ -230,7 +248,8 @@ class Monitor:
             # can stop the node processes (rclpy's handler would only shut this context down).
             rclpy.init(context=self.context,
                        signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-            self.node = rclpy.create_node('system_monitor', context=self.context)
+            self.node = rclpy.create_node('system_monitor', context=self.context,
+                                          namespace=self.namespace or None)
         finally:
             for k, v in saved.items():
                 if v is None:
@@ -250,8 +269,9 @@ class Monitor:
         self.state_sub = n.create_subscription(DeviceState, 'omni/state', self._on_state, reliable)
         self.metrics_sub = n.create_subscription(SimMetrics, 'tissue/metrics', self._on_metrics,
                                                  reliable)
+        # the tissue's cloud is the sim's, not an instrument's (the sims here run at the root)
         self.particles_sub = n.create_subscription(
-            PointCloud2, 'tissue/particles', self._on_particles,
+            PointCloud2, '/tissue/particles' if self.namespace else 'tissue/particles', self._on_particles,
             QoSProfile(depth=2, history=HistoryPolicy.KEEP_LAST,
                        reliability=ReliabilityPolicy.BEST_EFFORT))
         self.diag_sub = n.create_subscription(DiagnosticArray, '/diagnostics',
