@@ -9,7 +9,9 @@ Point layout (little endian, 24 bytes a point)::
     12      displacement  float32  m      |x - X|
     16      von_mises     float32  Pa     von Mises stress (0 where none was computed)
     20      region        uint8    -      0 still, 1 interaction, 1 + i transmission layer i
-    21..23  padding
+    21      held          uint8    -      0 free, k + 1 held by instrument k (the order of the
+                                          ``instruments`` parameter)
+    22..23  padding
 
 :class:`CloudBuffer` owns one message-sized byte buffer and refills it with a numba kernel that
 releases the GIL: packing a 100k-particle liver (2.4 MB) then never holds up the thread that answers
@@ -21,28 +23,30 @@ from __future__ import annotations
 
 import array
 import math
+from typing import Sequence
 
 import numpy as np
 from numba import njit
 
 POINT_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'displacement', 'von_mises', 'region'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<f4', 'u1'],
-    'offsets': [0, 4, 8, 12, 16, 20],
+    'names': ['x', 'y', 'z', 'displacement', 'von_mises', 'region', 'held'],
+    'formats': ['<f4', '<f4', '<f4', '<f4', '<f4', 'u1', 'u1'],
+    'offsets': [0, 4, 8, 12, 16, 20, 21],
     'itemsize': 24,
 })
 
 # PointField datatype constants (sensor_msgs/PointField): FLOAT32 = 7, UINT8 = 2
 FIELD_SPECS = (('x', 0, 7), ('y', 4, 7), ('z', 8, 7), ('displacement', 12, 7), ('von_mises', 16, 7),
-               ('region', 20, 2))
-REGION_BYTE = 20
+               ('region', 20, 2), ('held', 21, 2))
+REGION_BYTE, HELD_BYTE = 20, 21
 
 
 @njit(cache=True, nogil=True)
-def pack_rows(x, X, von_mises, region, f32, u8):
+def pack_rows(x, X, von_mises, region, held_idx, held_code, f32, u8):
     """Point i of the cloud from x[i], |x[i] - X[i]|, von_mises[i] and region[i] (clipped to
-    0..255); ``f32`` (N, 6) and ``u8`` (N, 24) view the same bytes (f32[:, 5] is region + padding,
-    never written as a float)."""
+    0..255), then ``held`` = held_code[j] at point held_idx[j] (0 elsewhere; the indices are checked
+    by the caller); ``f32`` (N, 6) and ``u8`` (N, 24) view the same bytes (f32[:, 5] is region, held
+    and padding, never written as a float)."""
     for i in range(x.shape[0]):
         d0 = x[i, 0] - X[i, 0]
         d1 = x[i, 1] - X[i, 1]
@@ -54,6 +58,9 @@ def pack_rows(x, X, von_mises, region, f32, u8):
         f32[i, 4] = von_mises[i]
         r = region[i]
         u8[i, REGION_BYTE] = 0 if r < 0 else (255 if r > 255 else r)
+        u8[i, HELD_BYTE] = 0
+    for j in range(held_idx.shape[0]):
+        u8[held_idx[j], HELD_BYTE] = held_code[j]
 
 
 class CloudBuffer:
@@ -74,14 +81,16 @@ class CloudBuffer:
         self._f32 = raw.view('<f4').reshape(self.n, POINT_DTYPE.itemsize // 4)
         self.points = raw.view(POINT_DTYPE)
 
-    def pack(self, x: np.ndarray, X: np.ndarray, von_mises: np.ndarray,
-             region: np.ndarray) -> np.ndarray:
+    def pack(self, x: np.ndarray, X: np.ndarray, von_mises: np.ndarray, region: np.ndarray,
+             held: Sequence[np.ndarray] = ()) -> np.ndarray:
         """Fill the points from positions ``x`` and reference positions ``X`` ((N, 3) [m]), von Mises
-        stress (N,) [Pa] and region codes (N,); returns them as an (N,) array of POINT_DTYPE (a view
-        of the buffer, current until the next :meth:`message`).
+        stress (N,) [Pa], region codes (N,) and ``held``: per instrument k the indices of the
+        particles it holds (``held`` k + 1 there, 0 elsewhere); returns them as an (N,) array of
+        POINT_DTYPE (a view of the buffer, current until the next :meth:`message`).
 
         Raises:
-            ValueError: arrays of another length than the buffer's.
+            ValueError: arrays of another length than the buffer's, more than 255 instruments or a
+                held index outside the cloud.
         """
         n = self.n
         if (np.shape(x) != (n, 3) or np.shape(X) != (n, 3) or np.shape(von_mises) != (n,)
@@ -89,7 +98,14 @@ class CloudBuffer:
             raise ValueError(f'particle arrays do not match a cloud of {n} points: x {np.shape(x)}, '
                              f'X {np.shape(X)}, von_mises {np.shape(von_mises)}, region '
                              f'{np.shape(region)}')
-        pack_rows(x, X, von_mises, region, self._f32, self._u8)
+        if len(held) > 255:
+            raise ValueError(f'{len(held)} instruments do not fit the held byte (at most 255)')
+        idx = np.concatenate([np.asarray(h, dtype=np.int64).ravel() for h in held] or [np.zeros(0, np.int64)])
+        code = np.repeat(np.arange(1, len(held) + 1, dtype=np.uint8), [np.size(h) for h in held])
+        # the kernel writes where the indices say: they are checked here, once per cloud
+        if idx.size and not (0 <= idx.min() and idx.max() < n):
+            raise ValueError(f'held particle indices must lie in [0, {n}), got {idx.min()} to {idx.max()}')
+        pack_rows(x, X, von_mises, region, idx, code, self._f32, self._u8)
         return self.points
 
     def message(self, stamp=None):

@@ -115,7 +115,28 @@ def test_cloud_packing_round_trips_every_field():
     assert np.allclose(back['displacement'], np.linalg.norm(x - X, axis=1), rtol=1e-6, atol=0)
     assert np.array_equal(back['von_mises'], vm.astype(np.float32))
     assert np.array_equal(back['region'], region.astype(np.uint8))
-    assert not np.frombuffer(cloud.data, np.uint8).reshape(n, 24)[:, 21:].any()  # padding stays zero
+    assert not back['held'].any()                                             # nothing held
+    assert not np.frombuffer(cloud.data, np.uint8).reshape(n, 24)[:, 22:].any()  # padding stays zero
+
+
+def test_cloud_held_byte_names_the_instrument_that_holds_each_particle():
+    n = 10
+    x, X, vm, region = random_particles(n)
+    cloud = CloudBuffer(n, 'tissue')
+    points = cloud.pack(x, X, vm, region, [np.array([1, 4], dtype=np.int32), np.array([], dtype=np.int32),
+                                           np.array([7])])
+    assert points['held'].tolist() == [0, 1, 0, 0, 1, 0, 0, 3, 0, 0]   # instrument k holds: k + 1
+    assert np.array_equal(points['region'], region.astype(np.uint8))    # its neighbour byte untouched
+    # a let-go particle is free at the next pack
+    assert cloud.pack(x, X, vm, region, [np.array([4])])['held'].tolist() == [0, 0, 0, 0, 1, 0, 0, 0, 0, 0]
+
+
+def test_cloud_refuses_held_indices_outside_the_cloud():
+    x, X, vm, region = random_particles(3)
+    with pytest.raises(ValueError, match=r'held particle indices must lie in \[0, 3\)'):
+        CloudBuffer(3, 'tissue').pack(x, X, vm, region, [np.array([3])])
+    with pytest.raises(ValueError, match='held particle indices'):
+        CloudBuffer(3, 'tissue').pack(x, X, vm, region, [np.array([0]), np.array([-1])])
 
 
 def test_cloud_repacking_overwrites_the_same_buffer_in_place():
@@ -149,7 +170,7 @@ def test_cloud_message_header_and_layout():
     msg = cloud.message()
     assert (msg.header.frame_id, msg.height, msg.width, msg.point_step) == ('tissue', 1, 7, 24)
     assert len(msg.data) == 7 * 24 and msg.row_step == 7 * 24 and not msg.is_bigendian
-    assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'displacement', 'von_mises', 'region']
+    assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'displacement', 'von_mises', 'region', 'held']
     # later packs land in the message that is published
     x, X, vm, region = random_particles(7)
     cloud.pack(x, X, vm, region)

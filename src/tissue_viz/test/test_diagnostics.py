@@ -7,7 +7,7 @@ import math
 import pytest
 
 from tissue_viz.diagnostics import (ERROR, OK, STALE, WARN, RateTarget, Targets, evaluate,
-                                    haptic_status, input_status, latency_status, rate_status,
+                                    evaluate_instruments, haptic_status, input_status, latency_status, rate_status,
                                     step_status, tissue_status, worst_level)
 from tissue_viz.errors import VizConfigError
 from tissue_viz.stats import HAPTIC_MULTIRATE, Snapshot, VizStats
@@ -247,3 +247,40 @@ def test_a_snapshot_with_absurd_numbers_gives_short_readable_values():
     values = _all_values(statuses)
     assert all(len(v) < 120 for v in values), max(values, key=len)
     assert not [v for v in values if 'nan' in v.lower().replace('nan/inf', '')]
+
+
+def _instrument_snap(force: float, latency: float, energy_low: float) -> Snapshot:
+    snap = Snapshot(now=10.0, window=1.0, haptic_mode=HAPTIC_MULTIRATE, energy_in=energy_low,
+                    energy_in_low=energy_low, energy_in_min=energy_low, solver_rate=400.0, model_age=0.002)
+    snap.active, snap.force, snap.force_max, snap.displacement = 100.0, force, force, 0.001
+    snap.latency_p50 = snap.latency_p99 = snap.latency_max = latency
+    snap.replies_missed_pct = 0.0
+    for topic in ('metrics', 'particles', 'pose', 'force'):
+        snap.rates[topic], snap.ages[topic], snap.counts[topic] = 1000.0, 0.001, 5000
+    return snap
+
+
+def test_one_unnamed_instrument_keeps_the_single_instrument_statuses():
+    snap = _instrument_snap(1.0, 0.0005, 0.0)
+    assert evaluate_instruments({'': snap}, Targets()) == evaluate(snap, Targets())
+
+
+def test_several_instruments_get_their_own_rates_force_latency_and_e_in_statuses():
+    snaps = {'left': _instrument_snap(0.5, 0.0005, 0.0), 'right': _instrument_snap(3.3, 0.02, -1e-5)}
+    statuses = {s.name: s for s in evaluate_instruments(snaps, Targets(), prefix='viz_node')}
+    # the cloud and the step time are the tissue's: once; the rest per instrument
+    assert [n for n in statuses if 'particles' in n or 'step time' in n] == \
+        ['viz_node: tissue/particles rate', 'viz_node: step time']
+    for name in snaps:
+        assert {f'viz_node: {name}/tissue/metrics rate', f'viz_node: {name}/omni/pose rate',
+                f'viz_node: {name}/omni/force_feedback rate'} <= set(statuses)
+    assert 'viz_node: tissue' not in statuses and 'viz_node: pose to force latency' not in statuses
+    left, right = (statuses[f'viz_node: {k} ({n})'] for k in ('tissue',) for n in ('left', 'right'))
+    assert left.level == OK and dict(left.values)['force [N]'] == '0.500'
+    assert right.level == WARN and 'device limit' in right.message          # at 3.3 N
+    assert statuses['viz_node: pose to force latency (left)'].level == OK
+    assert statuses['viz_node: pose to force latency (right)'].level == ERROR   # p99 20 ms > 10 ms
+    assert statuses['viz_node: haptic rendering (left)'].level == OK
+    right_haptic = statuses['viz_node: haptic rendering (right)']
+    assert right_haptic.level == WARN and dict(right_haptic.values)['lowest E_in in window [uJ]'] == '-10.000'
+    assert statuses['viz_node: input (left)'].level == OK

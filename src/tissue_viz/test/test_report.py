@@ -11,9 +11,9 @@ from PIL import Image
 
 from tissue_viz.errors import ReportError
 from tissue_viz.report import (PLOTS, TABLES, ReportData, load_report_data, main, read_csv,
-                               write_csv, write_report)
+                               summary_rows, write_csv, write_report)
 from tissue_viz.stats import HAPTIC_MULTIRATE, VizStats
-from tissue_viz.tissue_images import TissueSnapshots
+from tissue_viz.tissue_images import TissueSnapshots, draw_snapshot
 
 MS = 1_000_000
 PNGS = [png for png, _ in PLOTS]
@@ -62,7 +62,7 @@ def _press_clouds(n_clouds: int = 40) -> TissueSnapshots:
         columns = {'x': xyz[:, 0], 'y': xyz[:, 1], 'z': xyz[:, 2], 'displacement': disp,
                    'von_mises': 1e6 * disp}
         tool = (top + np.array([0.0, 0.0, 0.005 - depth]), np.zeros(3), 0.0, 0.005)
-        snaps.add(columns, k * 33 * MS, tool)
+        snaps.add(columns, k * 33 * MS, (tool,))
     return snaps
 
 
@@ -540,7 +540,7 @@ def test_snapshots_keep_rest_deepest_and_the_clouds_around_it():
     stamps = [s.stamp_ns for s in snaps.frames]
     deepest = stamps.index(snaps.deepest.stamp_ns)
     assert deepest == 12 and len(stamps) == 25 and np.all(np.diff(stamps) > 0)
-    assert snaps.deepest.tool[3] == 0.005
+    assert snaps.deepest.tools[0][3] == 0.005
 
 
 def test_a_large_cloud_is_kept_as_a_fixed_subset():
@@ -548,7 +548,7 @@ def test_a_large_cloud_is_kept_as_a_fixed_subset():
     n = 100_000
     x = np.arange(n, dtype=float)
     for k in range(3):
-        snaps.add({'x': x, 'y': x, 'z': x, 'displacement': x * k, 'von_mises': x}, k, None)
+        snaps.add({'x': x, 'y': x, 'z': x, 'displacement': x * k, 'von_mises': x}, k, ())
     assert len(snaps.rest.xyz) == 1000 and np.array_equal(snaps.rest.xyz[:, 0], snaps.deepest.xyz[:, 0])
     assert snaps.rest.xyz[0, 0] == 0.0 and snaps.rest.xyz[-1, 0] == n - 1
 
@@ -645,3 +645,52 @@ def test_a_report_drawn_by_two_processes_is_the_one_drawn_by_one(tmp_path):
             assert (one / name).read_bytes() == (two / name).read_bytes(), name
         elif name.endswith('.png'):
             assert _ink(one / name) == _ink(two / name), name
+
+
+def test_the_summary_table_gives_each_instruments_force_latency_and_e_in():
+    stats = {name: VizStats(window=1.0) for name in ('left', 'right')}
+    for k, s in enumerate(stats.values()):
+        s.on_pose(0.0, MS, (0.0, 0.0, 0.0))
+        s.on_force(1e-3 * (k + 1), MS, (0.0, 0.0, 1.0 + k))
+        s.on_metrics(0.0, MS, 1e-4, (0.0, 0.0, 1.0 + k), 0.0, haptic_mode=HAPTIC_MULTIRATE,
+                     energy_in=1e-6 * (1 - 2 * k), energy_in_min=1e-6 * (1 - 2 * k))
+    data = ReportData.from_stats(stats['left'], 0.01, instruments=stats)
+    rows = dict(summary_rows(data.summary))
+    assert rows['left: max force'] == '1.000 N' and rows['right: max force'] == '2.000 N'
+    assert rows['left: pose to force latency p50'] == '1.000 ms'
+    assert rows['right: pose to force latency p99'] == '2.000 ms'
+    assert rows['left: E_in min (below zero: not passive)'] == '1.000 uJ'
+    assert rows['right: E_in min (below zero: not passive)'] == '-1.000 uJ'
+    # one instrument: no rows of its own, as before there were several
+    assert not any(label.startswith(('left:', 'right:')) for label in dict(summary_rows(
+        ReportData.from_stats(stats['left'], 0.01).summary)))
+
+
+def test_the_tissue_images_keep_both_tools_and_the_held_particles(tmp_path):
+    snaps = TissueSnapshots()
+    g = np.stack(np.meshgrid(np.arange(6), np.arange(6), np.arange(3), indexing='ij'), -1)
+    xyz = g.reshape(-1, 3) * 0.005
+    held = np.zeros(len(xyz))
+    held[[3, 4]], held[[30]] = 1, 2                       # left holds 3 and 4, right 30
+    tools = ((np.array([0.0, 0.0, 0.015]), np.array([0.0, 0.0, 1.0]), 0.02, 0.003),
+             (np.array([0.02, 0.0, 0.015]), np.zeros(3), 0.0, 0.003))
+    for k, depth in enumerate((0.0, 0.002)):
+        disp = np.full(len(xyz), depth)
+        snaps.add({'x': xyz[:, 0], 'y': xyz[:, 1], 'z': xyz[:, 2] - disp, 'displacement': disp,
+                   'von_mises': 1e6 * disp, 'held': held}, k * MS, tools if k else (None, None))
+    snaps.save(tmp_path / 'snaps.npz')
+    back = TissueSnapshots.load(tmp_path / 'snaps.npz')
+    assert back.rest.tools == (None, None)               # both lifted at rest
+    assert [t[0][0] for t in back.deepest.tools] == [0.0, 0.02]
+    assert np.flatnonzero(back.deepest.held).tolist() == [3, 4, 30] and back.deepest.held[30] == 2
+    draw_snapshot(back.deepest, tmp_path / 'deepest.png', 'two tools', [back.rest, back.deepest],
+                  back.rest)
+    size, ink, colours = _ink(tmp_path / 'deepest.png')
+    assert ink > 0.05 and colours > 50
+
+
+def test_a_snapshot_file_from_before_several_instruments_loads_its_one_tool(tmp_path):
+    np.savez(tmp_path / 'old.npz', rest_xyz=np.zeros((2, 3)), rest_disp=np.zeros(2), rest_vm=np.zeros(2),
+             rest_stamp=np.array(0), rest_tool=np.r_[1.0, 2.0, 3.0, 0.0, 0.0, 1.0, 0.0, 0.004])
+    rest = TissueSnapshots.load(tmp_path / 'old.npz').rest
+    assert len(rest.tools) == 1 and rest.tools[0][3] == 0.004 and rest.held is None

@@ -9,7 +9,8 @@ import pytest
 
 from tissue_viz.errors import VizConfigError
 from tissue_viz.markers import ToolShape, force_arrow
-from tissue_viz.stats import (HAPTIC_MULTIRATE, LIMITS, DecimatingRecorder, LatencyMatcher, Limit,
+from tissue_viz.stats import (HAPTIC_MULTIRATE, INSTRUMENT_SUMMARY_KEYS, LIMITS, DecimatingRecorder,
+                              LatencyMatcher, Limit,
                               RateMeter, StampOrder, VizStats, percentile, press_displacement,
                               summary_line)
 
@@ -386,3 +387,30 @@ def test_the_summary_says_what_the_hand_felt_frame_to_frame_in_stamp_order():
     s = stats.summary(0.3)
     assert s['feel_reversals'] == 1.0 and s['feel_E_in_min_uJ'] == 0.0
     assert s['feel_dF_max_mN'] == pytest.approx(50.0) and s['feel_steady_frames'] == 100 - 1 - 20
+
+
+def test_an_instrument_summary_gives_its_force_latency_and_lowest_e_in():
+    stats = VizStats(window=1.0)
+    for k in range(10):
+        stats.on_pose(k * 1e-3, k * MS, (0.0, 0.0, 0.0))
+        stats.on_force(k * 1e-3 + 2e-4, k * MS, (0.0, 0.0, 0.1 * k))
+        stats.on_metrics(k * 1e-3, k * MS, 1e-4, (0.0, 0.0, 0.1 * k), 0.0, haptic_mode=HAPTIC_MULTIRATE,
+                         energy_in=-2e-6 if k == 5 else 0.0, energy_in_min=-2e-6 if k >= 5 else 0.0)
+    got = stats.instrument_summary(0.02)
+    assert tuple(got) == INSTRUMENT_SUMMARY_KEYS
+    assert got['max_force_n'] == pytest.approx(0.9)
+    assert got['latency_p50_s'] == pytest.approx(2e-4) and got['latency_p99_s'] == pytest.approx(2e-4)
+    assert got['replies_missed_pct'] == 0.0 and got['energy_in_min_j'] == pytest.approx(-2e-6)
+
+
+def test_the_summary_line_of_several_instruments_gives_each_ones_latency_and_force():
+    stats = {name: VizStats(window=1.0) for name in ('left', 'right')}
+    for k, s in enumerate(stats.values()):
+        s.on_pose(0.0, MS, (0.0, 0.0, 0.0))
+        s.on_force(1e-3 * (k + 1), MS, (0.0, 0.0, 1.0 + k))
+    snaps = {name: s.snapshot(0.01) for name, s in stats.items()}
+    line = summary_line(snaps['left'], snaps)
+    assert 'left lat p50 1.00 ms p99 1.00 ms F 1.00 N' in line
+    assert 'right lat p50 2.00 ms p99 2.00 ms F 2.00 N' in line
+    assert ' | F ' not in line                      # no force without its instrument
+    assert ' | lat p50' in summary_line(snaps['left'])   # one instrument: as before

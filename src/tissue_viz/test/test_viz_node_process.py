@@ -309,6 +309,89 @@ def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node, frame
             assert not shafts
 
 
+def test_two_instruments_each_get_their_diagnostics_tools_and_held_particles(rclpy_node):
+    """instruments [left, right]: each namespace's metrics, poses and forces reach a status and a
+    marker of that instrument; the cloud's held byte marks the particles each one holds."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped, WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from sph_tissue_sim.cloud import CloudBuffer
+    from tissue_msgs.msg import SimMetrics
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    names = ('left', 'right')
+    params = dict(FAST, instruments=list(names), marker_rate=20.0, tool_in_tissue_frame=True)
+    fast = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    cloud = CloudBuffer(6, 'tissue')
+    xyz = np.arange(18, dtype=float).reshape(6, 3) * 1e-3
+    # left (instrument 0) holds particles 1 and 2, right holds particle 4
+    cloud.pack(xyz, xyz, np.zeros(6), np.zeros(6, dtype=np.int8), [np.array([1, 2]), np.array([4])])
+    with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
+        viz.wait_for_output(r'ready:', timeout=30)
+        pubs = {name: (rclpy_node.create_publisher(SimMetrics, f'{name}/tissue/metrics', reliable),
+                       rclpy_node.create_publisher(PoseStamped, f'{name}/omni/pose', fast),
+                       rclpy_node.create_publisher(WrenchStamped, f'{name}/omni/force_feedback', fast))
+                for name in names}
+        cloud_pub = rclpy_node.create_publisher(PointCloud2, 'tissue/particles', fast)
+        arrays, markers = [], []
+        subs = [rclpy_node.create_subscription(DiagnosticArray, '/diagnostics', arrays.append, 10),
+                rclpy_node.create_subscription(MarkerArray, 'viz/markers', markers.append, 10)]
+        for endpoint in (*(p for trio in pubs.values() for p in trio), cloud_pub, *subs):
+            harness.wait_for_matching(rclpy_node, endpoint)
+        stamp = [1_000_000_000]
+
+        def send():
+            stamp[0] += 5_000_000
+            for k, (metrics_pub, pose_pub, force_pub) in enumerate(pubs.values()):
+                m = _metrics(stamp[0], fz=0.5 + k)            # left 0.5 N, right 1.5 N
+                m.tool_position.x, m.tool_radius = 0.01 * (k + 1), 0.004
+                metrics_pub.publish(m)
+                pose = PoseStamped()
+                pose.header.frame_id = 'omni_base'
+                pose.header.stamp.sec, pose.header.stamp.nanosec = divmod(stamp[0], 1_000_000_000)
+                pose.pose.orientation.w = 1.0
+                pose_pub.publish(pose)
+                wrench = WrenchStamped()
+                wrench.header = pose.header                   # answers that pose: a latency sample
+                wrench.wrench.force.z = 0.5 + k
+                force_pub.publish(wrench)
+            cloud_pub.publish(cloud.message(pose.header.stamp))
+
+        def status(name: str):
+            return next((s for a in reversed(arrays) for s in a.status if s.name == name), None)
+
+        def both_seen():
+            send()
+            tissue = [status(f'viz_node: tissue ({n})') for n in names]
+            latency = [status(f'viz_node: pose to force latency ({n})') for n in names]
+            spaces = {m.ns for a in markers[-3:] for m in a.markers}
+            return (all(s is not None and s.message.startswith('active') for s in tissue)
+                    and all(s is not None and 'p50' in s.message for s in latency)
+                    and {'left/tool', 'right/tool', 'left/held', 'right/held'} <= spaces)
+        assert rclpy_node.spin_until(both_seen, 30), (viz.output(), [s.name for s in arrays[-1].status]
+                                                      if arrays else None)
+        names_seen = {s.name for s in arrays[-1].status}
+        for n in names:
+            assert {f'viz_node: {n}/tissue/metrics rate', f'viz_node: {n}/omni/pose rate',
+                    f'viz_node: {n}/omni/force_feedback rate', f'viz_node: haptic rendering ({n})',
+                    f'viz_node: input ({n})'} <= names_seen
+        assert {'viz_node: tissue/particles rate', 'viz_node: step time'} <= names_seen
+        assert 'viz_node: tissue' not in names_seen               # no status without its instrument
+        forces = {n: {kv.key: kv.value for kv in status(f'viz_node: tissue ({n})').values}['force [N]']
+                  for n in names}
+        assert forces == {'left': '0.500', 'right': '1.500'}
+        latest = {m.ns: m for a in markers[-3:] for m in a.markers}
+        assert latest['left/tool'].pose.position.x == pytest.approx(0.01)
+        assert latest['right/tool'].pose.position.x == pytest.approx(0.02)
+        assert latest['left/tool'].color != latest['right/tool'].color
+        held = {n: sorted(round(p.x * 1e3) for p in latest[f'{n}/held'].points) for n in names}
+        assert held == {'left': [3, 6], 'right': [12]}                    # x of particles 1, 2 and 4
+        assert latest['left/held'].type == Marker.SPHERE_LIST and latest['left/held'].header.frame_id == 'tissue'
+        assert viz.alive() and 'Traceback' not in viz.output(), viz.output()
+
+
 def test_haptic_rendering_status_is_ok_for_direct_and_passive_metrics_and_warns_on_negative_e_in(
         rclpy_node):
     def multirate(energy_in: float):

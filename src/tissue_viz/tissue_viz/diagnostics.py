@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from tissue_common.instruments import topic_within
 from tissue_viz.errors import VizConfigError
 from tissue_viz.stats import HAPTIC_MULTIRATE, LIMITS, TOPICS, Snapshot
 
@@ -106,6 +107,11 @@ class Status:
 NO_VALUE = 'n/a'    # what a person reads where there is no number (never 'nan')
 
 
+def _name(prefix: str, item: str, instrument: str = '') -> str:
+    """A status name: ``viz_node: tissue``, or with several instruments ``viz_node: tissue (left)``."""
+    return f'{prefix}: {item} ({instrument})' if instrument else f'{prefix}: {item}'
+
+
 def _num(x: float | None, digits: int = 3) -> str:
     if x is None or not math.isfinite(x):
         return NO_VALUE
@@ -123,8 +129,10 @@ def _uj(x: float | None) -> str:
     return NO_VALUE if x is None or not math.isfinite(x) else _num(x * 1e6, 3)
 
 
-def rate_status(topic: str, snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> Status:
-    """FrequencyStatus-like check of one topic's rate."""
+def rate_status(topic: str, snap: Snapshot, targets: Targets, prefix: str = 'viz_node',
+                instrument: str = '') -> Status:
+    """FrequencyStatus-like check of one topic's rate (named by the topic in ``instrument``'s
+    namespace)."""
     target: RateTarget = targets.rates[topic]
     rate, age, count = snap.rates.get(topic, 0.0), snap.ages.get(topic), snap.counts.get(topic, 0)
     lo = target.min_rate * (1.0 - targets.rate_tolerance)
@@ -134,7 +142,7 @@ def rate_status(topic: str, snap: Snapshot, targets: Targets, prefix: str = 'viz
               ('messages', str(count)),
               ('since last [s]', 'never' if age is None else _num(age, 3)),
               ('window [s]', _num(snap.window, 1))]
-    name = f'{prefix}: {TOPIC_NAMES[topic]} rate'
+    name = f'{prefix}: {topic_within(instrument, TOPIC_NAMES[topic])} rate'
     if age is None:
         if target.required:
             return Status(name, ERROR, 'no data', values)
@@ -172,7 +180,8 @@ def step_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> S
     return Status(name, OK, text, values)
 
 
-def latency_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> Status:
+def latency_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node',
+                   instrument: str = '') -> Status:
     """Pose→force latency percentiles and the share of poses without a reply."""
     loss = snap.replies_missed_pct
     values = [('p50 [ms]', _ms(snap.latency_p50)), ('p99 [ms]', _ms(snap.latency_p99)),
@@ -180,7 +189,7 @@ def latency_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -
               ('p50 warn [ms]', _ms(targets.latency_p50_warn)),
               ('p99 warn [ms]', _ms(targets.latency_p99_warn)),
               ('p99 error [ms]', _ms(targets.latency_p99_error))]
-    name = f'{prefix}: pose to force latency'
+    name = _name(prefix, 'pose to force latency', instrument)
     if not math.isfinite(snap.latency_p50):
         if targets.rates['pose'].required and targets.rates['force'].required:
             return Status(name, STALE, 'no data', values)
@@ -197,14 +206,15 @@ def latency_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -
     return Status(name, OK, text, values)
 
 
-def tissue_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> Status:
+def tissue_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node',
+                  instrument: str = '') -> Status:
     """Active particles, force and displacement; WARN when the force reaches the device limit."""
     values = [('active particles', _num(snap.active, 0)),
               ('interaction particles', _num(snap.n_interaction, 0)),
               ('force [N]', _num(snap.force, 3)), ('max force in window [N]', _num(snap.force_max, 3)),
               ('force limit [N]', _num(targets.force_limit, 2)),
               ('max displacement [mm]', _ms(snap.displacement))]
-    name = f'{prefix}: tissue'
+    name = _name(prefix, 'tissue', instrument)
     if not (math.isfinite(snap.active) or math.isfinite(snap.force)):
         if targets.rates['metrics'].required or targets.rates['force'].required:
             return Status(name, STALE, 'no data', values)
@@ -217,7 +227,8 @@ def tissue_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') ->
     return Status(name, OK, text, values)
 
 
-def haptic_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> Status:
+def haptic_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node',
+                  instrument: str = '') -> Status:
     """Multirate haptic rendering: WARN when the lowest E_in in the window is below
     ``energy_in_min`` (the rendering gave energy back to the hand, i.e. it is not passive), or when
     the contact model the renderer answered from was older than ``model_age_warn`` (the solver is
@@ -232,7 +243,7 @@ def haptic_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') ->
               ('lowest E_in since reset [uJ]', _uj(snap.energy_in_min)),
               ('E_in warn below [uJ]', _uj(targets.energy_in_min)),
               ('added damping [N s/m]', _num(snap.added_damping, 3))]
-    name = f'{prefix}: haptic rendering'
+    name = _name(prefix, 'haptic rendering', instrument)
     # Optional, like a topic that is not required: without a multirate renderer there is nothing
     # to judge, and the step and tissue statuses already speak for missing metrics.
     if snap.haptic_mode is None:
@@ -251,7 +262,7 @@ def haptic_status(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') ->
     return Status(name, OK, text, values)
 
 
-def input_status(snap: Snapshot, prefix: str = 'viz_node') -> Status:
+def input_status(snap: Snapshot, prefix: str = 'viz_node', instrument: str = '') -> Status:
     """Bad input seen in the window: messages with NaN/inf or out-of-range values (with the count
     of each kind of bad value since start), header stamps going backwards."""
     values = [('bad messages in window', str(snap.bad_in_window)),
@@ -260,7 +271,7 @@ def input_status(snap: Snapshot, prefix: str = 'viz_node') -> Status:
               ('backwards stamps total', str(snap.backwards_total))]
     values += [(f'bad {LIMITS[key].what} total', str(count))
                for key, count in snap.bad_values.items() if count and key in LIMITS]
-    name = f'{prefix}: input'
+    name = _name(prefix, 'input', instrument)
     problems = []
     if snap.bad_in_window:
         problems.append(f'{snap.bad_in_window} messages with NaN/inf or out-of-range values '
@@ -278,6 +289,30 @@ def evaluate(snap: Snapshot, targets: Targets, prefix: str = 'viz_node') -> list
     statuses += [step_status(snap, targets, prefix), latency_status(snap, targets, prefix),
                  tissue_status(snap, targets, prefix), haptic_status(snap, targets, prefix),
                  input_status(snap, prefix)]
+    return statuses
+
+
+def evaluate_instruments(snaps: dict[str, Snapshot], targets: Targets,
+                         prefix: str = 'viz_node') -> list[Status]:
+    """Every status for one snapshot per instrument (name -> snapshot, in the order of the
+    ``instruments`` parameter). One instrument without a name (``['']``) is :func:`evaluate`. With
+    several, the cloud's rate and the step time (the tissue's, the same step in every
+    instrument's metrics) come once, from the first instrument's snapshot; each instrument has its
+    own topic rates (``viz_node: left/omni/pose rate``) and its own latency, tissue (force),
+    haptic rendering (E_in) and input statuses, named with the instrument (``viz_node: tissue
+    (left)``)."""
+    names = list(snaps)
+    if names == ['']:
+        return evaluate(snaps[''], targets, prefix)
+    first = snaps[names[0]]
+    statuses = [rate_status('particles', first, targets, prefix)]
+    statuses += [rate_status(topic, snap, targets, prefix, name)
+                 for name, snap in snaps.items() for topic in TOPICS if topic != 'particles']
+    statuses.append(step_status(first, targets, prefix))
+    for name, snap in snaps.items():
+        statuses += [latency_status(snap, targets, prefix, name),
+                     tissue_status(snap, targets, prefix, name),
+                     haptic_status(snap, targets, prefix, name), input_status(snap, prefix, name)]
     return statuses
 
 

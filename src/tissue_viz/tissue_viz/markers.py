@@ -1,4 +1,4 @@
-"""Tool and force marker geometry (pure Python + numpy, no rclpy).
+"""Tool, force and held-particle marker geometry and colours (pure Python + numpy, no rclpy).
 
 In the device frame the markers show the stylus tip (``omni/pose``) and the force sent to the
 device. In the tissue frame they show the simulator's own tool (shape and pose, as it reports them
@@ -47,6 +47,23 @@ class ToolShape:
         x /= np.linalg.norm(x)
         rot = np.column_stack([x, np.cross(z, x), z])
         return self.tip + 0.5 * self.length * z, matrix_quaternion(rot)
+
+
+#: (r, g, b) of instrument k's tool, force and held particles when there are several, and of the
+#: particles one instrument holds (matplotlib's tab10: distinct on the report's white and RViz's grey)
+INSTRUMENT_COLOURS = ((0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16),
+                      (0.58, 0.40, 0.74), (0.55, 0.34, 0.29), (0.89, 0.47, 0.76), (0.74, 0.74, 0.13))
+
+
+def instrument_colour(k: int) -> tuple[float, float, float]:
+    """The colour of instrument ``k`` (the ``instruments`` order; the held byte's k + 1)."""
+    return INSTRUMENT_COLOURS[k % len(INSTRUMENT_COLOURS)]
+
+
+def held_positions(xyz: np.ndarray, held: np.ndarray, instruments: int) -> list[np.ndarray]:
+    """Per instrument k the positions (m, 3) of the particles it holds: where the cloud's ``held``
+    byte is k + 1 (:mod:`sph_tissue_sim.cloud`)."""
+    return [xyz[held == k + 1] for k in range(instruments)]
 
 
 def force_arrow(tip, force, scale: float) -> tuple[np.ndarray, np.ndarray]:

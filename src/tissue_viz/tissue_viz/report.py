@@ -75,13 +75,20 @@ class ReportData:
     shared: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
-    def from_stats(cls, stats: VizStats, now: float, **kw) -> 'ReportData':
+    def from_stats(cls, stats: VizStats, now: float, instruments: dict[str, VizStats] | None = None,
+                   **kw) -> 'ReportData':
+        """The report of ``stats``; with several ``instruments`` (name -> their statistics, ``stats``
+        the first's) the summary also holds each one's :meth:`~VizStats.instrument_summary` under
+        ``instruments``."""
         recorders = {'metrics': stats.metrics_table, 'force': stats.force_table,
                      'latency': stats.latency_table, 'rates': stats.rate_table}
         tables = {name: rec.as_dict() for name, rec in recorders.items()}
         tables['feel'] = stats.feel_table()
         heads = {name: rec.csv_head() for name, rec in recorders.items()}
-        return cls(tables=tables, summary=stats.summary(now), haptic_period=stats.period,
+        summary = stats.summary(now)
+        if instruments:
+            summary['instruments'] = {name: s.instrument_summary(now) for name, s in instruments.items()}
+        return cls(tables=tables, summary=summary, haptic_period=stats.period,
                    csv_heads={name: head for name, head in heads.items() if head[0]}, **kw)
 
     def table(self, name: str) -> dict:
@@ -687,6 +694,16 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
             ('max added damping', _fmt(summary.get('max_added_damping_n_s_per_m'), 1, 3,
                                        'N s/m')),
             ('solver rate p50', _fmt(summary.get('solver_rate_p50_hz'), 1, 1, 'Hz')),
+        ]
+    instruments = summary.get('instruments')
+    for name, s in (instruments.items() if isinstance(instruments, dict) else ()):
+        s = _counts(s)                   # several instruments: each one's force, latency and E_in
+        rows += [
+            (f'{name}: max force', _fmt(s.get('max_force_n'), 1, 3, 'N')),
+            (f'{name}: pose to force latency p50', _fmt(s.get('latency_p50_s'), 1e3, 3, 'ms')),
+            (f'{name}: pose to force latency p99', _fmt(s.get('latency_p99_s'), 1e3, 3, 'ms')),
+            (f'{name}: poses without reply', _fmt(s.get('replies_missed_pct'), 1, 2, '%')),
+            (f'{name}: E_in min (below zero: not passive)', _fmt(s.get('energy_in_min_j'), 1e6, 3, 'uJ')),
         ]
     if 'feel_dF_p99_mN' in summary:      # what the hand got: the forces sent, frame to frame
         rows += [

@@ -18,6 +18,10 @@ from tissue_common.feel import feel
 from tissue_viz.errors import VizConfigError
 
 TOPICS = ('metrics', 'particles', 'pose', 'force')
+#: each instrument's figures in the report when there are several (keys of VizStats.summary):
+#: the force it got, its pose -> force round trip and the lowest E_in of its rendering
+INSTRUMENT_SUMMARY_KEYS = ('max_force_n', 'latency_p50_s', 'latency_p99_s', 'replies_missed_pct',
+                           'energy_in_min_j')
 # tissue_msgs/SimMetrics.HAPTIC_MULTIRATE (kept here so the statistics and the report need no
 # message import): a haptic renderer answers each pose and the solver refreshes its contact model.
 HAPTIC_MULTIRATE = 1
@@ -681,6 +685,12 @@ class VizStats:
             **{key: num(value) for key, value in self.feel_summary().items()},
         }
 
+    def instrument_summary(self, now: float) -> dict:
+        """What a report says of one of several instruments: :data:`INSTRUMENT_SUMMARY_KEYS` of
+        :meth:`summary` (None where there is no value, e.g. E_in of a direct run)."""
+        full = self.summary(now)
+        return {key: full.get(key) for key in INSTRUMENT_SUMMARY_KEYS}
+
     def feel_table(self) -> dict[str, np.ndarray]:
         """The answered poses (``FEEL_COLUMNS``, stamp [s] relative to the first) in stamp order."""
         # ``felt`` only grows: its length tells whether the sorted table is still current
@@ -744,22 +754,37 @@ def _fmt(value: float, scale: float, digits: int, unit: str) -> str:
     return f'{value * scale:.{digits}f} {unit}'
 
 
-def summary_line(snap: Snapshot) -> str:
-    """Compact one-line status, e.g. ``haptic 998 Hz | step p50 0.08 ms p99 0.2 ms | ...``."""
+def summary_line(snap: Snapshot, instruments: dict[str, Snapshot] | None = None) -> str:
+    """Compact one-line status, e.g. ``haptic 998 Hz | step p50 0.08 ms p99 0.2 ms | ...``.
+
+    ``instruments`` (name -> snapshot, several instruments): latency and force per instrument
+    (``left lat p50 .. p99 .. F ..``) instead of ``snap``'s; the rest is ``snap``'s (the first
+    instrument's, which also counts the cloud)."""
     # The haptic loop's output is the force stream; without it, the (per-step) metrics stream.
     haptic = snap.rates.get('force', 0.0) if snap.counts.get('force') else snap.rates.get('metrics', 0.0)
+
+    def lat(s: Snapshot) -> str:
+        return f'lat p50 {_fmt(s.latency_p50, 1e3, 2, "ms")} p99 {_fmt(s.latency_p99, 1e3, 2, "ms")}'
+
     parts = [
         f'haptic {haptic:.0f} Hz',
         f'step p50 {_fmt(snap.step_p50, 1e3, 2, "ms")} p99 {_fmt(snap.step_p99, 1e3, 2, "ms")}',
         f'miss {_fmt(snap.deadline_miss_pct, 1.0, 1, "%")}',
-        f'lat p50 {_fmt(snap.latency_p50, 1e3, 2, "ms")} p99 {_fmt(snap.latency_p99, 1e3, 2, "ms")}',
-        f'active {snap.active:.0f}' if math.isfinite(snap.active) else 'active -',
-        f'F {_fmt(snap.force, 1.0, 2, "N")}',
-        f'disp {_fmt(snap.displacement, 1e3, 1, "mm")}',
-        f'cloud {snap.rates.get("particles", 0.0):.0f} Hz',
     ]
-    if snap.bad_total or snap.backwards_total:
-        parts.append(f'bad input {snap.bad_total} msgs {snap.backwards_total} stamps backwards')
+    if instruments:
+        parts += [f'{name} {lat(s)} F {_fmt(s.force, 1.0, 2, "N")}' for name, s in instruments.items()]
+    else:
+        parts.append(lat(snap))
+    parts.append(f'active {snap.active:.0f}' if math.isfinite(snap.active) else 'active -')
+    if not instruments:
+        parts.append(f'F {_fmt(snap.force, 1.0, 2, "N")}')
+    parts += [f'disp {_fmt(snap.displacement, 1e3, 1, "mm")}',
+              f'cloud {snap.rates.get("particles", 0.0):.0f} Hz']
+    bad = [snap] if not instruments else list(instruments.values())
+    bad_total = sum(s.bad_total for s in bad)
+    backwards = sum(s.backwards_total for s in bad)
+    if bad_total or backwards:
+        parts.append(f'bad input {bad_total} msgs {backwards} stamps backwards')
     return ' | '.join(parts)
 
 

@@ -1,10 +1,12 @@
 """The organ itself in the report: the particle cloud at rest and at the deepest press (no rclpy).
 
 :class:`TissueSnapshots` keeps, from the ``tissue/particles`` clouds viz_node receives, the first
-(at rest), the one with the largest displacement (the deepest press) with the simulated tool of
+(at rest), the one with the largest displacement (the deepest press) with the simulated tools of
 that moment, and a short run of clouds around it for an animation. The images are drawn headless
 (matplotlib Agg): every particle as a dot coloured by its displacement and, beside it, by its von
-Mises stress, the tool drawn where the simulation had it. A cloud of more than
+Mises stress, each tool drawn where the simulation had it and the particles it holds (the cloud's
+``held`` byte) ringed in its colour (:func:`tissue_viz.markers.instrument_colour`; one tool alone
+is drawn dark grey). A cloud of more than
 :data:`MAX_POINTS` particles is kept as a fixed, evenly spread subset (the images stay legible
 and the memory bounded at 100k particles). Snapshots are saved with the report
 (``tissue_snapshots.npz``) so that ``tissue_report`` can draw them again.
@@ -19,13 +21,17 @@ from pathlib import Path
 
 import numpy as np
 
+from tissue_viz.markers import instrument_colour
+
 #: particles kept per cloud (a fixed subset of a larger cloud)
 MAX_POINTS = 20000
 #: clouds kept before and after the deepest one for the animation
 ANIMATION_SIDE = 12
 #: PointField datatypes -> numpy (sensor_msgs/PointField constants)
 POINTFIELD_DTYPES = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
-FIELDS = ('x', 'y', 'z', 'displacement', 'von_mises')
+FIELDS = ('x', 'y', 'z', 'displacement', 'von_mises', 'held')
+#: one tool alone (as before there were several): dark grey on the white report
+SINGLE_TOOL_COLOUR = '0.15'
 
 
 def cloud_arrays(fields, data: bytes, width: int, point_step: int, big_endian: bool = False) -> dict:
@@ -48,16 +54,27 @@ def cloud_arrays(fields, data: bytes, width: int, point_step: int, big_endian: b
     return {n: rec[n].astype(np.float64) for n in keep}
 
 
+Tool = tuple   # (tip (3,) [m], unit axis (3,), shaft length [m], radius [m]) in the cloud's frame
+
+
 @dataclass
 class Snapshot:
     """One cloud: positions (n, 3) [m], displacement (n,) [m], von Mises (n,) [Pa] (NaN where the
-    cloud had no such field), its stamp [ns], and the tool (tip, axis, length, radius) or None."""
+    cloud had no such field), its stamp [ns], each instrument's tool (:data:`Tool`, or None where it
+    is lifted or unknown; index k = instrument k) and the held byte (n,) (0 free, k + 1 held by
+    instrument k; None where the cloud had no such field)."""
 
     xyz: np.ndarray
     displacement: np.ndarray
     von_mises: np.ndarray
     stamp_ns: int
-    tool: tuple | None = None
+    tools: tuple = ()
+    held: np.ndarray | None = None
+
+    @property
+    def first_tool(self) -> Tool | None:
+        """The first instrument's tool that is there (the section runs through it)."""
+        return next((t for t in self.tools if t is not None), None)
 
     @property
     def peak(self) -> float:
@@ -90,16 +107,18 @@ class TissueSnapshots:
         out.rest, out.deepest, out.frames = self.rest, self.deepest, list(self.frames)
         return out
 
-    def add(self, columns: dict, stamp_ns: int, tool: tuple | None) -> None:
-        """One received cloud (:func:`cloud_arrays`) and the simulated tool of that moment."""
+    def add(self, columns: dict, stamp_ns: int, tools: tuple) -> None:
+        """One received cloud (:func:`cloud_arrays`) and each instrument's simulated tool of that
+        moment (:attr:`Snapshot.tools`)."""
         n = len(columns['x'])
         if n == 0:
             return
         pick = self._take(n)
         nan = np.full(n, np.nan)
+        held = columns.get('held')
         snap = Snapshot(np.column_stack([columns['x'][pick], columns['y'][pick], columns['z'][pick]]),
                         columns.get('displacement', nan)[pick], columns.get('von_mises', nan)[pick],
-                        int(stamp_ns), tool)
+                        int(stamp_ns), tuple(tools), None if held is None else held[pick].astype(np.uint8))
         if self.rest is None:
             self.rest = snap
         if self.deepest is None or snap.peak > self.deepest.peak:
@@ -122,9 +141,12 @@ class TissueSnapshots:
             arrays[f'{name}_disp'] = snap.displacement
             arrays[f'{name}_vm'] = snap.von_mises
             arrays[f'{name}_stamp'] = np.array(snap.stamp_ns)
-            if snap.tool is not None:
-                tip, axis, length, radius = snap.tool
-                arrays[f'{name}_tool'] = np.r_[tip, axis, length, radius]
+            if snap.tools:
+                # one row per instrument, NaN for a lifted one
+                arrays[f'{name}_tool'] = np.array([np.r_[t[0], t[1], t[2], t[3]] if t is not None
+                                                   else np.full(8, np.nan) for t in snap.tools])
+            if snap.held is not None:
+                arrays[f'{name}_held'] = snap.held
         # np.savez_compressed's layout (np.load reads it) at zlib level 1: a quarter of the time
         # of its level 6 for 7 % more bytes
         with zipfile.ZipFile(path, 'w', compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
@@ -139,11 +161,13 @@ class TissueSnapshots:
             def snap(name):
                 if f'{name}_xyz' not in z:
                     return None
-                tool = z[f'{name}_tool'] if f'{name}_tool' in z else None
+                # (8,) in a file from before several instruments: one tool
+                rows = np.atleast_2d(z[f'{name}_tool']) if f'{name}_tool' in z else np.zeros((0, 8))
+                tools = tuple((r[:3], r[3:6], float(r[6]), float(r[7])) if np.isfinite(r).all() else None
+                              for r in rows)
                 return Snapshot(z[f'{name}_xyz'], z[f'{name}_disp'], z[f'{name}_vm'],
-                                int(z[f'{name}_stamp']),
-                                None if tool is None else (tool[:3], tool[3:6], float(tool[6]),
-                                                           float(tool[7])))
+                                int(z[f'{name}_stamp']), tools,
+                                z[f'{name}_held'] if f'{name}_held' in z else None)
             out.rest, out.deepest = snap('rest'), snap('deepest')
             k = 0
             while (s := snap(f'frame{k:03d}')) is not None:
@@ -170,6 +194,21 @@ def _tool_surface(tool, n: int = 16):
         th, s = np.meshgrid(np.linspace(0, 2 * np.pi, n), np.linspace(0.0, length, 4))
         shaft = [tip[k] + radius * (np.cos(th) * x[k] + np.sin(th) * y[k]) + s * z[k] for k in range(3)]
     return sphere, shaft
+
+
+def _tool_colours(snap: Snapshot) -> list[tuple[int, Tool, object]]:
+    """(instrument k, tool, colour) of each tool there is: dark grey for one instrument alone."""
+    several = len(snap.tools) > 1
+    return [(k, t, instrument_colour(k) if several else SINGLE_TOOL_COLOUR)
+            for k, t in enumerate(snap.tools) if t is not None]
+
+
+def _held_groups(snap: Snapshot, pick: np.ndarray | slice = slice(None)) -> list[tuple[np.ndarray, object]]:
+    """(positions (m, 3) [m], colour) of the particles each instrument holds, among ``pick``."""
+    if snap.held is None:
+        return []
+    held, xyz = snap.held[pick], snap.xyz[pick]
+    return [(xyz[held == code], instrument_colour(int(code) - 1)) for code in np.unique(held) if code]
 
 
 def _dot_size(n: int) -> float:
@@ -215,12 +254,17 @@ def _cloud_artists(ax, snap: Snapshot, values: np.ndarray, vmax: float, cmap: st
     if (~ok).any():
         artists.append(ax.scatter(xyz[~ok, 0], xyz[~ok, 1], xyz[~ok, 2], s=2, color='0.7',
                                   depthshade=False, animated=animated))
-    if snap.tool is not None:
-        sphere, shaft = _tool_surface(snap.tool)
-        artists.append(ax.plot_wireframe(*(c * 1e3 for c in sphere), color='0.15', linewidth=0.5,
+    for pts, colour in _held_groups(snap):
+        pts = pts * 1e3
+        artists.append(ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=3 * _dot_size(len(xyz)),
+                                  facecolors='none', edgecolors=[colour], linewidths=1.0,
+                                  depthshade=False, animated=animated))
+    for _, tool, colour in _tool_colours(snap):
+        sphere, shaft = _tool_surface(tool)
+        artists.append(ax.plot_wireframe(*(c * 1e3 for c in sphere), color=colour, linewidth=0.5,
                                          animated=animated))
         if shaft is not None:
-            artists.append(ax.plot_wireframe(*(c * 1e3 for c in shaft), color='0.15',
+            artists.append(ax.plot_wireframe(*(c * 1e3 for c in shaft), color=colour,
                                              linewidth=0.5, animated=animated))
     return artists
 
@@ -231,8 +275,8 @@ def _section(snap: Snapshot, reference: Snapshot) -> np.ndarray:
     ref = reference.xyz if len(reference.xyz) == len(snap.xyz) else snap.xyz
     ys = np.unique(np.round(ref[:, 1], 6))
     gap = float(np.median(np.diff(ys))) if ys.size > 1 else 1.0
-    if snap.tool is not None:
-        y0 = float(snap.tool[0][1])
+    if snap.first_tool is not None:
+        y0 = float(snap.first_tool[0][1])
     else:
         d = np.where(np.isfinite(snap.displacement), snap.displacement, -np.inf)
         y0 = float(ref[int(np.argmax(d)), 1])
@@ -253,22 +297,25 @@ def _section_axes(fig, ax, label: str, limits, vmax: float, cmap: str, scale: fl
 
 def _section_artists(ax, snap: Snapshot, reference: Snapshot, values: np.ndarray, vmax: float,
                      cmap: str, scale: float, animated: bool = False) -> list:
-    """The section's particles coloured by ``values``, and the tool cut by the section plane."""
+    """The section's particles coloured by ``values`` (those held ringed in their instrument's
+    colour), and the tools projected on the section plane."""
     pick = _section(snap, reference) & np.isfinite(values)
     xz = snap.xyz[pick][:, [0, 2]] * 1e3
-    artists = [ax.scatter(xz[:, 0], xz[:, 1], c=values[pick] * scale,
-                          s=4 * _dot_size(int(pick.sum())), cmap=cmap, norm=_norm(vmax, scale),
-                          linewidths=0, animated=animated)]
-    if snap.tool is not None:
-        tip, axis, length, radius = snap.tool
-        th = np.linspace(0.0, 2.0 * np.pi, 64)
+    size = 4 * _dot_size(int(pick.sum()))
+    artists = [ax.scatter(xz[:, 0], xz[:, 1], c=values[pick] * scale, s=size, cmap=cmap,
+                          norm=_norm(vmax, scale), linewidths=0, animated=animated)]
+    for pts, colour in _held_groups(snap, pick):
+        artists.append(ax.scatter(pts[:, 0] * 1e3, pts[:, 2] * 1e3, s=2 * size, facecolors='none',
+                                  edgecolors=[colour], linewidths=1.0, animated=animated))
+    th = np.linspace(0.0, 2.0 * np.pi, 64)
+    for _, (tip, axis, length, radius), colour in _tool_colours(snap):
         artists += ax.plot((tip[0] + radius * np.cos(th)) * 1e3,
-                           (tip[2] + radius * np.sin(th)) * 1e3, color='0.15', linewidth=1.0,
+                           (tip[2] + radius * np.sin(th)) * 1e3, color=colour, linewidth=1.0,
                            animated=animated)
         if length > 0.0 and np.linalg.norm(axis) > 0.0:
             end = np.asarray(tip) + length * np.asarray(axis) / np.linalg.norm(axis)
             artists += ax.plot([tip[0] * 1e3, end[0] * 1e3], [tip[2] * 1e3, end[2] * 1e3],
-                               color='0.15', linewidth=2 * radius * 1e3 * 2.0, alpha=0.3,
+                               color=colour, linewidth=2 * radius * 1e3 * 2.0, alpha=0.3,
                                solid_capstyle='round', animated=animated)
     return artists
 

@@ -2,7 +2,10 @@
 
 Subscribes ``tissue/metrics``, ``tissue/particles``, ``omni/pose`` and ``omni/force_feedback``;
 publishes ``/diagnostics`` (diagnostic_msgs/DiagnosticArray) and ``viz/markers``
-(visualization_msgs/MarkerArray); serves ``viz/write_report`` (std_srvs/Trigger). On shutdown
+(visualization_msgs/MarkerArray); serves ``viz/write_report`` (std_srvs/Trigger). With several
+instruments (parameter ``instruments``, as sim_node's) each name is a namespace of its own
+``tissue/metrics``, ``omni/pose`` and ``omni/force_feedback``, with statistics, diagnostics and
+markers of its own; ``tissue/particles`` stays the node's. On shutdown
 (Ctrl-C) it leaves the ROS graph, then writes the report folder (see :mod:`tissue_viz.report`) in
 two processes, well within the 5 s ``ros2 launch`` grants between SIGINT and SIGTERM.
 
@@ -12,6 +15,7 @@ in timers at a few hertz.
 
 from __future__ import annotations
 
+import functools
 import gc
 import math
 import os
@@ -31,6 +35,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
+from tissue_common.instruments import check_instruments, topic_within
 from tissue_common.node_start import EXIT_PARAMS, init_rclpy, spin_until_stopped, stop_on_signals
 from tissue_common.params import declare_all
 from tissue_common.stamps import stamp_to_ns
@@ -38,9 +43,9 @@ from tissue_msgs.msg import SimMetrics
 from visualization_msgs.msg import Marker, MarkerArray
 
 from tissue_viz import figures
-from tissue_viz.diagnostics import RateTarget, Status, Targets, worst_level, evaluate
+from tissue_viz.diagnostics import RateTarget, Status, Targets, worst_level, evaluate_instruments
 from tissue_viz.errors import ReportError, VizConfigError
-from tissue_viz.markers import ToolShape, force_arrow
+from tissue_viz.markers import ToolShape, force_arrow, held_positions, instrument_colour
 from tissue_viz.report import ReportData, default_report_dir, prepare_report_dir, write_report
 from tissue_viz.stats import TOPICS, VizStats, summary_line
 from tissue_viz.tissue_images import TissueSnapshots, cloud_arrays
@@ -54,6 +59,9 @@ _RATE_DEFAULTS = {'metrics': (900.0, 1100.0), 'particles': (25.0, 35.0),
 # name: (default, description, (low, high) or None, read_only) -- the one place parameters are
 # declared (the format of tissue_common.params).
 PARAMETERS: dict[str, tuple] = {
+    'instruments': ([''], 'the instruments on the tissue, as sim_node\'s: each name a namespace of its '
+                          'own tissue/metrics, omni/pose and omni/force_feedback ([""]: one, no '
+                          'namespace), in sim_node\'s order', None, True),
     'window': (5.0, 'sliding window of the rolling statistics [s]', (0.1, 600.0), True),
     'haptic_rate': (1000.0, 'haptic loop rate [Hz]; a step longer than 1/haptic_rate misses '
                     'its deadline', (1.0, 10000.0), False),
@@ -123,6 +131,9 @@ EXIT_REPORT_FAILED = 3        # the shutdown report could not be written complet
 #: processes that draw the shutdown report: ``ros2 launch`` escalates to SIGTERM 5 s after SIGINT
 REPORT_PROCESSES = max(1, min(2, os.cpu_count() or 1))
 
+#: [m] diameter of the dots that mark the particles an instrument holds
+HELD_DOT = 0.002
+
 _LEVEL_BYTES = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR,
                 3: DiagnosticStatus.STALE}
 
@@ -143,17 +154,24 @@ class VizNode(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('viz_node', **kwargs)
-        self.p = declare_all(self, PARAMETERS, VizConfigError)
+        self.p = declare_all(self, PARAMETERS, VizConfigError,
+                             lambda name, value: check_instruments(value) if name == 'instruments' else None)
         # Cross-parameter checks (min <= max, warn <= error): fail at start with a clear message.
         self.targets = targets_from(self.p)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self.stats = VizStats(window=self.p['window'], haptic_rate=self.p['haptic_rate'],
-                              latency_timeout=self.p['latency_timeout'],
-                              max_report_rows=self.p['max_report_rows'])
-        self.pose_frame = 'omni_base'
-        # the simulated tool (tissue frame) and the force on it, from the newest tissue/metrics
-        self.sim_tool: tuple[str, ToolShape, np.ndarray] | None = None
+        self.names = [str(n) for n in self.p['instruments']]
+        n = len(self.names)
+        # one set of statistics per instrument; the first also counts the cloud (the node's)
+        self.instrument_stats = [VizStats(window=self.p['window'], haptic_rate=self.p['haptic_rate'],
+                                          latency_timeout=self.p['latency_timeout'],
+                                          max_report_rows=self.p['max_report_rows']) for _ in range(n)]
+        self.stats = self.instrument_stats[0]
+        self.pose_frames = ['omni_base'] * n
+        # each simulated tool (tissue frame) and the force on it, from its newest tissue/metrics
+        self.sim_tools: list[tuple[str, ToolShape, np.ndarray] | None] = [None] * n
+        # the cloud's frame and, per instrument, the positions of the particles it holds
+        self.held: tuple[str, list[np.ndarray]] | None = None
         self.tissue = TissueSnapshots()
         self._report_lock = threading.Lock()
         self._report_thread: threading.Thread | None = None
@@ -170,11 +188,20 @@ class VizNode(Node):
         cloud_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
                                reliability=ReliabilityPolicy.BEST_EFFORT)
         guard = self._guarded
-        self.create_subscription(SimMetrics, 'tissue/metrics', guard(self._on_metrics), metrics_qos)
+
+        def of(method, k: int):
+            """``method`` for instrument ``k``, guarded (and named as the method in its log)."""
+            return guard(functools.update_wrapper(functools.partial(method, k=k), method))
+
+        for k, name in enumerate(self.names):
+            self.create_subscription(SimMetrics, topic_within(name, 'tissue/metrics'),
+                                     of(self._on_metrics, k), metrics_qos)
+            self.create_subscription(PoseStamped, topic_within(name, 'omni/pose'), of(self._on_pose, k),
+                                     fast)
+            self.create_subscription(WrenchStamped, topic_within(name, 'omni/force_feedback'),
+                                     of(self._on_force, k), fast)
         self.create_subscription(PointCloud2, 'tissue/particles', guard(self._on_particles),
                                  cloud_qos)
-        self.create_subscription(PoseStamped, 'omni/pose', guard(self._on_pose), fast)
-        self.create_subscription(WrenchStamped, 'omni/force_feedback', guard(self._on_force), fast)
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.marker_pub = self.create_publisher(MarkerArray, 'viz/markers', 10)
         self.create_service(Trigger, 'viz/write_report', self._on_write_report)
@@ -232,13 +259,14 @@ class VizNode(Node):
         except (TypeError, ValueError, KeyError) as exc:
             return SetParametersResult(successful=False, reason=f'invalid value: {exc}')
         self.p, self.targets = values, targets
-        self.stats.period = 1.0 / values['haptic_rate']
+        for stats in self.instrument_stats:
+            stats.period = 1.0 / values['haptic_rate']
         return SetParametersResult(successful=True)
 
     # -- callbacks: hand plain values to the statistics --------------------------------------------
-    def _on_metrics(self, msg: SimMetrics) -> None:
+    def _on_metrics(self, msg: SimMetrics, k: int = 0) -> None:
         f = msg.contact_force
-        self.stats.on_metrics(time.monotonic(), stamp_to_ns(msg.header.stamp), msg.step_wall_time,
+        self.instrument_stats[k].on_metrics(time.monotonic(), stamp_to_ns(msg.header.stamp), msg.step_wall_time,
                               (f.x, f.y, f.z), msg.max_displacement, msg.n_interaction,
                               msg.n_layer, msg.n_relaxing, msg.substeps, msg.contact_index,
                               msg.penetration, msg.kinetic_energy, haptic_mode=msg.haptic_mode,
@@ -247,37 +275,52 @@ class VizNode(Node):
                               energy_in_min=msg.energy_in_min, added_damping=msg.added_damping)
         tool = ToolShape.from_metrics(msg)
         if tool is not None:
-            self.sim_tool = (msg.header.frame_id, tool, np.array([f.x, f.y, f.z]))
+            self.sim_tools[k] = (msg.header.frame_id, tool, np.array([f.x, f.y, f.z]))
 
     def _on_particles(self, msg: PointCloud2) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         self.stats.on_particles(time.monotonic(), stamp, msg.width * msg.height)
-        if not self.p['tissue_images']:
+        # the markers show the held particles, the report the clouds: else no need to unpack
+        if not (self.p['tissue_images'] or self.p['marker_rate'] > 0):
             return
+        frame = msg.header.frame_id
         columns = cloud_arrays([(f.name, f.offset, f.datatype) for f in msg.fields], bytes(msg.data),
                                msg.width * msg.height, msg.point_step, msg.is_bigendian)
-        tool = None
-        if self.sim_tool is not None and self.sim_tool[0] == msg.header.frame_id:
-            shape = self.sim_tool[1]
-            tool = (shape.tip, shape.axis, shape.length, shape.radius)
-        self.tissue.add(columns, stamp, tool)
+        held = columns.get('held')
+        if held is not None and held.any():
+            xyz = np.column_stack([columns['x'], columns['y'], columns['z']])
+            self.held = (frame, held_positions(xyz, held, len(self.names)))
+        else:
+            self.held = None
+        if not self.p['tissue_images']:
+            return
+        tools = tuple((t[1].tip, t[1].axis, t[1].length, t[1].radius)
+                      if t is not None and t[0] == frame else None for t in self.sim_tools)
+        self.tissue.add(columns, stamp, tools)
 
-    def _on_pose(self, msg: PoseStamped) -> None:
+    def _on_pose(self, msg: PoseStamped, k: int = 0) -> None:
         p = msg.pose.position
         if msg.header.frame_id:
-            self.pose_frame = msg.header.frame_id
-        self.stats.on_pose(time.monotonic(), stamp_to_ns(msg.header.stamp), (p.x, p.y, p.z))
+            self.pose_frames[k] = msg.header.frame_id
+        self.instrument_stats[k].on_pose(time.monotonic(), stamp_to_ns(msg.header.stamp),
+                                         (p.x, p.y, p.z))
 
-    def _on_force(self, msg: WrenchStamped) -> None:
+    def _on_force(self, msg: WrenchStamped, k: int = 0) -> None:
         f = msg.wrench.force
-        self.stats.on_force(time.monotonic(), stamp_to_ns(msg.header.stamp), (f.x, f.y, f.z))
+        self.instrument_stats[k].on_force(time.monotonic(), stamp_to_ns(msg.header.stamp),
+                                          (f.x, f.y, f.z))
+
+    def _snapshots(self, now: float) -> dict:
+        """Instrument name -> its statistics' snapshot at ``now``."""
+        return {name: stats.snapshot(now) for name, stats in zip(self.names, self.instrument_stats)}
 
     # -- timers -----------------------------------------------------------------------------------
     def _on_diagnostics_timer(self) -> None:
         now = time.monotonic()
-        snap = self.stats.snapshot(now)
-        self.stats.sample_rates(now)
-        statuses = evaluate(snap, self.targets, prefix=self.get_name())
+        snaps = self._snapshots(now)
+        for stats in self.instrument_stats:
+            stats.sample_rates(now)
+        statuses = evaluate_instruments(snaps, self.targets, prefix=self.get_name())
         self.last_statuses = statuses
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
@@ -289,9 +332,9 @@ class VizNode(Node):
         self.diag_pub.publish(array)
 
     def _on_summary_timer(self) -> None:
-        snap = self.stats.snapshot(time.monotonic())
+        snaps = self._snapshots(time.monotonic())
         level = worst_level(self.last_statuses) if self.last_statuses else 0
-        line = summary_line(snap)
+        line = summary_line(snaps[self.names[0]], snaps if len(self.names) > 1 else None)
         # rclpy binds one severity to each logging call site, so the two levels need two calls.
         if level == 0:
             self.get_logger().info(line)
@@ -299,58 +342,81 @@ class VizNode(Node):
             self.get_logger().warning(line)
 
     def _on_marker_timer(self) -> None:
-        if self.p['tool_in_tissue_frame']:
-            if self.sim_tool is None:
-                return
-            frame_id, tool, fvec = self.sim_tool
-        else:
-            pose = self.stats.last_pose
-            if pose is None:
-                return
-            frame_id, fvec = self.pose_frame, self.stats.last_force_vec
-            tool = ToolShape(np.asarray(pose, dtype=float), np.zeros(3), 0.0, self.p['tool_radius'])
         stamp = self.get_clock().now().to_msg()
         markers = MarkerArray()
+        for k in range(len(self.names)):
+            markers.markers += self._instrument_markers(k, stamp)
+        if markers.markers:
+            self.marker_pub.publish(markers)
 
-        def marker(kind: int, ns: str, mid: int) -> Marker:
-            m = Marker(type=kind, action=Marker.ADD, ns=ns, id=mid)
+    def _instrument_markers(self, k: int, stamp) -> list[Marker]:
+        """Instrument ``k``'s tool, force arrow and label, and the particles it holds. With several
+        instruments each has its namespaces (``left/tool``, ``left/force``, ``left/held``) and its
+        colour (:func:`~tissue_viz.markers.instrument_colour`); one alone keeps ``tool``, ``force``
+        and ``held`` and a grey tool."""
+        name, several = self.names[k], len(self.names) > 1
+        out: list[Marker] = []
+
+        def marker(kind: int, ns: str, mid: int, frame_id: str) -> Marker:
+            m = Marker(type=kind, action=Marker.ADD, ns=topic_within(name, ns), id=mid)
             m.header.frame_id, m.header.stamp = frame_id, stamp
             m.pose.orientation.w = 1.0
             m.lifetime.nanosec = 500_000_000
             return m
 
+        if self.held is not None and len(self.held[1][k]):
+            dots = marker(Marker.SPHERE_LIST, 'held', 4, self.held[0])
+            dots.points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in self.held[1][k]]
+            dots.scale.x = dots.scale.y = dots.scale.z = HELD_DOT
+            dots.color.r, dots.color.g, dots.color.b = instrument_colour(k)
+            dots.color.a = 1.0
+            out.append(dots)
+        if self.p['tool_in_tissue_frame']:
+            if self.sim_tools[k] is None:
+                return out
+            frame_id, tool, fvec = self.sim_tools[k]
+        else:
+            stats = self.instrument_stats[k]
+            if stats.last_pose is None:
+                return out
+            frame_id, fvec = self.pose_frames[k], stats.last_force_vec
+            tool = ToolShape(np.asarray(stats.last_pose, dtype=float), np.zeros(3), 0.0,
+                             self.p['tool_radius'])
+
         tip = tool.tip
         d = 2.0 * tool.radius
-        sphere = marker(Marker.SPHERE, 'tool', 0)
+        sphere = marker(Marker.SPHERE, 'tool', 0, frame_id)
         sphere.pose.position = Point(x=float(tip[0]), y=float(tip[1]), z=float(tip[2]))
         sphere.scale.x = sphere.scale.y = sphere.scale.z = d
-        sphere.color.r, sphere.color.g, sphere.color.b, sphere.color.a = 0.8, 0.8, 0.9, 1.0
-        markers.markers.append(sphere)
+        sphere.color.r, sphere.color.g, sphere.color.b = instrument_colour(k) if several else (0.8, 0.8, 0.9)
+        sphere.color.a = 1.0
+        out.append(sphere)
         shaft_pose = tool.shaft_pose()
         if shaft_pose is not None:
             centre, q = shaft_pose
-            shaft = marker(Marker.CYLINDER, 'tool', 3)
+            shaft = marker(Marker.CYLINDER, 'tool', 3, frame_id)
             shaft.pose.position = Point(x=float(centre[0]), y=float(centre[1]), z=float(centre[2]))
             o = shaft.pose.orientation
             o.x, o.y, o.z, o.w = (float(v) for v in q)
             shaft.scale.x = shaft.scale.y = d
             shaft.scale.z = tool.length
             shaft.color = sphere.color
-            markers.markers.append(shaft)
+            out.append(shaft)
         if fvec is not None:
             start, end = force_arrow(tip, fvec, self.p['force_arrow_scale'])
-            arrow = marker(Marker.ARROW, 'force', 1)
+            arrow = marker(Marker.ARROW, 'force', 1, frame_id)
             arrow.points = [Point(x=float(start[0]), y=float(start[1]), z=float(start[2])),
                             Point(x=float(end[0]), y=float(end[1]), z=float(end[2]))]
             arrow.scale.x, arrow.scale.y, arrow.scale.z = 0.3 * d, 0.6 * d, 0.8 * d
             arrow.color.r, arrow.color.g, arrow.color.b, arrow.color.a = 1.0, 0.3, 0.1, 1.0
-            text = marker(Marker.TEXT_VIEW_FACING, 'force', 2)
+            text = marker(Marker.TEXT_VIEW_FACING, 'force', 2, frame_id)
             text.pose.position = Point(x=float(end[0]), y=float(end[1]), z=float(end[2]) + d)
             text.scale.z = 1.5 * d
             text.color.r = text.color.g = text.color.b = text.color.a = 1.0
-            text.text = f'{math.sqrt(sum(v * v for v in fvec)):.2f} N'
-            markers.markers += [arrow, text]
-        self.marker_pub.publish(markers)
+            label = f'{math.sqrt(sum(v * v for v in fvec)):.2f} N'
+            text.text = f'{name} {label}' if several else label
+            out += [arrow, text]
+        return out
 
     # -- report -----------------------------------------------------------------------------------
     def _report_target(self) -> Path:
@@ -358,7 +424,9 @@ class VizNode(Node):
 
     def report_data(self) -> ReportData:
         targets = {t: (r.min_rate, r.max_rate) for t, r in self.targets.rates.items()}
-        return ReportData.from_stats(self.stats, time.monotonic(), title=self.p['report_title'],
+        several = dict(zip(self.names, self.instrument_stats)) if len(self.names) > 1 else None
+        return ReportData.from_stats(self.stats, time.monotonic(), instruments=several,
+                                     title=self.p['report_title'],
                                      rate_targets=targets,
                                      contact_threshold=self.p['contact_threshold'],
                                      tissue=self.tissue.copy() if self.p['tissue_images'] else None)
