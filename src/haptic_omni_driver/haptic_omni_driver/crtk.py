@@ -1,4 +1,4 @@
-"""The CRTK operating state of the device (no rclpy).
+"""The CRTK operating state and jaw of the device (no rclpy).
 
 The Collaborative Robotics Toolkit (CRTK, the names the dVRK and sawSensablePhantom use) gives a
 device four meta-states and six commands, sent as strings on ``state_command``:
@@ -13,11 +13,18 @@ the current state changes nothing and says why (CRTK devices ignore it with a wa
 Omni, homed means calibrated: the OpenHaptics backend reports the calibration it found at start;
 replay and scripted sources are always homed. omni_driver exits when its device fails, after
 publishing FAULT (a supervisor restarting it sees why).
+
+The Omni has no jaw; :class:`Jaw` makes one of its stylus buttons one, as a dVRK arm's ``jaw``
+(``jaw/measured_js``, ``jaw/servo_jp``): closed (0 rad) while the button is down, open
+(``jaw_open_angle``) while it is up, or at the angle ``jaw/servo_jp`` last asked for until the
+button next changes: the newest of the two wins, so the hand can always take the jaw back.
 """
 
 from __future__ import annotations
 
+import math
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 STATES = ('DISABLED', 'ENABLED', 'PAUSED', 'FAULT')
@@ -91,3 +98,43 @@ class OperatingStateMachine:
             self.fault_reason = reason
             self._state = OperatingState('FAULT', self._state.is_homed)
             return self._state
+
+
+class Jaw:
+    """The jaw angle [rad] from a stylus button and ``jaw/servo_jp`` commands; thread-safe (commands
+    from the executor, samples from the backend thread)."""
+
+    def __init__(self, button: int, open_angle: float) -> None:
+        self.index = button - 1          # in Sample.buttons
+        self.open_angle = open_angle
+        self.angle = open_angle          # the button starts up
+        self._pressed = False
+        self._command: float | None = None
+        self._lock = threading.Lock()
+
+    def command(self, position: Sequence[float]) -> tuple[str, str]:
+        """A ``jaw/servo_jp`` position, applied at the next sample; ('', '') or (the kind of refusal:
+        length, nan, range; why it is ignored)."""
+        if len(position) != 1:
+            return 'length', f'{len(position)} positions, but the jaw is one joint'
+        angle = float(position[0])
+        if not math.isfinite(angle):
+            return 'nan', f'non-finite angle {angle}'
+        if not 0.0 <= angle <= self.open_angle:
+            return 'range', f'angle {angle:g} rad outside 0 (closed) … jaw_open_angle {self.open_angle:g} rad'
+        with self._lock:
+            self._command = angle
+        return '', ''
+
+    def sample(self, buttons: tuple[bool, bool] | None) -> float:
+        """The angle at a sample with these buttons (None: the source has none, the button stays)."""
+        with self._lock:
+            command, self._command = self._command, None
+        pressed = self._pressed if buttons is None else bool(buttons[self.index])
+        if pressed != self._pressed:
+            # the hand acted at this sample, after any command that came before it
+            self._pressed = pressed
+            self.angle = 0.0 if pressed else self.open_angle
+        elif command is not None:
+            self.angle = command
+        return self.angle

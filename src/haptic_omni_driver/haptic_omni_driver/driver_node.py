@@ -11,7 +11,10 @@ With ``crtk`` (the default) it also speaks the CRTK names a dVRK graph uses, bes
 (so ``/omni/measured_cp`` at the root namespace, ``/<ns>/omni/measured_cp`` in one): ``measured_cp``,
 ``measured_cv`` (the tracking filter's velocity), ``measured_js`` (OpenHaptics joint and gimbal
 angles), ``servo_cf`` (a force setpoint through the same safety chain), ``operating_state`` and
-``state_command`` (:mod:`haptic_omni_driver.crtk`: only ENABLED renders force).
+``state_command`` (:mod:`haptic_omni_driver.crtk`: only ENABLED renders force), and a jaw made of a
+stylus button: ``jaw/measured_js`` (closed 0 rad while ``jaw_button`` is down, a change stamped with
+its sample and sent before its pose, like the button's state) and ``jaw/servo_jp`` (an angle the jaw
+takes until the button next changes).
 
 Force commands are not dispatched by the executor: the servo tick takes them straight from the DDS
 reader before it evaluates the watchdog, and dates each one by its DDS reception time. A command that
@@ -53,7 +56,7 @@ from tissue_common.transport import shared_memory_warning
 from tissue_msgs.msg import DeviceState
 
 from .backends.base import Backend, Sample
-from .crtk import OperatingStateMachine
+from .crtk import Jaw, OperatingStateMachine
 from .errors import ConfigError, DriverError
 from .params import DRIVER_PARAMS
 from .safety import ForceSafety, SafetyConfig
@@ -197,6 +200,12 @@ class OmniDriver(Node):
         self.servo_cf_sub = self.create_subscription(WrenchStamped, 'omni/servo_cf',
                                                      lambda _msg: None, qos)
         self._take_setpoint = self._take_setpoint_from_reader
+        # the jaw beside the arm, as a dVRK arm's: omni/jaw/*, with the pose's QoS like measured_*
+        self.jaw = Jaw(p['jaw_button'], p['jaw_open_angle'])
+        self._jaw_sent: float | None = None
+        self._jaw_msg = JointState(name=['jaw'])
+        self.jaw_pub = self.create_publisher(JointState, 'omni/jaw/measured_js', qos)
+        self.jaw_sub = self.create_subscription(JointState, 'omni/jaw/servo_jp', self._on_jaw_command, qos)
         # the stylus tip as a frame (omni_base -> omni_stylus) where tf2 is installed
         self.tf = TfBroadcaster(self, static=False)
         self._publish_operating_state()
@@ -292,6 +301,8 @@ class OmniDriver(Node):
             # change from the next pose on, in a lockstep replay always at the same one
             self._buttons = sample.buttons
             self._publish_state(sample.stamp_ns)
+        if self.p['crtk'] and self.jaw.sample(sample.buttons) != self._jaw_sent:
+            self._publish_jaw(sample.stamp_ns)       # a change: like the button's, before the pose
         if sample.raw is not None:
             self.pose_pub.publish(sample.raw)
         else:
@@ -335,10 +346,26 @@ class OmniDriver(Node):
             set_stamp(js.header.stamp, stamp)
             js.position = [float(a) for a in sample.joints]
             self.js_pub.publish(js)
+        self._publish_jaw(stamp)
         if self.tf.available:
             tip = Transform(self.p['frame_id'], self.p['stylus_frame'], sample.position,
                             sample.orientation)
             self.tf.send([tip.to_msg(cv.header.stamp)])
+
+    def _publish_jaw(self, stamp_ns: int) -> None:
+        msg = self._jaw_msg
+        set_stamp(msg.header.stamp, stamp_ns)
+        msg.position = [self.jaw.angle]
+        self.jaw_pub.publish(msg)
+        self._jaw_sent = self.jaw.angle
+
+    def _on_jaw_command(self, msg: JointState) -> None:
+        """A CRTK jaw/servo_jp: the jaw takes the angle at the next sample, unless it is not one."""
+        kind, why = self.jaw.command(msg.position)
+        # one line per kind and second at most: a client streaming bad commands must not flood the log
+        if kind and (n := self._reject_log.event(f'jaw {kind}', self._now_clocks()[0], 1.0)) is not None:
+            self.get_logger().warn(f'ignored a {self.jaw_sub.topic_name} command: {why} ({n} such '
+                                   f'so far)')
 
     def _on_state_command(self, msg: StringStamped) -> None:
         """A CRTK state_command: enable, disable, pause, resume, home, unhome."""

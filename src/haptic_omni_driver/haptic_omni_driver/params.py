@@ -52,13 +52,18 @@ DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
                              (0, 100), True),
     # -- CRTK -----------------------------------------------------------------------------------
     'crtk': (True, 'also offer the CRTK interface: measured_cp, measured_cv, measured_js '
-                   '(openhaptics), servo_cf, operating_state, state_command', None, True),
+                   '(openhaptics), servo_cf, operating_state, state_command, jaw/measured_js, '
+                   'jaw/servo_jp', None, True),
     'crtk_rate': (500.0, '[Hz] CRTK: measured_cp / measured_cv / measured_js rate (at most the '
                          'device\'s)', (1.0, 2000.0), True),
     'velocity_cutoff': (30.0, '[Hz] CRTK: cut-off of the tracking filter behind measured_cv (the '
                               'simulator\'s renderer uses the same filter)', (1.0, 200.0), True),
     'stylus_frame': ('omni_stylus', 'CRTK: child frame of frame_id that /tf moves with the stylus tip '
                                     '(where tf2 is installed; one per instrument)', None, True),
+    'jaw_button': (1, 'CRTK: the stylus button that closes the jaw (jaw/measured_js 0 while it is '
+                      'down): 1 | 2', (1, 2), True),
+    'jaw_open_angle': (1.0, '[rad] CRTK: jaw/measured_js while the jaw button is up; jaw/servo_jp '
+                            'accepts 0 (closed) … this', (0.2, 3.14), True),
     'start_state': ('ENABLED', 'CRTK operating state at start: ENABLED (renders force as soon as '
                                'commands come) | DISABLED (waits for an enable on state_command)',
                     ('ENABLED', 'DISABLED'), True),

@@ -304,3 +304,61 @@ def test_measured_cp_keeps_its_rate_and_measured_cv_its_sense_across_a_replay_lo
     assert per_pass == [500, 500, 500]
     assert max(cvs) <= 1.0 + 1e-9 and min(cvs) >= 0.0
     assert cvs[-1] == pytest.approx(1.0, abs=1e-6)
+
+
+# -- CRTK: the jaw (a stylus button, and jaw/servo_jp) ---------------------------------------------
+def _record_jaw_and_poses(node) -> list:
+    """('jaw', stamp, angle) and ('pose', stamp) in the order the driver publishes them."""
+    import types
+
+    out = []
+    node.jaw_pub = types.SimpleNamespace(publish=lambda m: out.append(
+        ('jaw', m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, list(m.position))))
+    node.pose_pub = types.SimpleNamespace(publish=lambda m: out.append(
+        ('pose', m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)))
+    return out
+
+
+def _jaw_changes(out: list) -> list[tuple[int, float]]:
+    """(stamp, angle) of each change of the published jaw angle; each must come before its pose."""
+    changes, last = [], None
+    for i, event in enumerate(out):
+        if event[0] == 'jaw' and event[2] != last:
+            last = event[2]
+            changes.append((event[1], event[2][0]))
+            assert ('pose', event[1]) in out[i + 1:], f'the jaw change at {event[1]} came after its pose'
+    return changes
+
+
+@pytest.mark.parametrize('jaw_button', [1, 2])
+def test_jaw_measured_js_follows_its_button_and_a_servo_jp_command_until_the_button_next_changes(
+        make_driver, jaw_button):
+    """Each change is stamped with the sample it came with and sent before that pose (a lockstep
+    replay grasps at the same pose every time): open, a command (from the next sample on), closed by
+    the button (which wins over a command taken at the same sample), a command while it is held,
+    open again when it is released; the other button does nothing."""
+    from sensor_msgs.msg import JointState
+
+    from haptic_omni_driver.backends.base import Sample
+
+    node = make_driver(jaw_button=jaw_button, jaw_open_angle=0.8, crtk_rate=2000.0)
+    # beside measured_cp (omni/measured_cp), as a dVRK arm's jaw is beside the arm
+    assert (node.jaw_pub.topic_name, node.jaw_sub.topic_name) == ('/omni/jaw/measured_js', '/omni/jaw/servo_jp')
+    out = _record_jaw_and_poses(node)
+
+    def buttons(down: bool, other: bool = False) -> tuple[bool, bool]:
+        return (down, other) if jaw_button == 1 else (other, down)
+
+    for k in range(30):
+        if k == 5:
+            node._on_jaw_command(JointState(name=['jaw'], position=[0.3]))
+        if k == 12:
+            node._on_jaw_command(JointState(position=[0.6]))     # before the press there: the press wins
+        if k == 15:
+            node._on_jaw_command(JointState(position=[0.5]))     # while held: the newest wins
+        down = 12 <= k < 20
+        node.on_sample(Sample(WALL0 + k * 1_000_000, np.zeros(3), buttons=buttons(down, other=k >= 25)))
+    assert _jaw_changes(out) == [(WALL0, 0.8), (WALL0 + 5 * 1_000_000, 0.3), (WALL0 + 12 * 1_000_000, 0.0),
+                                 (WALL0 + 15 * 1_000_000, 0.5), (WALL0 + 20 * 1_000_000, 0.8)]
+    # and at crtk_rate (here every 0.5 ms: every sample) with each sample's stamp
+    assert {e[1] for e in out if e[0] == 'jaw'} == {WALL0 + k * 1_000_000 for k in range(30)}

@@ -597,3 +597,30 @@ def test_a_button_change_is_stamped_with_the_sample_it_came_with(rclpy_node):
         stamp = change.header.stamp.sec * 1_000_000_000 + change.header.stamp.nanosec
         assert rclpy_node.spin_until(lambda: stamp in poses, 10), 'no pose carries the change\'s stamp'
         assert proc.stop() == 0
+
+
+def test_bad_jaw_servo_jp_commands_are_ignored_with_a_warning_and_a_good_one_is_followed(rclpy_node):
+    """A NaN, two positions, an angle beyond jaw_open_angle: each ignored with a warning that says
+    why, the driver runs on, and the next good command sets the jaw (omni/jaw/measured_js)."""
+    from sensor_msgs.msg import JointState
+
+    jaws = []
+    rclpy_node.create_subscription(JointState, 'omni/jaw/measured_js', jaws.append, reliable_qos())
+    command = rclpy_node.create_publisher(JointState, 'omni/jaw/servo_jp', reliable_qos(10))
+    # a long approach: the script's button (its hold) stays up for the whole test
+    with driver({'backend': 'scripted', 'reliable': True, 'approach_time': 600.0, 'jaw_open_angle': 1.2}) as proc:
+        proc.wait_for_output(r'ready:', 30)
+        harness.wait_for_matching(rclpy_node, command)
+        assert rclpy_node.spin_until(lambda: jaws, 10), proc.output()
+        assert list(jaws[-1].name) == ['jaw'] and list(jaws[-1].position) == [1.2]    # open
+        # one at a time: the driver keeps the newest command only (the pose's QoS, depth 1)
+        for bad, why in (([float('nan')], r'non-finite angle nan'),
+                         ([0.1, 0.2], r'2 positions, but the jaw is one joint'),
+                         ([1.5], r'angle 1\.5 rad outside 0 \(closed\) … jaw_open_angle 1\.2 rad')):
+            command.publish(JointState(position=bad))
+            proc.wait_for_output(r'WARN.*ignored a /omni/jaw/servo_jp command: ' + why, 10)
+        command.publish(JointState(name=['jaw'], position=[0.25]))
+        assert rclpy_node.spin_until(lambda: list(jaws[-1].position) == [0.25], 10), proc.output()
+        assert all(list(m.position) in ([1.2], [0.25]) for m in jaws)     # no bad one got through
+        assert proc.alive() and proc.stop() == 0
+    assert 'Traceback' not in proc.output()

@@ -15,6 +15,11 @@ def _is_choice(limits) -> bool:
     return isinstance(limits, tuple) and bool(limits) and isinstance(limits[0], str)
 
 
+def choices_text(limits: tuple[str, ...]) -> str:
+    """The choices as a reader should see them: an empty one (often "off") shown as ''."""
+    return ', '.join(choice or "''" for choice in limits)
+
+
 def descriptor(name: str, spec: tuple):
     """``rcl_interfaces/ParameterDescriptor`` of one table entry."""
     from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -22,7 +27,7 @@ def descriptor(name: str, spec: tuple):
     default, text, limits, read_only = spec[:4]
     desc = ParameterDescriptor(name=name, description=text, read_only=read_only)
     if _is_choice(limits):
-        desc.additional_constraints = 'one of: ' + ', '.join(limits)
+        desc.additional_constraints = 'one of: ' + choices_text(limits)
     elif isinstance(limits, tuple) and len(limits) == 2 and not isinstance(default, bool):
         if isinstance(default, int):
             desc.integer_range = [IntegerRange(from_value=int(limits[0]), to_value=int(limits[1]),
@@ -37,7 +42,7 @@ def check_choice(table: dict, name: str, value) -> str | None:
     """Error text if ``value`` is not one of the string choices of ``name`` (None if fine)."""
     limits = table[name][2]
     if _is_choice(limits) and value not in limits:
-        return f'parameter {name} must be one of {", ".join(limits)}, got {value!r}'
+        return f'parameter {name} must be one of {choices_text(limits)}, got {value!r}'
     return None
 
 
