@@ -155,7 +155,7 @@ def long_session(g: Geometry, rng: np.random.Generator, duration: float = 66.0) 
 
 def grasp(g: Geometry, rng: np.random.Generator) -> list[Segment]:
     """Touch the top 10 mm from an edge, close the jaw (button 1), lift 15 mm, hold 0.5 s, open,
-    retreat (3.4 s); replayed with ``grasp_button: 1`` (``system_graph.BAG_SIM_PARAMS``)."""
+    retreat (3.4 s); replayed with ``grasp_input: button1`` (``system_graph.BAG_SIM_PARAMS``)."""
     p = _Path(g.point(0.03, depth=-0.02))
     p.move('approach', g.point(0.03, depth=-0.004), 0.6)
     p.move('touch', g.point(0.03, depth=0.001), 0.4)

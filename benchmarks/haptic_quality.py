@@ -83,15 +83,15 @@ def golden_params() -> dict:
 
 def bag_poses(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(stamps [ns] (M,), device positions [m] (M, 3), jaw closed at each pose (M,) bool) of a
-    bundled bag, in order. The jaw is closed where the session's ``grasp_button`` (``system_graph.
-    BAG_SIM_PARAMS``; none: never) was down in the newest state stamped before the pose, as
-    ``sim_node`` applies it in lockstep."""
+    bundled bag, in order. The jaw is closed where the session's ``grasp_input`` button
+    (``system_graph.BAG_SIM_PARAMS``; none: never) was down in the newest state stamped before the
+    pose, as ``sim_node`` applies it in lockstep."""
     stamps, pos, changes = [], [], []
-    button = graph.BAG_SIM_PARAMS.get(name, {}).get('grasp_button', 0)
+    button = graph.BAG_SIM_PARAMS.get(name, {}).get('grasp_input', '')
     for topic, _, _, msg in read_bag(ROOT / 'bags' / name, ['/omni/pose', '/omni/state']):
         if topic == '/omni/state':
             if button:
-                changes.append((stamp_to_ns(msg.header.stamp), bool(msg.button1 if button == 1 else msg.button2)))
+                changes.append((stamp_to_ns(msg.header.stamp), bool(getattr(msg, button))))
             continue
         stamps.append(stamp_to_ns(msg.header.stamp))
         q = msg.pose.position

@@ -13,13 +13,13 @@ The builders import no rclpy, so they are tested without ROS.
 
 from __future__ import annotations
 
-import re
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tissue_common.params import check_choice
+from tissue_common.instruments import check_instruments
+from tissue_common.params import check_choice, choices_text
 
 from .core.errors import ConfigError, ModelError
 from .core.material import Material, load_material
@@ -31,6 +31,11 @@ from .mapping import ANCHORS, DEFAULT_ROTATION
 
 TIMING_MODES = ('live', 'lockstep')
 HAPTIC_MODES = ('multirate', 'direct')
+#: what closes an instrument's jaw: nothing, a stylus button (omni/state), the CRTK jaw
+GRASP_INPUTS = ('', 'button1', 'button2', 'jaw')
+#: [rad] the most a jaw/measured_js angle reads closed: the driver sends 0 for a closed jaw, and a
+#: CRTK client's jaw that closes on tissue may stop a few degrees short of it
+JAW_CLOSED_MAX = 0.1
 
 
 def solver_params() -> dict[str, tuple[Any, str, Any, bool, str | None]]:
@@ -102,13 +107,14 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                RENDERER_RANGES['energy_bound_stiffness'], False, 'renderer'),
     # -- instruments ------------------------------------------------------------------------------
     'instruments': ([''], 'the instruments on the tissue, each name a namespace of its own omni/pose, '
-                          'omni/force_feedback, omni/state (grasp: button1) and tissue/metrics ([""]: '
-                          'one, no namespace); several need mode global and haptic_mode multirate',
+                          'omni/force_feedback, grasp input (grasp_input) and tissue/metrics ([""]: '
+                          'one, no namespace); several need haptic_mode multirate',
                     None, True, None),
-    'grasp_button': (0, 'the stylus button (omni/state DeviceState button1 or button2) that closes the '
-                        'instrument\'s jaw on the tissue in reach: 1 | 2 | 0 off (the bundled sessions '
-                        'press button 1 as a marker); lockstep: from the first pose stamped after the '
-                        'change', (0, 2), True, None),
+    'grasp_input': ('', 'what closes the instrument\'s jaw on the tissue in reach: button1 | button2 '
+                        '(that stylus button, omni/state DeviceState) | jaw (the CRTK omni/jaw/measured_js: '
+                        f'closed at most {JAW_CLOSED_MAX:g} rad) | \'\' off (the bundled sessions press button 1 as a '
+                        'marker); lockstep: from the first pose stamped after the change',
+                    GRASP_INPUTS, True, None),
     'instrument_offsets': ([0.0, 0.0, 0.0], '[m] tissue-frame offset of each instrument\'s device '
                                             'origin, added to translation: three numbers per instrument '
                                             'in the order of instruments (missing ones: 0)', None, True,
@@ -189,31 +195,6 @@ def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
     return None
 
 
-#: an instrument's name: one namespace token (a letter, then letters, digits and underscores)
-INSTRUMENT_NAME = re.compile(r'[A-Za-z][A-Za-z0-9_]*')
-
-
-def check_instruments(names) -> str | None:
-    """Error text unless ``names`` is [''] (one instrument, no namespace) or distinct valid names."""
-    given = names
-    try:
-        names = [str(n) for n in names] if not isinstance(names, str) else None
-    except TypeError:
-        names = None
-    if not names:
-        return f'parameter instruments must be a list of names, got {given!r}'
-    if names == ['']:
-        return None
-    bad = [n for n in names if not INSTRUMENT_NAME.fullmatch(n)]
-    if bad:
-        return (f'parameter instruments: {bad[0]!r} is not a valid namespace (a letter, then letters, digits '
-                f'and underscores)')
-    if len(set(names)) != len(names):
-        twice = sorted(n for n in set(names) if names.count(n) > 1)
-        return f'parameter instruments: {twice[0]!r} is named twice'
-    return None
-
-
 def instrument_translations(p: dict) -> list[list[float]]:
     """Each instrument's ``translation`` (the shared one plus its ``instrument_offsets``)."""
     offsets = list(p['instrument_offsets'])
@@ -281,13 +262,9 @@ def build_config(p: dict) -> SolverConfig:
     cfg.validate()
     if not p['max_dt'] >= p['nominal_dt']:
         raise ConfigError(f'max_dt ({p["max_dt"]}) must be >= nominal_dt ({p["nominal_dt"]})')
-    if len(p['instruments']) > 1:
-        if cfg.mode != 'global':
-            raise ConfigError(f'{len(p["instruments"])} instruments need mode global (the local area follows '
-                              f'one tool), got mode {cfg.mode}')
-        if p['haptic_mode'] != 'multirate':
-            raise ConfigError(f'{len(p["instruments"])} instruments need haptic_mode multirate, got '
-                              f'{p["haptic_mode"]}')
+    if len(p['instruments']) > 1 and p['haptic_mode'] != 'multirate':
+        raise ConfigError(f'{len(p["instruments"])} instruments need haptic_mode multirate, got '
+                          f'{p["haptic_mode"]}')
     return cfg
 
 
@@ -321,7 +298,7 @@ def _limits_text(limits) -> str:
     if limits is None:
         return ''
     if isinstance(limits[0], str):
-        return ', '.join(limits)
+        return choices_text(limits)
     return f'{limits[0]:g} … {limits[1]:g}'
 
 

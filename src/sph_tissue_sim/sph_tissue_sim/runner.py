@@ -329,6 +329,12 @@ class Runner:
         if not self.lockstep:
             self.handle(pose, ch)
             return
+        reason = self._reject_reason(pose)
+        if reason is not None:
+            # answered now: a pose that cannot move its tool takes no place in a round, so the others'
+            # poses still pair as sent (and a probe in a foreign frame does not hold a round up)
+            self._reject(pose, f'rejected pose ({reason}): answered zero force, tissue not stepped', ch)
+            return
         with self._cv:
             self._make_room(ch.inbox, f'lockstep: {ch.label} is that far ahead of the others')
             ch.inbox.append(pose)
@@ -495,7 +501,8 @@ class Runner:
     def on_grasp(self, k: int, closed: bool, stamp_ns: int | None = None) -> None:
         """Instrument ``k``'s jaw closes (``closed``) or opens at ``stamp_ns``: live, applied before the
         next solver step; lockstep, from the first pose stamped after it on (the driver sends a
-        button change before the pose it came with, so a replay grasps at the same pose every time)."""
+        button or jaw change before the pose it came with, so a replay grasps at the same pose every
+        time)."""
         if not 0 <= k < len(self.channels):
             self.throttled('instrument', 'error', f'a grasp for instrument {k}, which is not configured: ignored')
             return
@@ -509,9 +516,10 @@ class Runner:
 
     @staticmethod
     def _queue_grasp(ch: Channel, stamp_ns: int, closed: bool) -> None:
-        """Keep ``ch.grasps`` in stamp order with only the changes: a state that repeats the button
-        (the driver's periodic one, stamped by the wall clock) changes nothing and is dropped, so a
-        change is applied at its stamp whichever arrived first."""
+        """Keep ``ch.grasps`` in stamp order with only the changes: a state that repeats the jaw's
+        (the driver's periodic one: a DeviceState stamped by the wall clock, a jaw/measured_js by its
+        sample) changes nothing and is dropped, so a change is applied at its stamp whichever arrived
+        first."""
         with ch.grasp_lock:
             q = ch.grasps
             i = bisect.bisect_right([stamp for stamp, _ in q], stamp_ns)
@@ -524,7 +532,7 @@ class Runner:
 
     @staticmethod
     def _grasps_before(ch: Channel, stamp_ns: int) -> None:
-        """Lockstep: the jaw as the button changes stamped before ``stamp_ns`` left it."""
+        """Lockstep: the jaw as the changes stamped before ``stamp_ns`` left it."""
         with ch.grasp_lock:
             while ch.grasps and ch.grasps[0][0] < stamp_ns:
                 ch.closed = ch.grasps.pop(0)[1]
@@ -663,7 +671,9 @@ class Runner:
 
     def _pack_cloud(self) -> None:
         s = self.solver
-        self.cloud.pack(s.positions, s.X, s.von_mises(), s.region)
+        # each instrument's held particles (not those that slipped) become the cloud's held byte
+        self.cloud.pack(s.positions, s.X, s.von_mises(), s.region,
+                        [hand.grip_idx[hand.grip_held] for hand in s.instruments])
 
     def send_cloud_once(self) -> None:
         # never wait for a step here: the timer runs on the executor thread, which must stay free

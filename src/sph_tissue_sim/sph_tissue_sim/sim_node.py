@@ -6,12 +6,13 @@ core) and answers every step with ``omni/force_feedback`` (geometry_msgs/WrenchS
 of the tissue on the tool in the device frame, clamped to ``force_limit``; header stamp and frame
 are the pose's, so the round trip can be measured). Publishes ``tissue/particles``
 (sensor_msgs/PointCloud2, see :mod:`.cloud`) at ``particles_rate`` and ``tissue/metrics``
-(tissue_msgs/SimMetrics) per step; serves ``tissue/reset`` (tissue_msgs/srv/ResetTissue). With
-``grasp_button`` 1 or 2 that stylus button (``omni/state``, tissue_msgs/DeviceState) grasps the
-tissue in reach of the tool until it opens.
+(tissue_msgs/SimMetrics) per step; serves ``tissue/reset`` (tissue_msgs/srv/ResetTissue). The
+jaw grasps the tissue in reach of the tool until it opens, closed as ``grasp_input`` says: ``button1``
+or ``button2`` that stylus button (``omni/state``, tissue_msgs/DeviceState), ``jaw`` the driver's
+CRTK jaw (``omni/jaw/measured_js``, sensor_msgs/JointState: closed at most ``JAW_CLOSED_MAX``).
 
 Several instruments on one tissue (parameter ``instruments``, e.g. ``[left, right]``): each name is
-a namespace with its own ``<name>/omni/pose``, ``<name>/omni/force_feedback``, ``<name>/omni/state``
+a namespace with its own ``<name>/omni/pose``, ``<name>/omni/force_feedback``, grasp input
 and ``<name>/tissue/metrics``; the particles, the reset and the parameters stay the node's.
 
 The haptic and timing modes (parameters ``haptic_mode``, ``timing_mode``) and the threads they
@@ -35,7 +36,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import JointState, PointCloud2
 from tissue_common.frames import TfBroadcaster, Transform
 from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_until_stopped,
                                       stop_on_signals)
@@ -47,7 +48,8 @@ from tissue_msgs.srv import ResetTissue
 from .core.compliance import close_all
 from .core.errors import ConfigError, ModelError, SimError
 from .core.solver import warmup
-from .params import SIM_PARAMS, build_config, build_material, build_model, check_value, solves_in_background
+from .params import (JAW_CLOSED_MAX, SIM_PARAMS, build_config, build_material, build_model, check_value,
+                     solves_in_background)
 from .runner import Pose, Runner, make_solver, metrics_values, pose_history
 from .startup import numba_cache_stats, one_blas_thread, startup_report
 
@@ -117,12 +119,28 @@ class SimNode(Node):
         self.pose_subs = [self.create_subscription(PoseStamped, _within(name, 'omni/pose'),
                                                    lambda msg, k=k: self._on_pose(msg, k), io_qos)
                           for k, name in enumerate(names)]
-        button = p['grasp_button']
-        self.state_subs = [self.create_subscription(
-            DeviceState, _within(name, 'omni/state'),
-            lambda msg, k=k: self.runner.on_grasp(k, msg.button1 if button == 1 else msg.button2,
-                                                  stamp_to_ns(msg.header.stamp)), 10)
-            for k, name in enumerate(names)] if button else []
+        self.grasp_subs = self._grasp_subscriptions(p['grasp_input'], names)
+
+    def _grasp_subscriptions(self, source: str, names: list[str]) -> list:
+        """Each instrument's grasp input (``grasp_input``; '' none)."""
+        if source == 'jaw':
+            # the driver sends it with the pose's QoS, as measured_cp
+            return [self.create_subscription(JointState, _within(name, 'omni/jaw/measured_js'),
+                                             lambda msg, k=k: self._on_jaw(msg, k), self.io_qos)
+                    for k, name in enumerate(names)]
+        if source:      # button1 | button2: that DeviceState field
+            return [self.create_subscription(
+                DeviceState, _within(name, 'omni/state'),
+                lambda msg, k=k: self.runner.on_grasp(k, getattr(msg, source), stamp_to_ns(msg.header.stamp)), 10)
+                for k, name in enumerate(names)]
+        return []
+
+    def _on_jaw(self, msg: JointState, k: int) -> None:
+        if len(msg.position) != 1 or not np.isfinite(msg.position[0]):
+            self.runner.throttled('jaw', 'warn', f'{self.grasp_subs[k].topic_name}: not one finite jaw angle '
+                                  f'({list(msg.position)}): ignored')
+            return
+        self.runner.on_grasp(k, msg.position[0] <= JAW_CLOSED_MAX, stamp_to_ns(msg.header.stamp))
 
     def _publish_device_frame(self) -> None:
         m = self.runner.mapping

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -42,6 +43,29 @@ def press_path(n: int, depth: float, start_height: float = 0.01) -> np.ndarray:
     it along device -y (the scripted driver's press)."""
     y = np.linspace(start_height, -depth, n)
     return np.stack([np.full(n, 1e-3), y, np.full(n, -5e-4)], axis=1)
+
+
+#: the pose of :func:`grasp_lift_path` the jaw closes with (the press's last)
+GRASP_AT = 40
+
+
+def grasp_lift_path() -> list[np.ndarray]:
+    """Device positions: a 1 mm press (40 poses), then a 4 mm lift (40) with the jaw closed."""
+    path = list(press_path(GRASP_AT, depth=0.001))
+    return path + [path[-1] + [0.0, 0.0001 * (j + 1), 0.0] for j in range(40)]
+
+
+def run_grasp_lift(on_pose: Callable[[int, np.ndarray], None], close_jaw: Callable[[], None],
+                   close_first: bool) -> None:
+    """Feed :func:`grasp_lift_path` pose by pose (``on_pose(k, position)``); the jaw closes
+    (``close_jaw()``, stamped with pose GRASP_AT) just before or just after that pose arrives: the
+    driver sends it first, but DDS may deliver either first."""
+    for k, position in enumerate(grasp_lift_path()):
+        if k == GRASP_AT and close_first:
+            close_jaw()
+        on_pose(k, position)
+        if k == GRASP_AT and not close_first:
+            close_jaw()
 
 
 class SimProbe:

@@ -268,8 +268,8 @@ def test_the_far_field_moves_the_shell_and_the_shells_neighbours_and_nothing_sol
     for _ in range(5):
         solver.step(tip, 1e-3)
     area = solver.area
-    sets = area.prepare(solver.body, tip[None].repeat(2, 0), tip[None].repeat(2, 0), solver.contact.cand_reach, 2e-4,
-                        -1, 1.75 * solver.h, False)[0]
+    seg = tip[None].repeat(2, 0)
+    sets = area.prepare(solver.body, [(seg, seg, solver.contact.cand_reach, -1, 1.75 * solver.h)], 2e-4, False)[0]
     solved = set(sets.sph[:sets.n_sph].tolist()) | set(sets.layer[:sets.n_layer].tolist())
     shell = {j for j in sets.stress[:sets.n_stress].tolist() if j not in solved and not solver.fixed[j]}
     topo = area.topo

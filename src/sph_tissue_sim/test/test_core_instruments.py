@@ -52,9 +52,13 @@ def test_two_instruments_pressing_and_pulling_a_floating_block_take_the_opposite
     np.testing.assert_allclose(momentum, -impulse, rtol=0, atol=1e-9 * np.abs(impulse).max())
 
 
-def test_two_instruments_at_mirrored_places_feel_mirrored_forces():
+@pytest.mark.parametrize('config, rtol', [(GLOBAL, 1e-6), (SolverConfig(mode='local', far_field=0.0), 1e-6),
+                                          (SolverConfig(mode='local'), 0.02)])
+def test_two_instruments_at_mirrored_places_feel_mirrored_forces(config, rtol):
+    """To rounding, but for the organ's far field, whose responses are shared between neighbours
+    in the order they were first touched (the grid's order, not mirrored)."""
     model = _block()
-    solver = Solver(model, liver_default(), GLOBAL, instruments=2)
+    solver = Solver(model, liver_default(), config, instruments=2)
     left, right = _over(model, (-0.0075, 0.0)), _over(model, (0.0075, 0.0))
     for k in range(80):
         dz = [0.0, 0.0, 1e-4 * min(k, 50)]
@@ -62,7 +66,7 @@ def test_two_instruments_at_mirrored_places_feel_mirrored_forces():
     f0, f1 = res.tools[0].force, res.tools[1].force
     print(f'left {f0} N, right {f1} N')
     assert f0[2] > 0.1
-    np.testing.assert_allclose(f1, f0 * [-1.0, 1.0, 1.0], rtol=1e-6, atol=1e-9)
+    assert np.linalg.norm(f1 - f0 * [-1.0, 1.0, 1.0]) <= rtol * np.linalg.norm(f0)
     assert f0[0] != 0.0          # each pushes the block away from the other: not the same force
 
 
@@ -84,9 +88,50 @@ def test_an_instrument_count_out_of_range_is_refused(count):
         Solver(_block(), liver_default(), GLOBAL, instruments=count)
 
 
-def test_several_instruments_in_local_mode_are_refused_with_the_reason():
-    with pytest.raises(ConfigError, match='mode global'):
-        Solver(_block(), liver_default(), SolverConfig(mode='local'), instruments=2)
+def _two_tools(model, config: SolverConfig, apart: float, grasp: bool, frames: int = 220) -> np.ndarray:
+    """Two tools ``apart`` [m] on the top of ``model``: the first presses 4 mm (or, ``grasp``,
+    grasps and lifts 3 mm), the second presses 4 mm, over 150 ms, then both hold; their last forces."""
+    solver = Solver(model, liver_default(), config, instruments=2)
+    a, b = _over(model, (-apart / 2, 0.0)), _over(model, (apart / 2, 0.0))
+    if grasp:
+        a = a - [0.0, 0.0, 0.0055]
+    for k in range(frames):
+        u = min(1.0, k / 150)
+        if grasp and k == 1:
+            solver.grasp(0)
+        lift = [0.0, 0.0, 0.003 * u] if grasp else [0.0, 0.0, -0.009 * u]
+        res = solver.step_tools([(a + lift, None), (b - [0.0, 0.0, 0.009 * u], None)], 1e-3)
+    return np.array([t.force_raw for t in res.tools])
+
+
+@pytest.mark.parametrize('apart, grasp', [(0.015, False), (0.03, False), (0.02, True)])
+def test_two_instruments_in_local_mode_feel_what_they_feel_in_global_mode_within_5_percent(apart, grasp):
+    """The local area is the union of the tools' areas, each centred on what its tool touches or
+    holds, with its own layers and far-field load."""
+    model = make_block(12, 12, 6, spacing=SPACING, fix='bottom')
+    f = {mode: _two_tools(model, SolverConfig(mode=mode), apart, grasp) for mode in ('global', 'local')}
+    err = np.linalg.norm(f['local'] - f['global'], axis=1) / np.linalg.norm(f['global'], axis=1)
+    print(f'apart {apart} m, grasp {grasp}: global {f["global"]} local {f["local"]} N, error {err}')
+    assert np.all(np.linalg.norm(f['global'], axis=1) > 0.05)
+    assert np.all(err < 0.05)
+
+
+def test_two_instruments_in_local_mode_solve_the_union_of_their_areas():
+    model = make_block(16, 8, 5, spacing=SPACING, fix='bottom')
+    solver = Solver(model, liver_default(), SolverConfig(mode='local'), instruments=2)
+    a, b = _over(model, (-0.025, 0.0)), _over(model, (0.025, 0.0))
+    for k in range(30):
+        solver.step_tools([(a - [0.0, 0.0, 1e-4 * k], None), (b - [0.0, 0.0, 1e-4 * k], None)], 1e-3)
+    sets = solver._last_sets
+    solved = solver.X[sets.sph[:sets.n_sph]]
+    # particles solved around each tool, none midway between them
+    assert (solved[:, 0] < model.positions[:, 0].mean() - 0.015).any()
+    assert (solved[:, 0] > model.positions[:, 0].mean() + 0.015).any()
+    assert not (np.abs(solved[:, 0] - model.positions[:, 0].mean()) < 0.005).any()
+    # a layer particle follows the tool on its side
+    layer = sets.layer[:sets.n_layer]
+    side = (solver.X[layer, 0] > model.positions[:, 0].mean()).astype(int)
+    assert len(layer) and np.array_equal(solver.area.layer_tool[layer], side)
 
 
 def test_poses_that_do_not_match_the_instruments_are_refused_and_change_nothing():

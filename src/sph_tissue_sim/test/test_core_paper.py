@@ -287,9 +287,10 @@ def test_transmission_layers_follow_the_touched_particles_velocity_in_every_sche
                     SolverConfig(scheme=scheme, mode='local', n_layers=2))
     press(solver, 0.002, frames=30)
     sets = solver._last_sets
-    assert sets.n_layer > 0 and sets.n_touch > 0
-    touch = sets.touch[:sets.n_touch]
-    w = sets.touch_w[:sets.n_touch]
+    n_touch = sets.touch_start[1]
+    assert sets.n_layer > 0 and n_touch > 0
+    touch = sets.touch[:n_touch]
+    w = sets.touch_w[:n_touch]
     vc = (w[:, None] * solver.velocities[touch]).sum(axis=0) / w.sum()
     layer = sets.layer[:sets.n_layer]
     expected = sets.layer_w[:sets.n_layer, None] * vc

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from sim_probe import BLOCK, T0_NS, press_path
+from sim_probe import BLOCK, GRASP_AT, T0_NS, press_path, run_grasp_lift
 from sph_tissue_sim.params import SIM_PARAMS, build_config, build_material, build_model
 from sph_tissue_sim.runner import Pose, Runner, make_solver, pose_history
 
@@ -194,6 +194,21 @@ def test_two_instruments_in_lockstep_repeat_bit_for_bit_whatever_order_their_pos
     assert runs[0] == runs[1]
 
 
+def test_a_pose_in_a_foreign_frame_is_answered_at_once_and_takes_no_place_in_a_round():
+    runner, out = make_runner(**TWO, timing_mode='lockstep')
+    path = press_path(3, depth=0.006)
+    probe = Pose(T0_NS - MS, T0_NS - MS, 'system_monitor_probe', (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    runner.on_pose(probe, 0)
+    assert [(s[1], s[2], s[4]) for s in forces(out)] == [(T0_NS - MS, 'system_monitor_probe', 0)]
+    assert runner.counts['rejected'] == 1 and runner.counts['steps'] == 0
+    for k, p in enumerate(path):
+        runner.on_pose(pose(k, p), 0)
+        runner.on_pose(pose(k, p), 1)
+    # the rounds pair the instruments' poses as sent: each round's two answers carry one stamp
+    assert [(s[1], s[4]) for s in forces(out)[1:]] == [(T0_NS + k * MS, i) for k in range(3) for i in (0, 1)]
+    assert runner.counts['steps'] == len(path)
+
+
 def test_a_closed_button_grasps_lifting_pulls_and_opening_lets_go():
     runner, out = make_runner(timing_mode='lockstep', step_thread=False)
     path = list(press_path(40, depth=0.001))
@@ -212,6 +227,24 @@ def test_a_closed_button_grasps_lifting_pulls_and_opening_lets_go():
     runner.on_pose(pose(len(path) + len(up), up[-1]))
     assert runner.solver.instruments[0].holding == 0
     assert any('let go of' in o[2] for o in out if o[0] == 'log')
+
+
+def test_the_cloud_marks_the_particles_an_instrument_holds_until_it_lets_go():
+    runner, out = make_runner(timing_mode='lockstep', step_thread=False)
+    path = list(press_path(40, depth=0.001))
+    for k, p in enumerate(path):
+        runner.on_pose(pose(k, p))
+    runner.on_grasp(0, True)
+    runner.on_pose(pose(len(path), path[-1]))
+    runner.send_cloud_once()
+    hand = runner.solver.instruments[0]
+    held = np.flatnonzero(runner.cloud.points['held'])
+    assert hand.holding > 0 and np.array_equal(held, np.sort(hand.grip_idx[hand.grip_held]))
+    assert set(runner.cloud.points['held'][held].tolist()) == {1}          # instrument 0 holds: 1
+    runner.on_grasp(0, False)
+    runner.on_pose(pose(len(path) + 1, path[-1]))
+    runner.send_cloud_once()
+    assert not runner.cloud.points['held'].any()
 
 
 def test_a_button_closed_over_nothing_grasps_nothing_and_says_so():
@@ -261,13 +294,12 @@ def test_instrument_names_that_are_not_distinct_namespaces_are_refused(names, er
     assert error in check_value('instruments', names)
 
 
-def test_several_instruments_need_global_mode_and_the_multirate_renderer():
+def test_several_instruments_run_in_either_mode_and_need_the_multirate_renderer():
     from sph_tissue_sim.core.errors import ConfigError
 
     p = {name: spec[0] for name, spec in SIM_PARAMS.items()} | BLOCK | TWO
     assert build_config(p).mode == 'global'
-    with pytest.raises(ConfigError, match='mode global'):
-        build_config(p | {'mode': 'local'})
+    assert build_config(p | {'mode': 'local'}).mode == 'local'
     with pytest.raises(ConfigError, match='multirate'):
         build_config(p | {'haptic_mode': 'direct'})
 
@@ -297,18 +329,11 @@ def test_two_live_instruments_half_a_period_apart_simulate_the_pose_time_once():
 def test_a_lockstep_grasp_applies_from_the_pose_after_its_stamp_whichever_arrives_first():
     """The driver sends a button change before the pose it came with; DDS may still deliver the pose
     first. Either way the grasp applies from the next pose on: the forces repeat bit for bit."""
-    path = list(press_path(40, depth=0.001))
-    path += [path[-1] + [0.0, 0.0001 * (j + 1), 0.0] for j in range(40)]   # lift 4 mm
-    change = 40                                                            # button 1 down with pose 40
     runs = []
     for button_first in (True, False):
         runner, out = make_runner(timing_mode='lockstep', step_thread=False)
-        for k, p in enumerate(path):
-            if k == change and button_first:
-                runner.on_grasp(0, True, T0_NS + k * MS)
-            runner.on_pose(pose(k, p))
-            if k == change and not button_first:
-                runner.on_grasp(0, True, T0_NS + k * MS)
+        run_grasp_lift(lambda k, p: runner.on_pose(pose(k, p)),
+                       lambda: runner.on_grasp(0, True, T0_NS + GRASP_AT * MS), button_first)
         runs.append(np.array([f[3] for f in forces(out)]))
         assert runner.solver.instruments[0].holding > 0
     assert runs[0].tobytes() == runs[1].tobytes()

@@ -10,7 +10,7 @@ import contextlib
 import numpy as np
 import pytest
 
-from sim_probe import BLOCK, T0_NS, press_path
+from sim_probe import BLOCK, GRASP_AT, T0_NS, press_path, run_grasp_lift
 
 pytestmark = pytest.mark.ros
 
@@ -275,9 +275,62 @@ def test_a_cloud_that_fails_to_publish_is_logged_and_the_next_one_goes_out(multi
 
 
 
-def test_the_grasp_button_is_read_only_where_it_is_chosen(ros_domain):
-    """The bundled sessions press button 1 as a marker: by default no button grasps."""
-    with make_node() as n:
-        assert n.state_subs == []
-    with make_node(grasp_button=2, instruments=['left', 'right'], mode='global') as n:
-        assert [s.topic_name for s in n.state_subs] == ['/left/omni/state', '/right/omni/state']
+@pytest.mark.parametrize('chosen, topics', [
+    ({}, []),                   # the bundled sessions press button 1 as a marker: by default nothing grasps
+    ({'grasp_input': 'button2'}, ['/left/omni/state', '/right/omni/state']),
+    ({'grasp_input': 'jaw'}, ['/left/omni/jaw/measured_js', '/right/omni/jaw/measured_js']),
+])
+def test_each_instrument_grasps_from_the_input_grasp_input_names(ros_domain, chosen, topics):
+    with make_node(**chosen, instruments=['left', 'right'], mode='global') as n:
+        assert [s.topic_name for s in n.grasp_subs] == topics
+
+
+def closed_message(grasp_input: str, stamp_ns: int):
+    """What the driver sends when the jaw closes: DeviceState with that button down, or the CRTK jaw
+    at 0 rad."""
+    if grasp_input == 'jaw':
+        from sensor_msgs.msg import JointState
+
+        msg = JointState(name=['jaw'], position=[0.0])
+    else:
+        from tissue_msgs.msg import DeviceState
+
+        msg = DeviceState(**{grasp_input: True})
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 1_000_000_000)
+    return msg
+
+
+def test_a_lockstep_grasp_from_the_button_or_the_jaw_applies_at_the_same_pose_whichever_arrives_first(
+        ros_domain):
+    """The node's own subscription takes the message: the jaw (a JointState) grasps at the very pose
+    the button does, the forces bit for bit the same, whether it arrives before or after its pose."""
+    ms = 1_000_000
+    runs = {}
+    for grasp_input in ('button1', 'jaw'):
+        for close_first in (True, False):
+            with make_node(timing_mode='lockstep', step_thread=False, grasp_input=grasp_input) as n:
+                grasp = n.grasp_subs[0].callback
+                run_grasp_lift(lambda k, p: n.runner.on_pose(pose(p, T0_NS + k * ms)),
+                               lambda: grasp(closed_message(grasp_input, T0_NS + GRASP_AT * ms)), close_first)
+                runs[grasp_input, close_first] = np.array([f for _, f in n.sent])
+                assert n.runner.solver.instruments[0].holding > 0, (grasp_input, close_first)
+    first = runs['button1', True]
+    assert all(run.tobytes() == first.tobytes() for run in runs.values())
+    assert first[-1][1] < -0.02                       # the lift pulls
+
+
+def test_a_jaw_message_that_is_not_one_finite_angle_is_ignored_with_a_warning(ros_domain):
+    from sensor_msgs.msg import JointState
+
+    with make_node(timing_mode='lockstep', step_thread=False, grasp_input='jaw') as n:
+        logs = []
+        n.runner.log = lambda level, text: logs.append((level, text))
+        jaw, ch = n.grasp_subs[0].callback, n.runner.channels[0]
+        for bad in ([float('nan')], [0.0, 0.0], []):
+            jaw(JointState(position=bad))
+        assert ch.grasps == [] and not ch.closed
+        assert logs and logs[0][0] == 'warn', logs
+        assert '/omni/jaw/measured_js: not one finite jaw angle ([nan]): ignored' in logs[0][1]
+        jaw(JointState(position=[1.0]))                # open: nothing changes
+        jaw(JointState(position=[0.1]))                # at most 0.1 rad reads closed
+        assert ch.grasps == [(0, True)]

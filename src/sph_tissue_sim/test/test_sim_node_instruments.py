@@ -1,5 +1,5 @@
 """sim_node with two instruments on one tissue, as a real process over DDS: each namespace its own
-poses, forces, metrics and grasp button."""
+poses, forces, metrics and grasp input (a stylus button or the CRTK jaw)."""
 
 from __future__ import annotations
 
@@ -15,24 +15,31 @@ TWO = {'instruments': ['left', 'right'], 'instrument_offsets': [-0.015, 0.0, 0.0
        'mode': 'global'}
 
 
-def _button(node, topic: str):
+def _jaw(node, ns: str, grasp_input: str):
+    """A publisher of the instrument's grasp input, and the message that closes its jaw (a button
+    down on omni/state, or the CRTK jaw at 0 rad)."""
+    if grasp_input == 'jaw':
+        from sensor_msgs.msg import JointState
+
+        return node.create_publisher(JointState, ns + 'omni/jaw/measured_js', qos(True, 10)), \
+            JointState(name=['jaw'], position=[0.0])
     from tissue_msgs.msg import DeviceState
 
-    return node.create_publisher(DeviceState, topic, qos(True, 10))
+    return node.create_publisher(DeviceState, ns + 'omni/state', qos(True, 10)), DeviceState(**{grasp_input: True})
 
 
-def test_two_instruments_are_each_answered_on_their_own_topics_and_one_grasps_and_lifts(rclpy_node):
-    from tissue_msgs.msg import DeviceState
-
+@pytest.mark.parametrize('grasp_input', ['button1', 'jaw'])
+def test_two_instruments_are_each_answered_on_their_own_topics_and_one_grasps_and_lifts(rclpy_node, grasp_input):
     ns = '/hands/'
-    with sim({**TWO, 'timing_mode': 'lockstep', 'grasp_button': 1}, ros_args=['-r', f'__ns:={ns[:-1]}']) as proc:
+    with sim({**TWO, 'timing_mode': 'lockstep', 'grasp_input': grasp_input},
+             ros_args=['-r', f'__ns:={ns[:-1]}']) as proc:
         left, right = SimProbe(rclpy_node, reliable=True, ns=ns + 'left/'), SimProbe(rclpy_node, reliable=True,
                                                                                     ns=ns + 'right/')
         proc.wait_for_output(r'ready:', START_TIMEOUT)
-        button = _button(rclpy_node, ns + 'left/omni/state')
+        jaw, closed = _jaw(rclpy_node, ns + 'left/', grasp_input)
         from tissue_testing import harness
         for endpoint in (left.pose_pub, left.force_sub, left.metrics_sub, right.pose_pub, right.force_sub,
-                         right.metrics_sub, button):
+                         right.metrics_sub, jaw):
             harness.wait_for_matching(rclpy_node, endpoint)
         assert 'instruments left (device origin' in proc.output()
         # lockstep rounds: the left's poses wait for the right's
@@ -49,11 +56,9 @@ def test_two_instruments_are_each_answered_on_their_own_topics_and_one_grasps_an
         pressed = [force_of(probe.forces[left.force_order[-1]]) for probe in (left, right)]
         assert pressed[0][1] > 0.02 and pressed[1][1] > 0.02
         # the left closes its jaw and lifts: it feels the pull, the right keeps pressing
-        state = DeviceState()
-        state.button1 = True
-        button.publish(state)
-        # the grasp applies at the first solver step after the button's message: each round of
-        # the lift waits for its answers, so the button is read before the lift ends
+        jaw.publish(closed)
+        # the grasp applies at the first solver step after the jaw's message: each round of
+        # the lift waits for its answers, so the message is read before the lift ends
         t0 = T0_NS + n * 1_000_000
         lift = [path[-1] + [0.0, 1e-4 * (j + 1), 0.0] for j in range(50)]          # up 5 mm (device +y)
         for j, p in enumerate(lift):

@@ -180,7 +180,8 @@ def test_particle_cloud_fields_and_count_match_the_model(probe):
     fields = {f.name: (f.offset, f.datatype, f.count) for f in cloud.fields}
     f32, u8 = PointField.FLOAT32, PointField.UINT8
     assert fields == {'x': (0, f32, 1), 'y': (4, f32, 1), 'z': (8, f32, 1),
-                      'displacement': (12, f32, 1), 'von_mises': (16, f32, 1), 'region': (20, u8, 1)}
+                      'displacement': (12, f32, 1), 'von_mises': (16, f32, 1), 'region': (20, u8, 1),
+                      'held': (21, u8, 1)}
     pts = unpack_points(cloud.data, cloud.width)
     xyz = np.stack([pts['x'], pts['y'], pts['z']], axis=1)
     assert np.all(np.isfinite(xyz))
@@ -386,12 +387,13 @@ def test_runtime_parameters_are_applied_or_refused_with_a_reason(probe, rclpy_no
     ({'scheme': 'magic'}, r'scheme must be one of'),
     ({'k1_min': 9.0, 'k1_max': 2.0}, r'k1_min .* must be <= k1_max'),
     ({'rotation': [0.0, 0.0, 0.0, 0.0]}, r'rotation quaternion'),
-    ({'instruments': ['left', 'left'], 'mode': 'global'}, r"'left' is named twice"),
-    ({'instruments': ['left', '2nd'], 'mode': 'global'}, r"'2nd' is not a valid namespace"),
-    ({'instruments': ['left', 'right']}, r'2 instruments need mode global'),
-    ({'instruments': ['left', 'right'], 'mode': 'global', 'haptic_mode': 'direct'}, r'need haptic_mode multirate'),
-    ({'instruments': ['left', 'right'], 'mode': 'global', 'instrument_offsets': [0.0, 0.0]},
+    ({'instruments': ['left', 'left']}, r"'left' is named twice"),
+    ({'instruments': ['left', '2nd']}, r"'2nd' is not a valid namespace"),
+    ({'instruments': ['left', 'right'], 'haptic_mode': 'direct'}, r'need haptic_mode multirate'),
+    ({'instruments': ['left', 'right'], 'instrument_offsets': [0.0, 0.0]},
      r'three per instrument'),
+    ({'grasp_input': 'button3'}, r"grasp_input must be one of '', button1, button2, jaw, got 'button3'"),
+    ({'grasp_input': 1}, r"parameter grasp_input: .*expecting type 'STRING'"),    # a number: the choices are strings
 ])
 def test_invalid_start_parameters_exit_with_code_2_and_say_why(ros_domain, params, message):
     with sim({**params, 'warmup': False}) as proc:

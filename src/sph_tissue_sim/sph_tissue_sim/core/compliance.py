@@ -294,46 +294,69 @@ class OrganCompliance:
     def place(self, x: np.ndarray, X: np.ndarray, idx: np.ndarray, at: np.ndarray, weights: np.ndarray,
               load: np.ndarray) -> bool:
         """Put particles ``idx`` at ``X`` plus their displacement under ``load`` [N] shared by the
-        particles ``at`` in proportion to ``weights``. Waiting, the responses not solved yet are
-        solved here, and the call returns False, with nothing moved, once ``abort`` is set (the
-        responses solved so far are kept). In the background they are queued, and the load is
-        shared by the particles whose responses are ready (none: ``idx`` at rest), the displacement
-        growing over ``READY_RAMP`` from the first one ready."""
+        particles ``at`` in proportion to ``weights`` (:meth:`place_loads` with one load)."""
+        return self.place_loads(x, X, idx, [(at, weights, load)])
+
+    def place_loads(self, x: np.ndarray, X: np.ndarray, idx: np.ndarray, loads: list) -> bool:
+        """Put particles ``idx`` at ``X`` plus their displacement under several loads (the organ is
+        linear: the responses add): ``loads`` holds per load ``(at, weights, load)``, the load [N]
+        shared by the particles ``at`` in proportion to ``weights``. Waiting, the responses not
+        solved yet are solved here, and the call returns False, with nothing moved, once ``abort``
+        is set (the responses solved so far are kept). In the background they are queued, and each
+        load is shared by its particles whose responses are ready (none ready at all: ``idx`` at
+        rest), the displacement growing over ``READY_RAMP`` from the first one ready."""
+        loads = [(at, w, load) for at, w, load in loads if len(at)]
         if not self.background:
-            for c in at.tolist():
-                if self.abort[0] != 0 or self.column(c, self.abort) is None:
-                    return False
-            organ_place(x, X, idx, at, weights / float(np.sum(weights)), self.slot, self.store, load)
+            for at, _, _ in loads:
+                for c in at.tolist():
+                    if self.abort[0] != 0 or self.column(c, self.abort) is None:
+                        return False
+            self._place(x, X, idx, [(at, w / float(np.sum(w)), load) for at, w, load in loads])
             return True
         with self._publish:
-            ready = np.array([self.slot[c] >= 0 or self._share(c) for c in at.tolist()], dtype=bool)
-            for c in at[~ready].tolist():
-                self._request(c)
-            total = float(np.sum(weights[ready]))
-            if total > 0.0:
+            shares = []
+            for at, w, load in loads:
+                ready = np.array([self.slot[c] >= 0 or self._share(c) for c in at.tolist()], dtype=bool)
+                for c in at[~ready].tolist():
+                    self._request(c)
+                total = float(np.sum(w[ready]))
+                if total > 0.0:
+                    shares.append((at[ready], w[ready], total, load))
+            if shares:
                 now = time.monotonic()
                 if self._ready_since is None:
                     self._ready_since = now
                 # a response that came late (a busy machine: hundreds of ms) would move the shell
                 # from rest at once, a step in the force; it comes in over READY_RAMP instead
                 gain = min(1.0, (now - self._ready_since) / READY_RAMP)
-                organ_place(x, X, idx, at[ready], weights[ready] * (gain / total), self.slot, self.store, load)
+                self._place(x, X, idx, [(at, w * (gain / total), load) for at, w, total, load in shares])
             else:
                 self._ready_since = None
                 x[idx] = X[idx]
         return True
 
+    def _place(self, x: np.ndarray, X: np.ndarray, idx: np.ndarray, shares: list) -> None:
+        """:func:`organ_place` of ``(at, weights, load)`` shares (weights already normalised)."""
+        if len(shares) == 1:
+            at, w, load = shares[0]
+            organ_place(x, X, idx, at, w, self.slot, self.store, np.broadcast_to(load, (len(at), 3)))
+            return
+        organ_place(x, X, idx, np.concatenate([at for at, _, _ in shares]),
+                    np.concatenate([w for _, w, _ in shares]), self.slot, self.store,
+                    np.concatenate([np.broadcast_to(load, (len(at), 3)) for at, _, load in shares]))
+
 
 @njit(cache=True, nogil=True)
-def organ_place(x, X, idx, at, w, slot, store, load):
-    """``x_j = X_j + sum_t w_t C(j, at_t) load`` for j in ``idx`` (``C`` the responses in ``store``,
-    row ``slot[at_t]``; ``w`` sums to 1)."""
+def organ_place(x, X, idx, at, w, slot, store, loads):
+    """``x_j = X_j + sum_t w_t C(j, at_t) loads_t`` for j in ``idx`` (``C`` the responses in
+    ``store``, row ``slot[at_t]``; the weights of each load's particles sum to 1)."""
     for q in range(idx.shape[0]):
         j = idx[q]
         u0 = 0.0; u1 = 0.0; u2 = 0.0
         for t in range(at.shape[0]):
             c = store[slot[at[t]], j]
             wt = w[t]
+            load = loads[t]
             u0 += wt * (c[0, 0] * load[0] + c[0, 1] * load[1] + c[0, 2] * load[2])
             u1 += wt * (c[1, 0] * load[0] + c[1, 1] * load[1] + c[1, 2] * load[2])
             u2 += wt * (c[2, 0] * load[0] + c[2, 1] * load[1] + c[2, 2] * load[2])

@@ -2,7 +2,8 @@
 
 The paper holds everything beyond the transmission layers at rest, which clamps the area a few h
 from the tool and makes it stiffer than the whole organ. A far field moves those particles with
-the tissue around instead, from the contact load (``LocalArea.ff_load``, low-passed by the area).
+the tissue around instead, from each instrument's contact load (``LocalArea.ff_load``, low-passed
+by the area; the responses add).
 Two kinds, chosen by :func:`make_far_field`:
 
 * :class:`Organ`: the organ's own linear response (:class:`~.compliance.OrganCompliance`, factored
@@ -40,8 +41,8 @@ class HalfSpace:
         self.G, self.nu = material.G, material.nu
 
     def place(self, area: LocalArea, body: Body, x: np.ndarray, sets: Sets) -> None:
-        area.n_ff = far_field_shell(body, x, sets, area.ff_mark, area.ff_list, area.n_ff, area.centre,
-                                    area.ff_load, self.G, self.nu, area.buf_x, area.ff_buf)
+        area.n_ff = far_field_shell(body, x, sets, area.ff_mark, area.ff_list, area.n_ff, area.centres,
+                                    area.ff_load, self.G, self.nu, area.buf_x, area.ff_buf, area.ff_buf2)
 
     def close(self, timeout: float = 0.0) -> bool:
         return True
@@ -58,12 +59,15 @@ class Organ:
         self.compliance = compliance
 
     def place(self, area: LocalArea, body: Body, x: np.ndarray, sets: Sets) -> None:
-        if area.n_touch > 0:
-            area.ff_at = area.touch[:area.n_touch].copy()
-            area.ff_w = area.touch_w[:area.n_touch].copy()
+        start = area.touch_start
+        for k in range(len(area.ff_at)):     # an instrument that touches nothing keeps its last place
+            if start[k + 1] > start[k]:
+                area.ff_at[k] = area.touch[start[k]:start[k + 1]].copy()
+                area.ff_w[k] = area.touch_w[start[k]:start[k + 1]].copy()
         area.n_ff = shell_and_ring(body, area.topo, sets, area.ff_mark, area.ff_list, area.n_ff, x)
-        if len(area.ff_at) and area.n_ff:
-            self.compliance.place(x, area.X, area.ff_list[:area.n_ff], area.ff_at, area.ff_w, area.ff_load)
+        if any(len(at) for at in area.ff_at) and area.n_ff:
+            self.compliance.place_loads(x, area.X, area.ff_list[:area.n_ff],
+                                        list(zip(area.ff_at, area.ff_w, area.ff_load)))
 
     def close(self, timeout: float = 0.0) -> bool:
         return self.compliance.close(timeout)

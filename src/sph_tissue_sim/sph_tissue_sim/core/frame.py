@@ -30,7 +30,7 @@ from . import paper, springs, tlsph  # noqa: F401
 from .contact import contact_forces
 from .grasp import grip_forces
 from .surface_contact import sample_contact_forces
-from .integrate import move_layers
+from .integrate import move_layers, move_layers_tools
 from .protocols import (STATUS_ABORTED, STATUS_FULL, STATUS_OK, FrameScheme, advance,
                         internal_forces)
 from .state import Body, Loads, Motion, Sets
@@ -112,8 +112,13 @@ def run_frame(scheme, integrator, body, motion, sets, tools, loads, first, n_sub
                 grip_forces(body, motion, tool, seg, (s + 1.0) / n_sub, frame_dt, seg_vel[k], rsum)
             react[k, 0] += rsum[0]; react[k, 1] += rsum[1]; react[k, 2] += rsum[2]
         advance(integrator, body, motion, sets)
-        move_layers(motion.x, motion.v, body.fixed, sets.layer, sets.layer_w, sets.n_layer,
-                    sets.touch, sets.touch_w, sets.n_touch, sets.contact, integrator.dt)
+        if n_tools == 1:
+            move_layers(motion.x, motion.v, body.fixed, sets.layer, sets.layer_w, sets.n_layer,
+                        sets.touch, sets.touch_w, sets.touch_start[1], sets.contacts[0], integrator.dt)
+        else:
+            move_layers_tools(motion.x, motion.v, body.fixed, sets.layer, sets.layer_w, sets.n_layer,
+                              sets.layer_tool, sets.touch, sets.touch_w, sets.touch_start, sets.contacts,
+                              integrator.dt)
     _mean(react, n_sub)
     return STATUS_OK, n_sub
 

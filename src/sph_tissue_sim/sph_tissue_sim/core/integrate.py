@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 
@@ -49,6 +50,41 @@ def move_layers(x, v, fixed, layer, layer_w, n_layer, touch, touch_w, n_touch, c
         v[i, 1] = w * vc1
         v[i, 2] = w * vc2
         for a in range(3):
+            x[i, a] += dt * v[i, a]
+
+
+@njit(cache=True, fastmath=True)
+def move_layers_tools(x, v, fixed, layer, layer_w, n_layer, layer_tool, touch, touch_w, touch_start, contacts, dt):
+    """:func:`move_layers` of several instruments: a layer particle ``i`` follows its instrument
+    ``k = layer_tool[i]``, the particles it touches (``touch[touch_start[k]:touch_start[k + 1]]``)
+    or its ``contacts[k]`` particle. (One instrument keeps :func:`move_layers`: the same sums in
+    another loop may vectorise, and round, otherwise.)"""
+    if n_layer == 0:
+        return
+    n_tools = contacts.shape[0]
+    vc = np.zeros((n_tools, 3))
+    for k in range(n_tools):
+        contact = contacts[k]
+        if touch_start[k + 1] > touch_start[k]:
+            wsum = 0.0
+            for t in range(touch_start[k], touch_start[k + 1]):
+                i = touch[t]
+                w = touch_w[t]
+                wsum += w
+                if not fixed[i]:
+                    for a in range(3):
+                        vc[k, a] += w * v[i, a]
+            if wsum > 0.0:
+                for a in range(3):
+                    vc[k, a] /= wsum
+        elif contact >= 0 and not fixed[contact]:
+            for a in range(3):
+                vc[k, a] = v[contact, a]
+    for t in range(n_layer):
+        i = layer[t]
+        k = layer_tool[i]
+        for a in range(3):
+            v[i, a] = layer_w[t] * vc[k, a]
             x[i, a] += dt * v[i, a]
 
 

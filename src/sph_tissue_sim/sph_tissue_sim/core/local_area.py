@@ -1,6 +1,7 @@
 """Dynamic local interaction area (paper sec. 4, eqs. 17-21) with viscoelastic release.
 
-Around the contact particle ``c`` (reference distance ``d``):
+Around each instrument's contact particle ``c`` (reference distance ``d``; a particle in two
+instruments' areas is solved fully, a layer particle follows its own instrument's contact):
 
     d < Dr = k1 h                                 -> interaction area, full SPH      (region 1)
     Tr_(i-1) <= d < Tr_i,  Tr_i = Dr + (i/2) h     -> transmission layer i            (region 1 + i)
@@ -44,14 +45,17 @@ def _enter_area(j, reg, region, in_area, in_active, active_list, n_active):
 
 
 @njit(cache=True, nogil=True)
-def local_prepare(body, topo, grid, area, n_active, stamp_val, contact_idx, Dr, layer_dr, n_layers,
-                  cand_centre, cand_radius):
-    """Build the index sets of one local frame in ``area`` (:class:`~.state.Area`).
+def local_prepare(body, topo, grid, area, n_active, stamp_val, Dr, layer_dr, n_layers, cand_centres,
+                  cand_radii):
+    """Build the index sets of one local frame in ``area`` (:class:`~.state.Area`): the union of
+    the instruments' areas.
 
-    The area is centred on ``area.centre`` (reference space; the overlap-weighted centroid of the
-    touched particles, so it moves continuously when the deepest particle changes), radius ``Dr``
-    [m], then ``n_layers`` layers of ``layer_dr`` [m]; the candidates are the particles within
-    ``cand_radius`` of ``cand_centre`` (none if negative).
+    Instrument k's area is centred on ``area.centres[k]`` (reference space; the overlap-weighted
+    centroid of the particles it touches, so it moves continuously when the deepest particle
+    changes), radius ``Dr[k]`` [m] (negative: no area), then ``n_layers`` layers of ``layer_dr``
+    [m]; a particle in several is solved (region 1), ``area.layer_tool`` says whose layer a layer
+    particle is in. The candidates are the particles within ``cand_radii[k]`` of ``cand_centres[k]``
+    (none if negative), each listed once.
     Returns ``(n_active, n_sph, n_lp, n_stress, n_cand, n_interaction, n_relaxing)``;
     ``area.layer_counts[i-1]`` receives the particle count of layer i.
     """
@@ -61,15 +65,17 @@ def local_prepare(body, topo, grid, area, n_active, stamp_val, contact_idx, Dr, 
                                                       area.active, area.stamp)
     sph_list, layer_list, layer_w, stress_list, cand_list, tmp = (area.sph, area.layer, area.layer_w,
                                                                   area.stress, area.cand, area.tmp)
-    centre, layer_counts = area.centre, area.layer_counts
+    centres, layer_counts, layer_tool = area.centres, area.layer_counts, area.layer_tool
     for t in range(n_active):
         region[active_list[t]] = 0
     for l in range(layer_counts.shape[0]):
         layer_counts[l] = 0
-    # 1. the interaction area and transmission layers around the contact particle
-    if contact_idx >= 0:
-        radius = Dr + n_layers * layer_dr
-        nq = query_ball(centre, radius, X, grid, tmp)
+    # 1. the interaction areas and transmission layers around the contacts
+    for k in range(Dr.shape[0]):
+        if Dr[k] < 0.0:
+            continue
+        centre = centres[k]
+        nq = query_ball(centre, Dr[k] + n_layers * layer_dr, X, grid, tmp)
         nq = min(nq, tmp.shape[0])
         for q in range(nq):
             j = tmp[q]
@@ -79,25 +85,34 @@ def local_prepare(body, topo, grid, area, n_active, stamp_val, contact_idx, Dr, 
             d1 = X[j, 1] - centre[1]
             d2 = X[j, 2] - centre[2]
             d = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            if d < Dr:
+            if d < Dr[k]:
                 reg = 1
             else:
-                layer = 1 + int((d - Dr) / layer_dr)
+                layer = 1 + int((d - Dr[k]) / layer_dr)
                 if layer > n_layers:
                     continue
                 reg = 1 + layer
+            if in_area[j] == 1:
+                reg = 1           # in two instruments' areas: solved, not moved along with either
+            layer_tool[j] = k
             n_active = _enter_area(j, reg, region, in_area, in_active, active_list, n_active)
-    # 2. particles the tool may touch this frame: solved fully; fixed ones only feel the contact
+    # 2. particles a tool may touch this frame: solved fully; fixed ones only feel the contact
+    #    (listed once: a fixed particle twice in the list would push its tool twice)
     n_cand = 0
-    nq = query_ball(cand_centre, cand_radius, X, grid, tmp)
-    nq = min(nq, tmp.shape[0])
-    for q in range(nq):
-        j = tmp[q]
-        if fixed[j]:
-            cand_list[n_cand] = j
-            n_cand += 1
-            continue
-        n_active = _enter_area(j, 1, region, in_area, in_active, active_list, n_active)
+    for k in range(cand_radii.shape[0]):
+        nq = query_ball(cand_centres[k], cand_radii[k], X, grid, tmp)
+        nq = min(nq, tmp.shape[0])
+        for q in range(nq):
+            j = tmp[q]
+            if fixed[j]:
+                if in_area[j] == 0:
+                    in_area[j] = 1
+                    cand_list[n_cand] = j
+                    n_cand += 1
+                continue
+            n_active = _enter_area(j, 1, region, in_area, in_active, active_list, n_active)
+    for t in range(n_cand):
+        in_area[cand_list[t]] = 0     # fixed particles are never active: local_release won't clear it
     # 3. split the active set: full SPH (interaction + relaxing) and kinematic layers
     n_sph = 0
     n_lp = 0
@@ -205,13 +220,14 @@ def boussinesq(d, load, G, nu, out):
 
 
 @njit(cache=True, nogil=True)
-def far_field_shell(body, x, sets, mark, ff_list, n_ff, centre, load, G, nu, buf_d, buf_u):
+def far_field_shell(body, x, sets, mark, ff_list, n_ff, centres, loads, G, nu, buf_d, buf_u, buf_e):
     """Move the still particles that solved ones read (the stress shell) with the tissue around.
 
     The paper holds everything beyond the transmission layers still, which clamps the area at a
     few h from the tool and makes it stiffer than the whole organ (+24 % on the liver at 2 mm).
-    Here each shell particle j is placed at ``X_j + u(X_j - centre)``, ``u`` the elastic
-    half-space response to the contact ``load`` (:func:`boussinesq`). Particles placed so in the
+    Here each shell particle j is placed at ``X_j + sum_k u(X_j - centres[k])``, ``u`` the elastic
+    half-space response to instrument k's contact load ``loads[k]`` (:func:`boussinesq`;
+    ``buf_e`` scratch for the second and later instruments). Particles placed so in the
     previous frame (``ff_list[:n_ff]``) that are neither solved nor in the shell now go back to
     rest. ``mark`` (n,) int8 must be zero on entry and is zero on return. Returns the new shell
     count (``ff_list[:count]``).
@@ -234,11 +250,20 @@ def far_field_shell(body, x, sets, mark, ff_list, n_ff, centre, load, G, nu, buf
             continue
         mark[j] = 2
         ff_list[m] = j
-        buf_d[m, 0] = X[j, 0] - centre[0]
-        buf_d[m, 1] = X[j, 1] - centre[1]
-        buf_d[m, 2] = X[j, 2] - centre[2]
+        buf_d[m, 0] = X[j, 0] - centres[0, 0]
+        buf_d[m, 1] = X[j, 1] - centres[0, 1]
+        buf_d[m, 2] = X[j, 2] - centres[0, 2]
         m += 1
-    boussinesq(buf_d[:m], load, G, nu, buf_u)
+    boussinesq(buf_d[:m], loads[0], G, nu, buf_u)
+    for k in range(1, loads.shape[0]):     # the half-space is linear: the instruments' responses add
+        for t in range(m):
+            j = ff_list[t]
+            buf_d[t, 0] = X[j, 0] - centres[k, 0]
+            buf_d[t, 1] = X[j, 1] - centres[k, 1]
+            buf_d[t, 2] = X[j, 2] - centres[k, 2]
+        boussinesq(buf_d[:m], loads[k], G, nu, buf_e)
+        for t in range(m):
+            buf_u[t, 0] += buf_e[t, 0]; buf_u[t, 1] += buf_e[t, 1]; buf_u[t, 2] += buf_e[t, 2]
     for t in range(m):
         j = ff_list[t]
         x[j, 0] = X[j, 0] + buf_u[t, 0]
@@ -268,7 +293,7 @@ def active_stats(x, X, v, idx, n, mass):
 
 
 @njit(cache=True, nogil=True)
-def detect_local(X, x, grid, area, n_active, seg, reach, margin):
+def detect_local(X, x, grid, area, n_active, seg, reach, margin, start, centre):
     """Deepest-overlap particle of the tool segment ``seg`` (2, 3) in local mode, O(active + cells
     near the tool), or -1.
 
@@ -276,12 +301,13 @@ def detect_local(X, x, grid, area, n_active, seg, reach, margin):
     finds them; active ones (possibly far from home) are checked directly.
 
     Also returns the touched particles with their overlaps as weights (``area.touch``,
-    ``area.touch_w``; count as second return value) and their overlap-weighted reference centroid
-    in ``area.centre``: the layers follow the weighted mean velocity of the touched particles and
-    the area is centred on that centroid, so neither jumps when the deepest particle changes.
+    ``area.touch_w`` from ``start`` on; count as second return value) and their overlap-weighted
+    reference centroid in ``centre`` (3,): the layers follow the weighted mean velocity of the
+    touched particles and the area is centred on that centroid, so neither jumps when the deepest
+    particle changes.
     """
-    active_list, tmp, touch_idx, touch_w, centre = (area.active, area.tmp, area.touch, area.touch_w,
-                                                    area.centre)
+    active_list, tmp, touch_idx, touch_w = area.active, area.tmp, area.touch, area.touch_w
+    capacity = min(touch_idx.shape[0] - start, TOUCH_CAPACITY)
     best = -1
     best_d = 0.0
     n_touch = 0
@@ -303,15 +329,15 @@ def detect_local(X, x, grid, area, n_active, seg, reach, margin):
         if overlap <= 0.0:
             continue
         dup = False
-        for t in range(n_touch):
+        for t in range(start, start + n_touch):
             if touch_idx[t] == j:
                 dup = True
                 break
         if dup:
             continue
-        if n_touch < touch_idx.shape[0]:
-            touch_idx[n_touch] = j
-            touch_w[n_touch] = overlap
+        if n_touch < capacity:
+            touch_idx[start + n_touch] = j
+            touch_w[start + n_touch] = overlap
             n_touch += 1
             wsum += overlap
             c0 += overlap * X[j, 0]; c1 += overlap * X[j, 1]; c2 += overlap * X[j, 2]
@@ -338,22 +364,28 @@ def copy_rows(x, v, a, na, b, nb, buf_x, buf_v, save):
                 v[i, c] = buf_v[t, c]
 
 
+#: touched particles recorded per instrument and frame (the rest still push; they do not steer the area)
+TOUCH_CAPACITY = 256
+
+
 class LocalArea:
-    """The moving particle sets of one model: the local interaction area, its transmission layers,
-    the particles still relaxing, the tool's candidates and the optional far-field shell.
+    """The moving particle sets of one model: the local interaction area (the union of each
+    instrument's), its transmission layers, the particles still relaxing, the tools' candidates and
+    the optional far-field shell.
 
     ``Solver`` asks it, once per frame, for the :class:`~.state.Sets` to solve
-    (:meth:`global_sets` or :meth:`detect` then :meth:`prepare`), and to :meth:`save`,
-    :meth:`restore` and :meth:`release` around the frame. Everything costs O(area + active).
+    (:meth:`global_sets`, or :meth:`detect` or :meth:`hold` per instrument then :meth:`prepare`),
+    and to :meth:`save`, :meth:`restore` and :meth:`release` around the frame. Everything costs
+    O(area + active).
 
     Args:
         X: (N, 3) reference positions; fixed: (N,) boundary mask.
         topo: reference neighbours within 2h; grid: the reference cell grid.
-        h: smoothing length [m]; n_layers: transmission layers.
+        h: smoothing length [m]; n_layers: transmission layers; instruments: how many tools.
     """
 
     def __init__(self, X: np.ndarray, fixed: np.ndarray, topo: Topology, grid: Grid, h: float,
-                 n_layers: int) -> None:
+                 n_layers: int, instruments: int = 1) -> None:
         n = len(X)
         self.X, self.fixed, self.topo = X, fixed, topo
         self.grid, self.h, self.n_layers = grid, h, n_layers
@@ -369,13 +401,15 @@ class LocalArea:
         self.sph = np.zeros(n, dtype=np.int32)
         self.layer = np.zeros(n, dtype=np.int32)
         self.layer_w = np.zeros(n)
+        self.layer_tool = np.zeros(n, dtype=np.int32)
         self.stress = np.zeros(n, dtype=np.int32)
         self.cand = np.zeros(2 * n, dtype=np.int32)
         self.tmp = np.zeros(n, dtype=np.int32)
-        self.touch = np.zeros(256, dtype=np.int32)
-        self.touch_w = np.zeros(256)
-        self.n_touch = 0
-        self.centre = np.zeros(3)
+        self.touch = np.zeros(TOUCH_CAPACITY * instruments, dtype=np.int32)
+        self.touch_w = np.zeros(TOUCH_CAPACITY * instruments)
+        # instrument k's touched particles this frame: touch[touch_start[k]:touch_start[k + 1]]
+        self.touch_start = np.zeros(instruments + 1, dtype=np.int64)
+        self.centres = np.zeros((instruments, 3))
         self.layer_counts = np.zeros(max(n_layers, 1), dtype=np.int64)
         self.buf_x = np.zeros((n, 3))
         self.buf_v = np.zeros((n, 3))
@@ -384,13 +418,20 @@ class LocalArea:
         self.n_ff = 0
         self.ff_mark = np.zeros(0, dtype=np.int8)
         self.ff_buf = np.zeros((0, 3))
-        self.ff_load = np.zeros(3)
-        # where the organ's far field applies the load (the last touched particles, their weights)
-        self.ff_at = np.zeros(0, dtype=np.int32)
-        self.ff_w = np.zeros(0)
+        self.ff_buf2 = np.zeros((0, 3))
+        self.ff_load = np.zeros((instruments, 3))
+        # where the organ's far field applies each instrument's load (the particles it touched
+        # last, their weights)
+        self.ff_at = [np.zeros(0, dtype=np.int32)] * instruments
+        self.ff_w = [np.zeros(0)] * instruments
         self.bundle = Area(self.region, self.in_area, self.in_active, self.active, self.stamp, self.sph,
                            self.layer, self.layer_w, self.stress, self.cand, self.tmp, self.touch,
-                           self.touch_w, self.centre, self.layer_counts)
+                           self.touch_w, self.centres, self.layer_counts, self.layer_tool)
+
+    @property
+    def n_touch(self) -> int:
+        """Particles the instruments touch this frame."""
+        return int(self.touch_start[-1])
 
     def reset(self, global_mode: bool) -> None:
         """No active particle; in global mode every free particle is in the interaction area."""
@@ -399,74 +440,95 @@ class LocalArea:
         self.in_area[:] = 0
         self.n_active = 0
         self.n_ff = 0
-        self.n_touch = 0
+        self.touch_start[:] = 0
         self.ff_load[:] = 0.0
-        self.ff_at = np.zeros(0, dtype=np.int32)
+        self.ff_at = [np.zeros(0, dtype=np.int32)] * len(self.ff_at)
+        self.ff_w = [np.zeros(0)] * len(self.ff_w)
         if global_mode:
             self.region[self.free] = 1
 
-    def global_sets(self, contact: int) -> Sets:
-        """Every free particle solved, every particle stressed and a candidate, no layer."""
+    def global_sets(self, contacts) -> Sets:
+        """Every free particle solved, every particle stressed and a candidate, no layer;
+        ``contacts``: each instrument's contact particle (or one, -1: none)."""
         n = len(self.all)
+        contacts = np.atleast_1d(np.asarray(contacts, dtype=np.int64))
         return Sets(self.all, n, self.free, len(self.free), self.layer, self.layer_w, 0,
-                    self.all, n, self.touch, self.touch_w, 0, contact)
+                    self.all, n, self.touch, self.touch_w, np.zeros(len(contacts) + 1, dtype=np.int64),
+                    contacts, self.layer_tool)
 
-    def detect(self, x: np.ndarray, seg: np.ndarray, reach: float, margin: float) -> int:
-        """The deepest touched particle of the tool's segment (or -1); records the touched ones
-        and centres the area on their overlap-weighted centroid (:func:`detect_local`)."""
-        deepest, self.n_touch = detect_local(self.X, x, self.grid, self.bundle, self.n_active, seg,
-                                             reach, margin)
+    def detect(self, x: np.ndarray, seg: np.ndarray, reach: float, margin: float, k: int = 0) -> int:
+        """The deepest particle instrument ``k``'s segment touches (or -1); records the touched
+        ones after the previous instruments' and centres its area on their overlap-weighted
+        centroid (:func:`detect_local`). Call in the instruments' order, each once a frame."""
+        start = int(self.touch_start[k])
+        deepest, n = detect_local(self.X, x, self.grid, self.bundle, self.n_active, seg, reach, margin,
+                                  start, self.centres[k])
+        self.touch_start[k + 1] = start + n
         return deepest
 
-    def hold(self, idx: np.ndarray) -> int:
-        """Centre the area on particles a tool holds, for a frame in which it touches nothing (a
-        grasp that lifts): they are the touched ones, of equal weight; returns one of them (the
-        area's contact particle)."""
-        n = min(len(idx), len(self.touch))
-        self.touch[:n] = idx[:n]
-        self.touch_w[:n] = 1.0
-        self.n_touch = n
-        self.centre[:] = self.X[idx].mean(axis=0)
+    def hold(self, idx: np.ndarray, k: int = 0) -> int:
+        """Centre instrument ``k``'s area on particles it holds, for a frame in which it touches
+        nothing (a grasp that lifts): they are its touched ones, of equal weight; returns one of
+        them (the area's contact particle)."""
+        start = int(self.touch_start[k])
+        n = min(len(idx), TOUCH_CAPACITY)
+        self.touch[start:start + n] = idx[:n]
+        self.touch_w[start:start + n] = 1.0
+        self.touch_start[k + 1] = start + n
+        self.centres[k] = self.X[idx].mean(axis=0)
         return int(idx[0])
 
-    def prepare(self, body: Body, seg0: np.ndarray | None, seg1: np.ndarray | None, reach: float, margin: float,
-                contact: int, Dr: float, on_contact: bool) -> tuple[Sets, int, int]:
+    def skip(self, k: int) -> None:
+        """Instrument ``k`` touches and holds nothing this frame."""
+        self.touch_start[k + 1] = self.touch_start[k]
+
+    def prepare(self, body: Body, tools: list, margin: float, on_contact: bool) -> tuple[Sets, int, int]:
         """The sets of a local frame; returns ``(sets, n_interaction, n_relaxing)``.
 
-        ``Dr`` [m] is the area's radius: from the contact particle (``on_contact``, the paper's
-        sec. 4.2) or from the edge of the touched patch (so a load spread over several particles
-        is inside). The candidates are every particle the tool can reach
-        anywhere on its way through the frame (``seg0`` to ``seg1``; None: no tool).
+        ``tools`` holds per instrument ``(seg0, seg1, reach, contact, Dr)``: ``Dr`` [m] is its
+        area's radius, from its contact particle (``on_contact``, the paper's sec. 4.2) or from the
+        edge of its touched patch (so a load spread over several particles is inside); no area
+        without a contact (-1). Its candidates are every particle it can reach anywhere on its way
+        through the frame (``seg0`` to ``seg1``; ``seg0`` None: no tool).
         """
-        if seg0 is not None:
-            # scalar maths: numpy's per-call overhead on 4 points is a few per cent of a local step
-            ends = seg0.tolist() + seg1.tolist()
-            c = [0.25 * (ends[0][a] + ends[1][a]) + 0.25 * (ends[2][a] + ends[3][a]) for a in range(3)]
-            cand_centre = np.array(c)
-            cand_radius = max(math.dist(e, c) for e in ends) + reach + margin
-        else:
-            cand_centre = self.centre
-            cand_radius = -1.0
-        if on_contact:
+        n_tools = len(tools)
+        cand_centres = np.zeros((n_tools, 3))
+        cand_radii = np.full(n_tools, -1.0)
+        radii = np.full(n_tools, -1.0)
+        contacts = np.full(n_tools, -1, dtype=np.int64)
+        for k, (seg0, seg1, reach, contact, Dr) in enumerate(tools):
+            centre = self.centres[k]
+            if seg0 is not None:
+                # scalar maths: numpy's per-call overhead on 4 points is a few per cent of a local step
+                ends = seg0.tolist() + seg1.tolist()
+                c = [0.25 * (ends[0][a] + ends[1][a]) + 0.25 * (ends[2][a] + ends[3][a]) for a in range(3)]
+                cand_centres[k] = c
+                cand_radii[k] = max(math.dist(e, c) for e in ends) + reach + margin
+            if on_contact:
+                if contact >= 0:
+                    centre[:] = self.X[contact]
+            elif self.touch_start[k + 1] > self.touch_start[k]:
+                ti = self.touch[self.touch_start[k]:self.touch_start[k + 1]]
+                d = self.X[ti] - centre
+                Dr += float(np.sqrt((d * d).sum(axis=1)).max())
             if contact >= 0:
-                self.centre[:] = self.X[contact]
-        elif self.n_touch > 0:
-            ti = self.touch[:self.n_touch]
-            d = self.X[ti] - self.centre
-            Dr += float(np.sqrt((d * d).sum(axis=1)).max())
+                radii[k] = Dr
+            contacts[k] = contact
         self.stamp_val += 1
         (self.n_active, n_sph, n_lp, n_stress, n_cand, n_inter, n_relax) = local_prepare(
-            body, self.topo, self.grid, self.bundle, self.n_active, self.stamp_val, contact, Dr,
-            0.5 * self.h, self.n_layers, cand_centre, cand_radius)
+            body, self.topo, self.grid, self.bundle, self.n_active, self.stamp_val, radii,
+            0.5 * self.h, self.n_layers, cand_centres, cand_radii)
         sets = Sets(self.stress, n_stress, self.sph, n_sph, self.layer, self.layer_w, n_lp,
-                    self.cand, n_cand, self.touch, self.touch_w, self.n_touch, contact)
+                    self.cand, n_cand, self.touch, self.touch_w, self.touch_start.copy(), contacts,
+                    self.layer_tool)
         return sets, n_inter, n_relax
 
     def far_field(self, body: Body, x: np.ndarray, sets: Sets, react: np.ndarray, factor: float,
                   blend: float, model) -> None:
-        """Move the load ``ff_load`` ``blend`` (0..1] of the way to ``-factor * react`` and let the
-        far field ``model`` (:mod:`.far_field`; None: none) place the still particles around the
-        solved ones at its response; they return to rest once ``factor`` is 0.
+        """Move each instrument's load ``ff_load[k]`` ``blend`` (0..1] of the way to ``-factor *
+        react[k]`` (``react`` (K, 3)) and let the far field ``model`` (:mod:`.far_field`; None:
+        none) place the still particles around the solved ones at its response; they return to
+        rest once ``factor`` is 0.
 
         Why the low pass: the shell's displacement follows the force, which follows the shell.
         Near the load (a small area: ``k1 h`` shrinks with the spacing) that loop's gain passes 1
@@ -482,6 +544,7 @@ class LocalArea:
             self.ff_list = np.zeros(n, dtype=np.int32)
             self.ff_mark = np.zeros(n, dtype=np.int8)
             self.ff_buf = np.zeros((n, 3))
+            self.ff_buf2 = np.zeros((n, 3)) if len(self.ff_load) > 1 else np.zeros((0, 3))
         model.place(self, body, x, sets)
 
     def save(self, x: np.ndarray, v: np.ndarray, sets: Sets) -> None:

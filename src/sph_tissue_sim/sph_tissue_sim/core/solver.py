@@ -302,9 +302,6 @@ class Solver:
         self.config = cfg = (config or SolverConfig()).validate()
         if isinstance(instruments, bool) or not isinstance(instruments, int) or not 1 <= instruments <= MAX_INSTRUMENTS:
             raise ConfigError(f'instruments must be an integer in [1, {MAX_INSTRUMENTS}], got {instruments!r}')
-        if instruments > 1 and cfg.mode != 'global':
-            raise ConfigError(f'{instruments} instruments need mode global (the local area follows one tool), '
-                              f'got mode {cfg.mode}')
         self.background = background
         self.model = model
         self.n = model.n_particles
@@ -349,7 +346,7 @@ class Solver:
         self._touch_vn = np.zeros(len(self.touches.idx))
         self._touch_vt = np.zeros((len(self.touches.idx), 3))
         self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
-                              self.h, cfg.n_layers)
+                              self.h, cfg.n_layers, instruments)
         self.set_material(material)
         self.reset()
 
@@ -438,7 +435,7 @@ class Solver:
         if self.dashpot_rate is not None:
             self.dashpot_rate.reset()
         self.sim_time = 0.0
-        self.f_prev = 0.0
+        self.f_prev = [0.0] * len(self.instruments)   # each tool's last force [N]: its area's size
         for hand in self.instruments:
             hand.reset()
         self.last_result: StepResult | None = None
@@ -730,8 +727,9 @@ class Solver:
             hand.segment = paths[k].seg1 if on else None
             hand.rotation = rots[k]
             hand.contact = int(contacts[k])
-        f0, f1, f2 = tools[0].force.tolist()
-        self.f_prev = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+        for k, tool in enumerate(tools):
+            f0, f1, f2 = tool.force.tolist()
+            self.f_prev[k] = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
         self.sim_time += n_sub * sub_dt
         result = StepResult(tools=tuple(tools), substeps=n_sub, substep_dt=sub_dt,
                             wall_time=time.perf_counter() - t0, substeps_capped=capped, **res)
@@ -807,7 +805,7 @@ class Solver:
                 if contact < 0:
                     contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, self.contact.detect_reach)
             contacts.append(contact)
-        sets = self.area.global_sets(contacts[0])
+        sets = self.area.global_sets(contacts)
         self._frame(sets, paths, n_sub, sub_dt, dt, 'global')
         md, ke = active_stats(self.x, self.X, self.v, sets.sph, sets.n_sph, self.mass)
         return contacts, dict(n_interaction=sets.n_sph, n_layer=np.zeros(self.config.n_layers, dtype=np.int64),
@@ -815,44 +813,49 @@ class Solver:
                               n_active=sets.n_sph)
 
     def _local_step(self, paths: tuple, n_sub: int, sub_dt: float, dt: float) -> tuple[list, dict]:
+        """One local frame: the union of the instruments' areas (each centred on what its tool
+        touches, or holds), solved at once."""
         cfg = self.config
         area = self.area
-        hand, path = self.instruments[0], paths[0]     # one instrument (the constructor's check)
         margin = RELAX_DISP_TOL
-        area.n_touch = 0
-        contact = -1
-        if path.on:
-            deepest = area.detect(self.x, path.seg1, self.contact.detect_reach, margin)
-            contact = self._sticky_contact(hand, path.seg1, self.contact.detect_reach)
-            if contact < 0:
-                contact = deepest
-        centre = contact
-        if contact < 0 and path.grip.n:
-            held = path.grip.idx[path.grip.held]
-            if len(held):
-                centre = area.hold(held)      # the area's centre; nothing touches (contact stays -1)
-        k1 = min(max(cfg.k1_gain * self.f_prev, cfg.k1_min), cfg.k1_max)
-        reach, Dr = self.contact.area(hand.samples_push, self.organ is not None, k1 * self.h, self.h)
-        if path.grip.n:
-            # what it holds is solved: it sits within the grasp's reach plus its spring's stretch
-            reach = max(reach, self.grasp_reach + cfg.grasp_limit / cfg.contact_stiffness + self.model.spacing)
-        sets, n_inter, n_relax = area.prepare(self.body, path.seg0 if path.on else None, path.seg1,
-                                              reach, margin, centre, Dr, cfg.scheme == 'paper')
-        area.far_field(self.body, self.x, sets, self.react[0], cfg.far_field, -math.expm1(-dt / FAR_FIELD_TAU),
+        contacts, tools, k1s = [], [], []
+        for k, (hand, path) in enumerate(zip(self.instruments, paths)):
+            contact = -1
+            area.skip(k)
+            if path.on:
+                deepest = area.detect(self.x, path.seg1, self.contact.detect_reach, margin, k)
+                contact = self._sticky_contact(hand, path.seg1, self.contact.detect_reach)
+                if contact < 0:
+                    contact = deepest
+            centre = contact
+            if contact < 0 and path.grip.n:
+                held = path.grip.idx[path.grip.held]
+                if len(held):
+                    centre = area.hold(held, k)   # the area's centre; nothing touches (contact stays -1)
+            k1 = min(max(cfg.k1_gain * self.f_prev[k], cfg.k1_min), cfg.k1_max)
+            reach, Dr = self.contact.area(hand.samples_push, self.organ is not None, k1 * self.h, self.h)
+            if path.grip.n:
+                # what it holds is solved: it sits within the grasp's reach plus its spring's stretch
+                reach = max(reach, self.grasp_reach + cfg.grasp_limit / cfg.contact_stiffness + self.model.spacing)
+            contacts.append(contact)
+            k1s.append(k1)
+            tools.append((path.seg0 if path.on else None, path.seg1, reach, centre, Dr))
+        sets, n_inter, n_relax = area.prepare(self.body, tools, margin, cfg.scheme == 'paper')
+        area.far_field(self.body, self.x, sets, self.react, cfg.far_field, -math.expm1(-dt / FAR_FIELD_TAU),
                        self.far)
         self._frame(sets, paths, n_sub, sub_dt, dt, 'local')
-        overlap = self._overlap[0]
-        push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
-                                              self.samples, 0.0) < 0.0
-        # and while the tool still touches: shrinking the area as the samples slide past a
-        # deep tool (the tissue giving way) made the 30k liver's step blow up at 28.5 mm
-        hand.samples_push = push or (hand.samples_push and overlap > 0.0)
+        for k, (hand, path) in enumerate(zip(self.instruments, paths)):
+            push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
+                                                  self.samples, 0.0) < 0.0
+            # and while the tool still touches: shrinking the area as the samples slide past a
+            # deep tool (the tissue giving way) made the 30k liver's step blow up at 28.5 mm
+            hand.samples_push = push or (hand.samples_push and self._overlap[k] > 0.0)
         n_active_frame = area.n_active
         md, ke = area.stats(self.x, self.v, self.mass)
         area.release(self.x, self.v, RELAX_DISP_TOL, RELAX_VEL_TOL)
-        return [contact], dict(n_interaction=int(n_inter), n_layer=area.layer_counts[:cfg.n_layers].copy(),
-                               n_relaxing=int(n_relax), max_displacement=float(md), kinetic_energy=float(ke),
-                               k1=float(k1), n_active=int(n_active_frame))
+        return contacts, dict(n_interaction=int(n_inter), n_layer=area.layer_counts[:cfg.n_layers].copy(),
+                              n_relaxing=int(n_relax), max_displacement=float(md), kinetic_energy=float(ke),
+                              k1=float(k1s[0]), n_active=int(n_active_frame))
 
 
 def _turned_to(rot: np.ndarray, seg: np.ndarray) -> np.ndarray:

@@ -52,10 +52,11 @@ class Area(NamedTuple):
     stress: np.ndarray
     cand: np.ndarray       # (2N,)
     tmp: np.ndarray        # scratch for grid queries
-    touch: np.ndarray      # touched particles and their overlaps (fixed capacity)
+    touch: np.ndarray      # touched particles and their overlaps (fixed capacity, per instrument)
     touch_w: np.ndarray
-    centre: np.ndarray     # (3,) the area's centre in reference space [m]
+    centres: np.ndarray    # (K, 3) each instrument's area's centre in reference space [m]
     layer_counts: np.ndarray  # particles per layer of the last frame
+    layer_tool: np.ndarray  # int32: the instrument whose layer a particle is in (nearest contact)
 
 
 class Motion(NamedTuple):
@@ -70,9 +71,10 @@ class Sets(NamedTuple):
     """The index sets of one frame (arrays with counts, so a local frame costs O(area)).
 
     ``sph`` are integrated fully, ``stress`` (a superset) get a stress state, ``layer`` move
-    kinematically with weight ``layer_w`` (paper eqs. 20-21), ``cand`` may touch the tool.
-    The layers follow the ``touch_w``-weighted mean velocity of the touched particles
-    ``touch[:n_touch]``, or of the ``contact`` particle alone when none is listed.
+    kinematically with weight ``layer_w`` (paper eqs. 20-21), ``cand`` may touch a tool.
+    A layer particle ``i`` follows its instrument ``k = layer_tool[i]``: the ``touch_w``-weighted
+    mean velocity of the particles that instrument touches, ``touch[touch_start[k]:touch_start[k + 1]]``,
+    or of its ``contacts[k]`` particle alone when none is listed.
     """
 
     stress: np.ndarray
@@ -86,8 +88,9 @@ class Sets(NamedTuple):
     n_cand: int
     touch: np.ndarray
     touch_w: np.ndarray
-    n_touch: int
-    contact: int
+    touch_start: np.ndarray   # (K + 1,) int64
+    contacts: np.ndarray      # (K,) int64, -1: none
+    layer_tool: np.ndarray
 
 
 class Samples(NamedTuple):
