@@ -32,11 +32,10 @@ BAGS = REPO_ROOT / 'bags'
 GOLDEN_SIM_PARAMS = BAGS / 'golden_sim_params.yaml'
 SHORT_BAGS = ('press', 'pull', 'sweep', 'poke', 'grasp', 'bimanual')
 #: sim_node parameters a golden was recorded with beyond GOLDEN_SIM_PARAMS (the other sessions press
-#: button 1 as a marker: only the grasp sessions grasp with it; several instruments need mode global,
-#: which steps every particle: a coarser block keeps that replay as quick as the others)
+#: button 1 as a marker: only the grasp sessions grasp with it)
 BAG_SIM_PARAMS = {
     'grasp': {'grasp_input': 'button1'},
-    'bimanual': {'grasp_input': 'button1', 'mode': 'global', 'n_particles': 1000, 'instruments': ['left', 'right'],
+    'bimanual': {'grasp_input': 'button1', 'instruments': ['left', 'right'],
                  'instrument_offsets': [-0.02, 0.0, 0.0, 0.02, 0.0, 0.0]},
 }
 #: the kind of CPU the goldens were made on (:func:`host_kind`), written by bags/make_bags.py
