@@ -362,12 +362,32 @@ def check_grasp(quick: bool, out: Path) -> list[dict]:
     _save(fig, ax, out / 'validate_grasp.png')
     nz = column.info['shape'][2]
     liver = make_model('liver', n_particles=1289 if quick else 3670)
-    solver, hands = cases.two_hands_on_the_liver(liver, material, solver_config(mode='global'), LIVER_TOP,
-                                                 TWO_HANDS_PRESS)
-    _plot_two_hands(solver, hands, out / 'validate_two_hands.png')
+    two = {}
+    for mode in ('global', 'local'):
+        solver, hands = cases.two_hands_on_the_liver(liver, material, solver_config(mode=mode), LIVER_TOP,
+                                                     TWO_HANDS_PRESS)
+        two[mode] = hands[-1]
+        if mode == 'global':
+            _plot_two_hands(solver, hands, out / 'validate_two_hands.png')
+    hands = two['global'][None]
+    pair_rows = []
+    wide = make_block(12, 12, 6, spacing=cases.SPACING, fix='bottom')
+    for apart, grasp in ((0.015, False), (0.03, False), (0.02, True), (0.03, True)):
+        f = {mode: cases.two_tools_on_a_block(wide, material, solver_config(mode=mode), apart, grasp)
+             for mode in ('global', 'local')}
+        err = float(np.max(np.linalg.norm(f['local'] - f['global'], axis=1) / np.linalg.norm(f['global'], axis=1)))
+        what = 'grasped and lifted 3 mm' if grasp else 'pressed 4 mm'
+        pair_rows.append(row('grasp', f'two instruments {apart * 1e3:.0f} mm apart on a block, one {what}, the '
+                             f'other pressed 4 mm: local against global, the worse tool\'s |dF| / |F|', 100 * err,
+                             None, '%', '<= 5 %', err <= 0.05))
+    for k, what in enumerate(('grasping', 'pressing')):
+        err = float(np.linalg.norm(two['local'][k] - two['global'][k]) / np.linalg.norm(two['global'][k]))
+        pair_rows.append(row('grasp', f'the liver held and pressed, local against global: the {what} tool\'s '
+                             f'|dF| / |F|', 100 * err, None, '%', '<= 5 %', err <= 0.05))
     return [row('grasp', f'liver {liver.n_particles}: grasped and lifted 10 mm at the dome while pressed 10 mm '
                 f'50 mm beside it: pull on the grasping tool', -hands[-1, 0, 2], None, 'N', 'reported', None),
             row('grasp', '... and push on the pressing tool', hands[-1, 1, 2], None, 'N', 'reported', None),
+            *pair_rows,
             row('grasp', f'column 3 x 3 x {nz} lifted 1 mm: pull against E A d / L', pull, expected, 'N',
                 '|error| <= 10 %', abs(pull / expected - 1.0) <= 0.10),
             row('grasp', 'block lifted 2 mm: local against global', lg['local'], lg['global'], 'N', '|error| <= 5 %',

@@ -604,6 +604,25 @@ def two_hands_on_a_floating_block(config: SolverConfig, frames: int = 150,
     return solver.mass * solver.velocities.sum(axis=0), impulse, peak
 
 
+def two_tools_on_a_block(model: TissueModel, material: Material, config: SolverConfig, apart: float,
+                         grasp: bool, frames: int = 220, dt: float = 1e-3) -> np.ndarray:
+    """Two tools ``apart`` [m] along x on the top of the block ``model``: the first presses 4 mm
+    (or, ``grasp``, grasps and lifts 3 mm), the second presses 4 mm, over 150 ms, then both hold.
+    Returns their last forces [N] (2, 3)."""
+    solver = Solver(model, material, config, instruments=2)
+    X = model.positions
+    c, top = X.mean(axis=0), X[:, 2].max() + solver.contact_reach
+    a = np.array([c[0] - apart / 2, c[1], top - (0.0005 if grasp else 0.0)])
+    b = np.array([c[0] + apart / 2, c[1], top])
+    for k in range(frames):
+        u = min(1.0, k / 150)
+        if grasp and k == 1:
+            solver.grasp(0)
+        move = [0.0, 0.0, 0.003 * u] if grasp else [0.0, 0.0, -0.004 * u]
+        res = solver.step_tools([(a + move, None), (b - [0.0, 0.0, 0.004 * u], None)], dt)
+    return np.array([t.force_raw for t in res.tools])
+
+
 def two_hands_on_the_liver(model: TissueModel, material: Material, config: SolverConfig, grasp_xy, press_xy,
                            lift: float = 0.01, depth: float = 0.01, ramp: float = 0.6, hold: float = 0.3,
                            dt: float = 1e-3) -> tuple[Solver, np.ndarray]:
