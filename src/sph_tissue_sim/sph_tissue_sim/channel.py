@@ -38,6 +38,10 @@ class Channel:
     grasps: list = field(default_factory=list)  # lockstep: the button's changes (stamp ns, closed), in order
     grasp_lock: threading.Lock = field(default_factory=threading.Lock)
 
+    def device_frame(self, shared: str) -> str:
+        """Its device's frame: ``shared`` (the ``device_frame`` parameter) in its namespace."""
+        return f'{self.name}/{shared}' if self.name else shared
+
     @property
     def label(self) -> str:
         """How logs name it."""

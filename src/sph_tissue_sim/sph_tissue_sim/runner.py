@@ -329,7 +329,7 @@ class Runner:
         if not self.lockstep:
             self.handle(pose, ch)
             return
-        reason = self._reject_reason(pose)
+        reason = self._reject_reason(pose, ch)
         if reason is not None:
             # answered now: a pose that cannot move its tool takes no place in a round, so the others'
             # poses still pair as sent (and a probe in a foreign frame does not hold a round up)
@@ -377,16 +377,17 @@ class Runner:
     def _answer_with(self, pose: Pose, force: np.ndarray, ch: Channel) -> None:
         self.send_force(pose.stamp, pose.frame_id or self.p['device_frame'], force, ch.index)
 
-    def _reject_reason(self, pose: Pose) -> str | None:
-        frame = pose.frame_id
-        if frame != self.p['device_frame'] and not (frame == '' and self.p['accept_empty_frame']):
-            return f'frame {frame!r} is not {self.p["device_frame"]!r}'
+    def _reject_reason(self, pose: Pose, ch: Channel) -> str | None:
+        frame, shared = pose.frame_id, self.p['device_frame']
+        # a named instrument's device may name its frame as the others do or in its namespace
+        if frame not in (shared, ch.device_frame(shared)) and not (frame == '' and self.p['accept_empty_frame']):
+            return f'frame {frame!r} is not {ch.device_frame(shared)!r}'
         return check_position(pose.position, self.p['max_device_distance'])
 
     def _process(self, pose: Pose, ch: Channel) -> None:
         if ch.grasps:
             self._grasps_before(ch, pose.stamp_ns)
-        reason = self._reject_reason(pose)
+        reason = self._reject_reason(pose, ch)
         if reason is not None:
             self._reject(pose, f'rejected pose ({reason}): answered zero force, tissue not stepped', ch)
             return

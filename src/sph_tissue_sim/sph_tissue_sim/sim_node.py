@@ -12,8 +12,9 @@ or ``button2`` that stylus button (``omni/state``, tissue_msgs/DeviceState), ``j
 CRTK jaw (``omni/jaw/measured_js``, sensor_msgs/JointState: closed at most ``JAW_CLOSED_MAX``).
 
 Several instruments on one tissue (parameter ``instruments``, e.g. ``[left, right]``): each name is
-a namespace with its own ``<name>/omni/pose``, ``<name>/omni/force_feedback``, grasp input
-and ``<name>/tissue/metrics``; the particles, the reset and the parameters stay the node's.
+a namespace with its own ``<name>/omni/pose``, ``<name>/omni/force_feedback``, grasp input,
+``<name>/tissue/metrics`` and ``<name>/tissue/device_frame`` (frame ``<name>/<device_frame>``); the
+particles, the reset and the parameters stay the node's.
 
 The haptic and timing modes (parameters ``haptic_mode``, ``timing_mode``) and the threads they
 use are described in :mod:`.runner`, which runs the loop; this module translates messages and
@@ -38,6 +39,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState, PointCloud2
 from tissue_common.frames import TfBroadcaster, Transform
+from tissue_common.instruments import topic_within
 from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_until_stopped,
                                       stop_on_signals)
 from tissue_common.params import declare_all
@@ -55,11 +57,6 @@ from .startup import numba_cache_stats, one_blas_thread, startup_report
 
 EXIT_OK, EXIT_INPUT = 0, 1
 SWITCH_INTERVAL = 2e-4  # [s]
-
-
-def _within(namespace: str, topic: str) -> str:
-    """``topic`` in an instrument's namespace (relative, so the node's own namespace still applies)."""
-    return f'{namespace}/{topic}' if namespace else topic
 
 
 class SimNode(Node):
@@ -97,15 +94,16 @@ class SimNode(Node):
         self.io_qos = io_qos
         metrics_qos = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST,
                                  reliability=ReliabilityPolicy.RELIABLE)
-        self.force_pubs = [self.create_publisher(WrenchStamped, _within(name, 'omni/force_feedback'), io_qos)
+        self.force_pubs = [self.create_publisher(WrenchStamped, topic_within(name, 'omni/force_feedback'), io_qos)
                            for name in names]
-        self.metrics_pubs = [self.create_publisher(SimMetrics, _within(name, 'tissue/metrics'), metrics_qos)
+        self.metrics_pubs = [self.create_publisher(SimMetrics, topic_within(name, 'tissue/metrics'), metrics_qos)
                              for name in names]
         self.cloud_pub = self.create_publisher(PointCloud2, 'tissue/particles', QoSProfile(
             depth=2, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE))
         # where the device sits in the tissue scene: latched, and on /tf_static where tf2 is installed
-        self.frame_pub = self.create_publisher(TransformStamped, 'tissue/device_frame', QoSProfile(
+        self.frame_pubs = [self.create_publisher(TransformStamped, topic_within(name, 'tissue/device_frame'), QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+            for name in names]
         self.tf_static = TfBroadcaster(self, static=True)
         if self.runner.mapping.scale != 1.0:
             log.warn(f'workspace_scale {self.runner.mapping.scale:g}: the {p["device_frame"]} frame on '
@@ -116,7 +114,7 @@ class SimNode(Node):
         self.cloud_timer = None
         self._set_cloud_timer(p['particles_rate'])
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.pose_subs = [self.create_subscription(PoseStamped, _within(name, 'omni/pose'),
+        self.pose_subs = [self.create_subscription(PoseStamped, topic_within(name, 'omni/pose'),
                                                    lambda msg, k=k: self._on_pose(msg, k), io_qos)
                           for k, name in enumerate(names)]
         self.grasp_subs = self._grasp_subscriptions(p['grasp_input'], names)
@@ -125,12 +123,12 @@ class SimNode(Node):
         """Each instrument's grasp input (``grasp_input``; '' none)."""
         if source == 'jaw':
             # the driver sends it with the pose's QoS, as measured_cp
-            return [self.create_subscription(JointState, _within(name, 'omni/jaw/measured_js'),
+            return [self.create_subscription(JointState, topic_within(name, 'omni/jaw/measured_js'),
                                              lambda msg, k=k: self._on_jaw(msg, k), self.io_qos)
                     for k, name in enumerate(names)]
         if source:      # button1 | button2: that DeviceState field
             return [self.create_subscription(
-                DeviceState, _within(name, 'omni/state'),
+                DeviceState, topic_within(name, 'omni/state'),
                 lambda msg, k=k: self.runner.on_grasp(k, getattr(msg, source), stamp_to_ns(msg.header.stamp)), 10)
                 for k, name in enumerate(names)]
         return []
@@ -143,11 +141,18 @@ class SimNode(Node):
         self.runner.on_grasp(k, msg.position[0] <= JAW_CLOSED_MAX, stamp_to_ns(msg.header.stamp))
 
     def _publish_device_frame(self) -> None:
-        m = self.runner.mapping
-        frame = Transform.from_matrix(self.p['tissue_frame'], self.p['device_frame'], m.rotation,
-                                      m.origin).to_msg(self.get_clock().now().to_msg())
-        self.frame_pub.publish(frame)
-        self.tf_static.send([frame])
+        """Where each instrument's device sits in the tissue scene: its frame (``device_frame``, or
+        ``<name>/<device_frame>`` for a named instrument) on its ``tissue/device_frame`` and on
+        /tf_static."""
+        now = self.get_clock().now().to_msg()
+        frames = []
+        for ch, pub in zip(self.runner.channels, self.frame_pubs):
+            m = ch.mapping
+            frame = Transform.from_matrix(self.p['tissue_frame'], ch.device_frame(self.p['device_frame']),
+                                          m.rotation, m.origin).to_msg(now)
+            pub.publish(frame)
+            frames.append(frame)
+        self.tf_static.send(frames)
 
     def _set_cloud_timer(self, rate: float) -> None:
         if self.cloud_timer is not None:

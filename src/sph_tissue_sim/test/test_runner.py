@@ -209,6 +209,18 @@ def test_a_pose_in_a_foreign_frame_is_answered_at_once_and_takes_no_place_in_a_r
     assert runner.counts['steps'] == len(path)
 
 
+def test_a_named_instruments_device_may_name_its_frame_in_its_namespace_but_not_in_anothers():
+    runner, out = make_runner(**TWO, timing_mode='lockstep')
+    path = press_path(2, depth=0.006)
+    runner.on_pose(pose(0, path[0], 'right/omni_base'), 0)          # the left's pose in the right's frame
+    assert runner.counts['rejected'] == 1
+    assert any("frame 'right/omni_base' is not 'left/omni_base'" in o[2] for o in out if o[0] == 'log')
+    for k, p in enumerate(path):
+        runner.on_pose(pose(k, p, 'left/omni_base'), 0)
+        runner.on_pose(pose(k, p), 1)
+    assert runner.counts['rejected'] == 1 and runner.counts['steps'] == len(path)
+
+
 def test_a_closed_button_grasps_lifting_pulls_and_opening_lets_go():
     runner, out = make_runner(timing_mode='lockstep', step_thread=False)
     path = list(press_path(40, depth=0.001))

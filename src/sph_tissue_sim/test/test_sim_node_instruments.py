@@ -11,8 +11,23 @@ from sim_probe import START_TIMEOUT, T0_NS, SimProbe, force_of, press_path, qos,
 
 pytestmark = pytest.mark.ros
 
-TWO = {'instruments': ['left', 'right'], 'instrument_offsets': [-0.015, 0.0, 0.0, 0.015, 0.0, 0.0],
-       'mode': 'global'}
+TWO = {'instruments': ['left', 'right'], 'instrument_offsets': [-0.015, 0.0, 0.0, 0.015, 0.0, 0.0]}
+
+
+def _device_frames(node, ns: str) -> dict:
+    """Each instrument's latched tissue/device_frame, by instrument name (once both came)."""
+    from geometry_msgs.msg import TransformStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    got = {}
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    subs = [node.create_subscription(TransformStamped, f'{ns}{name}/tissue/device_frame',
+                                     lambda msg, name=name: got.__setitem__(name, msg), latched)
+            for name in ('left', 'right')]
+    assert node.spin_until(lambda: len(got) == 2, 20.0)
+    for sub in subs:
+        node.destroy_subscription(sub)
+    return got
 
 
 def _jaw(node, ns: str, grasp_input: str):
@@ -42,6 +57,11 @@ def test_two_instruments_are_each_answered_on_their_own_topics_and_one_grasps_an
                          right.metrics_sub, jaw):
             harness.wait_for_matching(rclpy_node, endpoint)
         assert 'instruments left (device origin' in proc.output()
+        # each device's frame, in its namespace, where its offset puts it
+        frames = _device_frames(rclpy_node, ns)
+        assert [frames[n].child_frame_id for n in ('left', 'right')] == ['left/omni_base', 'right/omni_base']
+        at = [frames[n].transform.translation for n in ('left', 'right')]
+        assert (at[1].x - at[0].x, at[1].y - at[0].y, at[1].z - at[0].z) == pytest.approx((0.03, 0.0, 0.0), abs=1e-9)
         # lockstep rounds: the left's poses wait for the right's
         path = press_path(80, depth=0.002)
         for k, p in enumerate(path):
