@@ -41,15 +41,17 @@ from crtk_msgs.msg import StringStamped
 from geometry_msgs.msg import PoseStamped, TwistStamped, WrenchStamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.duration import Duration
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from tissue_common.estimator import TrackingFilter
 from tissue_common.frames import TfBroadcaster, Transform
 from tissue_common.node_start import (EXIT_PARAMS, build_node, init_rclpy, spin_until_stopped,
                                       stop_on_signals)
-from tissue_common.params import check_choice, declare_all
+from tissue_common.params import check_choice, declare_all, descriptor
 from tissue_common.stamps import set_stamp, stamp_to_ns
 from tissue_common.throttle import EventThrottle
 from tissue_common.transport import shared_memory_warning
@@ -58,7 +60,7 @@ from tissue_msgs.msg import DeviceState
 from .backends.base import Backend, Sample
 from .crtk import Jaw, OperatingStateMachine
 from .errors import ConfigError, DriverError
-from .params import DRIVER_PARAMS
+from .params import DRIVER_PARAMS, STRING_ARRAYS
 from .safety import ForceSafety, SafetyConfig
 
 EXIT_OK, EXIT_INPUT = 0, 1
@@ -77,6 +79,21 @@ REJECTION_TEXT = {
 }
 
 
+def declare_driver_params(node: Node) -> dict:
+    """Declare DRIVER_PARAMS on ``node``; return name -> value (raises ConfigError when refused)."""
+    p = declare_all(node, {name: spec for name, spec in DRIVER_PARAMS.items()
+                           if name not in STRING_ARRAYS}, ConfigError)
+    for name in STRING_ARRAYS:
+        try:
+            value = node.declare_parameter(name, Parameter.Type.STRING_ARRAY,
+                                           descriptor(name, DRIVER_PARAMS[name])).value
+        except (ParameterException, TypeError, ValueError) as exc:
+            raise ConfigError(f'parameter {name}: {exc}') from exc
+        # not given, or given as [] (which rcl reads as no value): the default
+        p[name] = list(value) if value is not None else list(DRIVER_PARAMS[name][0])
+    return p
+
+
 def make_backend(p: dict) -> Backend:
     """Construct the backend selected by the parameters (raises DriverError on bad input)."""
     kind = p['backend']
@@ -92,7 +109,7 @@ def make_backend(p: dict) -> Backend:
         names = ('home', 'target', 'press_axis', 'pull_axis', 'approach_height', 'press_depth',
                  'pull_distance', 'sweep_depth', 'sweep_length', 'approach_time', 'press_time',
                  'hold_time', 'pull_time', 'release_time', 'sweep_time', 'return_time',
-                 'tremor_amplitude', 'quantisation', 'seed')
+                 'tremor_amplitude', 'quantisation', 'seed', 'script')
         cfg = ScriptConfig(**{n: (list(p[n]) if isinstance(p[n], (list, tuple, np.ndarray))
                                   else p[n]) for n in names})
         return ScriptedBackend(cfg, p['publish_rate'], p['loop'], p['exit_on_end'])
@@ -108,7 +125,7 @@ class OmniDriver(Node):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('omni_driver', **kwargs)
-        self.p = declare_all(self, DRIVER_PARAMS, ConfigError)
+        self.p = declare_driver_params(self)
         p = self.p
         self.safety = ForceSafety(self._safety_config(p))
         self.add_on_set_parameters_callback(self._on_set_parameters)

@@ -2,7 +2,8 @@
 
 Each entry: name -> (default, description, range or choices or None, read_only). Ranges become
 FloatingPointRange / IntegerRange on the descriptor (rclpy enforces them on every set); string
-choices are checked by the node's set-parameters callback and at start-up.
+choices are checked by the node's set-parameters callback and at start-up. A string array whose
+default is empty is named in STRING_ARRAYS (rclpy cannot tell its type from the default).
 """
 
 from __future__ import annotations
@@ -106,6 +107,10 @@ DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
     'quantisation': (0.0, '[m] scripted: encoder resolution (Omni ~5.5e-5); 0 = continuous',
                      (0.0, 0.001), True),
     'seed': (0, 'scripted: random seed (tremor phases)', (0, 2 ** 31 - 1), True),
+    'script': ([], 'scripted: a script of its own, one step per entry, from home: "move|press|lift '
+                   'x y z T" (to that device-frame point [m] in T [s]), "hold|close|open T" (stay; '
+                   'close/open: button 1, the jaw, down/up from then on); [] = the built-in script',
+               None, True),
     # -- openhaptics ----------------------------------------------------------------------------
     'library': ('libHD.so', 'openhaptics: libHD file name or full path', None, True),
     'device_name': ('', 'openhaptics: device name from Touch_Setup ("" = HD_DEFAULT_DEVICE)',
@@ -113,6 +118,10 @@ DRIVER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
     'require_calibration': (False, 'openhaptics: exit if the device is not calibrated', None,
                             True),
 }
+
+#: DRIVER_PARAMS entries declared as string arrays: from an empty default rclpy would infer a byte
+#: array and refuse any string
+STRING_ARRAYS = ('script',)
 
 RECORDER_PARAMS: dict[str, tuple[Any, str, Any, bool]] = {
     'output': ('', 'bag folder to create ("" = omni_YYYYmmdd_HHMMSS in the working directory)',

@@ -305,6 +305,13 @@ def test_out_of_range_parameter_exits_with_code_2(ros_domain):
         assert 'force_limit' in proc.output()
 
 
+def test_an_invalid_script_exits_with_code_2_naming_the_step(ros_domain):
+    with driver({'backend': 'scripted', 'script': ['move 0 0.01 0 1', 'grab 0.3']}) as proc:
+        assert proc.wait(20) == 2
+        out = proc.output()
+    assert "script[1] 'grab 0.3': unknown step 'grab'" in out and 'Traceback' not in out
+
+
 # -- recorder -----------------------------------------------------------------------------------
 def test_recorder_replay_round_trip_is_byte_identical(rclpy_node, tmp_path):
     from geometry_msgs.msg import PoseStamped
@@ -455,6 +462,93 @@ def test_scripted_without_loop_says_the_script_ended_and_keeps_publishing_the_re
     assert n == len(ref) and np.abs(got[:n] - ref).max() < 1e-9
     assert np.all(got[n:] == ref[-1])                      # at rest: the script's last point
     assert 'pass(es)' not in proc.output()
+
+
+def test_a_custom_script_reaches_its_targets_with_button1_down_while_the_jaw_is_closed(rclpy_node):
+    """A script of its own (parameter ``script``): the poses are its minimum-jerk steps, pose by
+    pose, reaching each step's point, and omni/state says button 1 from the first pose of close to
+    the first pose of open (the changes stamped with those poses)."""
+    from geometry_msgs.msg import PoseStamped
+
+    from haptic_omni_driver.backends.scripted import (ScriptConfig, generate_trajectory,
+                                                      parse_script, sample_script)
+
+    # a long first move: the state reader is matched (wait_for_first) well before the jaw closes
+    script = ['move 0.0 0.01 0.0 0.8', 'press 0.0 -0.004 0.0 0.3', 'close 0.3',
+              'lift 0.0 0.015 0.0 0.3', 'open 0.2']
+    poses = []
+    rclpy_node.create_subscription(PoseStamped, 'omni/pose', poses.append, reliable_qos(5000))
+    watch = StateWatch(rclpy_node)
+    with driver({'backend': 'scripted', 'script': script, 'exit_on_end': True,
+                 'tremor_amplitude': 0.0, 'reliable': True, 'qos_depth': 5000,
+                 'wait_for_subscribers': 1}) as proc:
+        watch.wait_for_first(rclpy_node, proc)
+        assert rclpy_node.spin_until(lambda: not proc.alive(), 60)
+        assert proc.wait(5) == 0, proc.output()
+        out = proc.output()
+        n = int(re.search(r'script finished: (\d+) poses', out).group(1))
+        assert rclpy_node.spin_until(lambda: len(poses) >= n, 30)
+    assert 'source script(5 steps, seed=0, 1.90 s)' in out
+    _, ref, _, _ = generate_trajectory(ScriptConfig(tremor_amplitude=0.0, script=script), 1000.0)
+    got = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in poses])
+    assert got.shape == ref.shape and np.abs(got - ref).max() < 1e-9
+    segs = parse_script(script, [0.0, 0.06, 0.0])
+    ends = np.rint(np.cumsum([s.duration for s in segs]) * 1000).astype(int)   # pose index
+    assert got[ends] == pytest.approx(np.array([s.end for s in segs]), abs=1e-9)  # every target
+    # button 1 of each pose, at the backend's own sample times (a step boundary may fall on either
+    # side of a sample by rounding): down for close and lift, at most a pose off their time
+    _, buttons, _ = sample_script(segs, np.arange(n) * (1.0 / 1000.0))
+    down = np.flatnonzero(buttons)
+    assert abs(down[0] - ends[1]) <= 1 and abs(down[-1] + 1 - ends[3]) <= 1
+    assert np.array_equal(down, np.arange(down[0], down[-1] + 1))
+    stamps = [stamp_ns(p.header) for p in poses]
+    t_close, t_open = stamps[down[0]], stamps[down[-1] + 1]   # the first pose of close, of open
+    states = [(stamp_ns(m.header), m.button1) for _, m in watch.msgs]
+    assert (t_close, True) in states and (t_open, False) in states  # the changes, with their poses
+    # the periodic states (stamped with the clock, so one may overtake a change) agree, away from
+    # the changes
+    margin = 5_000_000
+    assert all(b == (t_close < st < t_open) for st, b in states
+               if abs(st - t_close) > margin and abs(st - t_open) > margin)
+    assert sum(1 for st, b in states if b and t_close < st < t_open) >= 10
+
+
+def test_two_drivers_in_two_namespaces_play_a_script_each(rclpy_node):
+    """Two instruments: /left grasps and lifts, /right presses; each namespace carries its own
+    driver's script, poses and button."""
+    from geometry_msgs.msg import PoseStamped
+    from tissue_msgs.msg import DeviceState
+
+    from haptic_omni_driver.backends.scripted import ScriptConfig, generate_trajectory
+
+    scripts = {'left': ['move -0.01 0.01 0.0 0.3', 'close 0.3', 'lift -0.01 0.02 0.0 0.3'],
+               'right': ['move 0.01 0.01 0.0 0.3', 'hold 0.3', 'press 0.01 -0.005 0.0 0.3']}
+    poses = {ns: [] for ns in scripts}
+    states = {ns: [] for ns in scripts}
+    for ns in scripts:
+        rclpy_node.create_subscription(PoseStamped, f'/{ns}/omni/pose', poses[ns].append,
+                                       reliable_qos(5000))
+        rclpy_node.create_subscription(DeviceState, f'/{ns}/omni/state', states[ns].append,
+                                       reliable_qos(1000))
+    procs = [driver({'backend': 'scripted', 'script': script, 'exit_on_end': True,
+                     'tremor_amplitude': 0.0, 'reliable': True, 'qos_depth': 5000,
+                     'wait_for_subscribers': 1}, name=f'driver_{ns}', ros_args=['-r', f'__ns:=/{ns}'])
+             for ns, script in scripts.items()]
+    with procs[0], procs[1]:
+        assert rclpy_node.spin_until(lambda: not any(p.alive() for p in procs), 60)
+        assert [p.wait(5) for p in procs] == [0, 0], [p.output() for p in procs]
+        counts = [int(re.search(r'script finished: (\d+) poses', p.output()).group(1)) for p in procs]
+        assert rclpy_node.spin_until(
+            lambda: all(len(poses[ns]) >= n for ns, n in zip(scripts, counts)), 30)
+    for ns, script in scripts.items():
+        _, ref, _, _ = generate_trajectory(ScriptConfig(tremor_amplitude=0.0, script=script), 1000.0)
+        got = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in poses[ns]])
+        assert got.shape == ref.shape and np.abs(got - ref).max() < 1e-9, ns
+    assert poses['left'][-1].pose.position.y == pytest.approx(0.02)      # lifted
+    assert poses['right'][-1].pose.position.y == pytest.approx(-0.005)   # pressed
+    # the left jaw closed (its own omni/state), the right one never did
+    assert any(m.button1 for m in states['left'])
+    assert states['right'] and not any(m.button1 for m in states['right'])
 
 
 def test_crtk_measured_cp_is_the_pose_at_crtk_rate_and_measured_cv_its_velocity(rclpy_node,

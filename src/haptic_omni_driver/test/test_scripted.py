@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from haptic_omni_driver.backends.scripted import (ScriptConfig, build_script, generate_trajectory,
-                                                  min_jerk, min_jerk_derivatives, quantise,
-                                                  sample_script, script_duration, tremor)
+                                                  min_jerk, min_jerk_derivatives, parse_script,
+                                                  quantise, sample_script, script_duration,
+                                                  script_segments, tremor)
 from haptic_omni_driver.errors import ConfigError
 
 
@@ -194,3 +195,96 @@ def test_backend_failure_is_an_error_unless_ctrl_c_shut_the_context_down(shut_do
     finally:
         node.destroy_node()
         ctx.try_shutdown()
+
+
+# -- custom scripts (parameter ``script``) ---------------------------------------------------------
+HOME = [0.0, 0.06, 0.0]
+#: a grasp and lift: above the tissue, press in, close the jaw, lift, carry aside, let go, back up
+GRASP = ['move 0.0 0.01 0.0 0.5', 'press 0.0 -0.004 0.0 0.4', 'close 0.3', 'lift 0.0 0.015 0.0 0.4',
+         'move 0.01 0.015 0.0 0.3', 'hold 0.2', 'open 0.2', 'move 0.0 0.06 0.0 0.5']
+
+
+def test_a_script_parses_each_step_kind_into_chained_segments_from_home():
+    segs = parse_script(GRASP, HOME)
+    assert [s.name for s in segs] == ['move', 'press', 'close', 'lift', 'move', 'hold', 'open', 'move']
+    assert [s.duration for s in segs] == [0.5, 0.4, 0.3, 0.4, 0.3, 0.2, 0.2, 0.5]
+    assert np.array_equal(segs[0].start, HOME)                     # the script starts at home
+    for a, b in zip(segs, segs[1:]):                                 # each starts where the last ended
+        assert np.array_equal(a.end, b.start)
+    ends = [[0.0, 0.01, 0.0], [0.0, -0.004, 0.0], [0.0, -0.004, 0.0], [0.0, 0.015, 0.0],
+            [0.01, 0.015, 0.0], [0.01, 0.015, 0.0], [0.01, 0.015, 0.0], [0.0, 0.06, 0.0]]
+    assert np.array_equal([s.end for s in segs], ends)               # absolute device-frame points
+    # hold/close/open stay put
+    assert all(np.array_equal(s.start, s.end) for s in segs if s.name in ('hold', 'close', 'open'))
+
+
+def test_the_jaw_carries_over_from_the_last_close_or_open_through_moves_and_holds():
+    segs = parse_script(['hold 0.1', 'close 0.1', 'move 0 0.01 0 0.1', 'hold 0.1', 'open 0.1',
+                         'lift 0 0.02 0 0.1', 'close 0.1', 'close 0.1', 'hold 0.1'], HOME)
+    assert [s.button1 for s in segs] == [False, True, True, True, False, False, True, True, True]
+
+
+def test_an_empty_script_is_the_built_in_one_and_a_given_one_replaces_it():
+    cfg = ScriptConfig()
+    assert [(s.name, s.duration) for s in script_segments(cfg)] == [
+        (s.name, s.duration) for s in build_script(cfg)]
+    assert [s.name for s in script_segments(ScriptConfig(script=['hold 1']))] == ['hold']
+
+
+@pytest.mark.parametrize('entry, why', [
+    ('fly 0 0 0 1', r"unknown step 'fly' \(one of move, press, lift, hold, close, open\)"),
+    ('', r'empty step'),
+    ('move 0 0.01 1', r'move takes 4 numbers \(move x y z T\), got 3'),
+    ('close', r'close takes 1 number \(close T\), got 0'),
+    ('hold 0.5 1', r'hold takes 1 number \(hold T\), got 2'),
+    ('press 0 -4mm 0 1', r"not a number in '0 -4mm 0 1'"),
+    ('hold nan', r'non-finite number'),
+    ('move 0 inf 0 1', r'non-finite number'),
+    ('open -0.2', r'duration -0.2 s outside \[0.01, 600\] s'),
+    ('lift 0 0.01 0 0', r'duration 0 s outside'),
+    ('move 0 15 0 1', r'point beyond the workspace'),          # millimetres for metres
+])
+def test_a_bad_step_is_a_config_error_that_names_the_entry(entry, why):
+    with pytest.raises(ConfigError, match=rf"^script\[1\] '{entry}': {why}"):
+        parse_script(['hold 0.1', entry, 'hold 0.1'], HOME)
+    with pytest.raises(ConfigError, match=why):                      # also via the config
+        script_segments(ScriptConfig(script=['hold 0.1', entry]))
+
+
+def test_a_sampled_script_reaches_each_target_by_minimum_jerk_with_button1_down_while_closed():
+    segs = parse_script(GRASP, HOME)
+    starts = np.cumsum([0.0] + [s.duration for s in segs])
+    # each step's end point is reached at its end time (the last one also after it)
+    pos, _, _ = sample_script(segs, starts[1:])
+    assert pos == pytest.approx(np.array([s.end for s in segs]), abs=1e-15)
+    # between them, the minimum-jerk profile of that step: half way at half time
+    mid_pos, mid_buttons, mid_phases = sample_script(segs, (starts[:-1] + starts[1:]) / 2)
+    assert mid_pos == pytest.approx(np.array([(s.start + s.end) / 2 for s in segs]), abs=1e-15)
+    assert mid_phases == [s.name for s in segs]
+    t = np.arange(0.0005, starts[-1], 0.001)             # a 1 kHz grid off the step boundaries
+    pos, buttons, _ = sample_script(segs, t)
+    k = np.searchsorted(starts, t) - 1
+    s = (t - starts[k]) / np.array([segs[i].duration for i in k])
+    d = np.array([segs[i].end - segs[i].start for i in k])
+    assert pos == pytest.approx(np.array([segs[i].start for i in k]) + d * min_jerk(s)[:, None],
+                                abs=1e-15)
+    # button 1 (the jaw) down exactly from the start of close to the start of open
+    t_close, t_open = starts[2], starts[6]
+    assert np.array_equal(buttons, (t >= t_close) & (t < t_open))
+    assert pos[buttons][:, 1].min() == pytest.approx(-0.004)     # grasped at the press depth...
+    assert pos[buttons][:, 1].max() == pytest.approx(0.015)      # ...and lifted
+
+
+def test_the_backend_plays_a_custom_script_with_its_jaw():
+    from haptic_omni_driver.backends.scripted import ScriptedBackend
+
+    cfg = ScriptConfig(script=['move 0 0.01 0 0.02', 'close 0.02', 'lift 0 0.02 0 0.02', 'open 0.02'],
+                       tremor_amplitude=0.0)
+    backend = ScriptedBackend(cfg, rate=2000.0, loop=False, exit_on_end=True)
+    assert backend.source == 'script(4 steps, seed=0, 0.08 s)'
+    sink = play(backend, PlaySink())
+    _, ref, ref_buttons, ref_phases = generate_trajectory(cfg, 2000.0)
+    assert np.abs(np.array([smp.position for smp in sink.samples]) - ref).max() < 1e-12
+    assert [smp.buttons[0] for smp in sink.samples] == ref_buttons.tolist()
+    assert [smp.phase for smp in sink.samples] == ref_phases
+    assert ref_buttons.any() and ref[-1] == pytest.approx([0.0, 0.02, 0.0])

@@ -12,6 +12,10 @@ acceleration at both ends, the smoothest point-to-point human reach):
     sweep     down to sweep_depth at -sweep_length/2, stroke to +sweep_length/2, up again
     return    back home
 
+A script of one's own replaces it with the parameter ``script`` (:func:`parse_script`): one step
+per entry, ``move|press|lift x y z T`` (a minimum-jerk move to an absolute device-frame point) or
+``hold|close|open T`` (stay, the jaw = button 1 as it was, closed or open).
+
 Optional physiological tremor (sum of sinusoids at 8-12 Hz, a few tenths of a millimetre peak) and
 encoder quantisation (the Omni resolves ~0.055 mm) make it look like a real hand on a real device.
 Everything is deterministic for a given seed. Positions are in the device frame ``omni_base``
@@ -56,6 +60,17 @@ def min_jerk_derivatives(p0, p1, duration: float, t):
     return pos, vel, acc
 
 
+#: [s] allowed duration of a segment (a zero one has no minimum-jerk profile)
+DURATION_RANGE = (0.01, 600.0)
+#: [m] largest |coordinate| of a scripted point: well beyond the Omni's reach (about 0.16 x 0.12 x
+#: 0.07 m around its origin), so only a typo (mm for m) trips it
+WORKSPACE_BOUND = 0.2
+#: steps of a custom script that move to x y z in T seconds (the name only labels the phase)
+MOVE_STEPS = ('move', 'press', 'lift')
+#: steps that stay put for T seconds, and what they do to the jaw (None: leave it as it is)
+STAY_STEPS = {'hold': None, 'close': True, 'open': False}
+
+
 @dataclass
 class Segment:
     """One minimum-jerk move (a hold is a move to the same point)."""
@@ -91,6 +106,7 @@ class ScriptConfig:
     tremor_band: tuple = (8.0, 12.0)  # [Hz]
     quantisation: float = 0.0       # [m] encoder resolution; 0 = continuous
     seed: int = 0
+    script: list = field(default_factory=list)  # steps of parse_script; empty: the built-in script
 
     def validate(self) -> 'ScriptConfig':
         """Raise :class:`ConfigError` on inconsistent values; return self."""
@@ -109,8 +125,9 @@ class ScriptConfig:
         for name in ('approach_time', 'press_time', 'hold_time', 'pull_time', 'release_time',
                      'sweep_time', 'return_time'):
             value = getattr(self, name)
-            if not (np.isfinite(value) and 0.01 <= value <= 600.0):
-                raise ConfigError(f'{name} must be in [0.01, 600] s, got {value}')
+            if not (np.isfinite(value) and DURATION_RANGE[0] <= value <= DURATION_RANGE[1]):
+                raise ConfigError(f'{name} must be in [{DURATION_RANGE[0]:g}, {DURATION_RANGE[1]:g}] s, '
+                                  f'got {value}')
         lo, hi = self.tremor_band
         if not (0.0 < lo <= hi < 100.0):
             raise ConfigError(f'tremor_band must be 0 < low <= high < 100 Hz, got {self.tremor_band}')
@@ -149,6 +166,72 @@ def build_script(cfg: ScriptConfig) -> list[Segment]:
         Segment('return', sweep_b - cfg.approach_height * down, home, cfg.return_time),
     ]
     return segs
+
+
+def parse_script(steps: list[str], home) -> list[Segment]:
+    """A custom script, one step per entry, as minimum-jerk segments starting at ``home``.
+
+    Grammar (whitespace-separated; positions absolute in the device frame [m], durations [s]):
+
+        move x y z T     minimum-jerk move to (x, y, z) in T
+        press x y z T    the same (the name labels the phase: pressing into the tissue)
+        lift x y z T     the same (lifting what the jaw holds)
+        hold T           stay T
+        close T          close the jaw (button 1 down) and stay T
+        open T           open the jaw (button 1 up) and stay T
+
+    The jaw starts open and stays as the last close/open left it, through moves and holds. T lies
+    in DURATION_RANGE and every coordinate within +-WORKSPACE_BOUND.
+
+    Raises:
+        ConfigError: naming the entry, for an unknown step, a wrong count of numbers, a number that
+            is not one or not finite, a duration out of range or a point beyond the bound.
+    """
+    here = np.asarray(home, float)
+    closed = False
+    segments = []
+    for k, entry in enumerate(steps):
+        where = f'script[{k}] {entry!r}'
+        words = str(entry).split()
+        if not words:
+            raise ConfigError(f'{where}: empty step')
+        name, args = words[0], words[1:]
+        if name not in MOVE_STEPS and name not in STAY_STEPS:
+            raise ConfigError(f'{where}: unknown step {name!r} (one of '
+                              f'{", ".join(MOVE_STEPS + tuple(STAY_STEPS))})')
+        want = 4 if name in MOVE_STEPS else 1
+        if len(args) != want:
+            usage = f'{name} x y z T' if want == 4 else f'{name} T'
+            raise ConfigError(f'{where}: {name} takes {want} number{"s" * (want > 1)} ({usage}), '
+                              f'got {len(args)}')
+        try:
+            numbers = [float(a) for a in args]
+        except ValueError:
+            raise ConfigError(f'{where}: not a number in {" ".join(args)!r}') from None
+        if not all(np.isfinite(numbers)):
+            raise ConfigError(f'{where}: non-finite number')
+        duration = numbers[-1]
+        if not DURATION_RANGE[0] <= duration <= DURATION_RANGE[1]:
+            raise ConfigError(f'{where}: duration {duration:g} s outside [{DURATION_RANGE[0]:g}, '
+                              f'{DURATION_RANGE[1]:g}] s')
+        if name in MOVE_STEPS:
+            end = np.array(numbers[:3])
+            if np.abs(end).max() > WORKSPACE_BOUND:
+                raise ConfigError(f'{where}: point beyond the workspace (|coordinate| <= '
+                                  f'{WORKSPACE_BOUND:g} m; positions are in metres)')
+        else:
+            end = here
+            if STAY_STEPS[name] is not None:
+                closed = STAY_STEPS[name]
+        segments.append(Segment(name, here, end, duration, closed))
+        here = end
+    return segments
+
+
+def script_segments(cfg: ScriptConfig) -> list[Segment]:
+    """The script the backend plays: ``cfg.script`` if it has steps, else the built-in one."""
+    cfg.validate()
+    return parse_script(cfg.script, cfg.home) if cfg.script else build_script(cfg)
 
 
 def script_duration(segments: list[Segment]) -> float:
@@ -207,7 +290,7 @@ def generate_trajectory(cfg: ScriptConfig, rate: float = 1000.0, loops: int = 1)
     """
     if not (np.isfinite(rate) and 1.0 <= rate <= 10000.0):
         raise ConfigError(f'rate must be in [1, 10000] Hz, got {rate}')
-    segs = build_script(cfg)
+    segs = script_segments(cfg)
     total = script_duration(segs)
     n = int(round(total * rate * loops)) + 1
     t = np.arange(n) / rate
@@ -232,13 +315,14 @@ class ScriptedBackend(Backend):
         if not (np.isfinite(rate) and 1.0 <= rate <= 10000.0):
             raise ConfigError(f'rate must be in [1, 10000] Hz, got {rate}')
         self.cfg = cfg.validate()
-        self.segments = build_script(cfg)
+        self.segments = script_segments(cfg)
         self.duration = script_duration(self.segments)
         self.rate = rate
         self.loop = loop
         self.exit_on_end = exit_on_end
         self.clock_ns = clock_ns
-        self.source = f'script(seed={cfg.seed}, {self.duration:.2f} s)'
+        steps = f'{len(cfg.script)} steps, ' if cfg.script else ''
+        self.source = f'script({steps}seed={cfg.seed}, {self.duration:.2f} s)'
 
     def run(self, sink: BackendSink) -> None:
         if not sink.wait_for_subscribers():
