@@ -9,9 +9,15 @@ geometry_msgs/WrenchStamped reply to its pose by header stamp. Reports the round
 reply rates, the share of poses without a reply (live mode drops to the newest pose by design),
 and the node's own step wall time from tissue/metrics. Prints a table and writes CSV files.
 
+With ``--instruments left,right`` the node serves several instruments on one tissue: each gets its
+own 1 kHz pose stream in its namespace, the second half a period after the first (two devices'
+clocks are not in step), along the same path 30 mm apart (``instrument_offsets``), and each is
+reported on its own.
+
     source scripts/env.sh
     python benchmarks/sim_latency.py --duration 10 --model liver --n-particles 3670
     python benchmarks/sim_latency.py --model block --n-particles 256 --mode global --csv /tmp/x.csv
+    python benchmarks/sim_latency.py --instruments left,right --duration 10
 
 This is a benchmark, not a test: it asserts nothing and reports what it measured.
 """
@@ -52,6 +58,50 @@ def percentile(a, q: float) -> float:
 
 #: what the hand got, in each summary (tissue_common.feel)
 FEEL_KEYS = ('dF_p99_mN', 'dF_max_mN', 'reversals', 'E_in_min_uJ')
+#: [m] between neighbouring instruments' devices on the tissue (along the tissue frame's y: the
+#: default liver's top is level there)
+INSTRUMENT_SPACING = 0.03
+
+
+def instrument_names(text: str) -> list[str]:
+    """``--instruments``: '' is one instrument at the root namespace."""
+    return [n.strip() for n in text.split(',')] if text else ['']
+
+
+def topic_of(instrument: str, name: str) -> str:
+    return f'{instrument}/{name}' if instrument else name
+
+
+def loop_stats(args, send_ns: np.ndarray, recv_ns: np.ndarray, force: np.ndarray) -> dict:
+    """One instrument's pose stream: answered share, round trip and what the hand got."""
+    n_total = len(send_ns)
+    skip = int(args.skip * args.rate)
+    sel = slice(skip, n_total)
+    got = recv_ns[sel] > 0
+    rtt_ms = (recv_ns[sel][got] - send_ns[sel][got]) * 1e-6
+    span = (send_ns[n_total - 1] - send_ns[skip]) * 1e-9
+    fnorm = np.linalg.norm(force[sel][got], axis=1)
+    out = {
+        'poses_sent': int(n_total - skip),
+        'send_rate_hz': (n_total - skip - 1) / span if span > 0 else math.nan,
+        'replies': int(got.sum()),
+        'reply_rate_hz': got.sum() / span if span > 0 else math.nan,
+        'no_reply_pct': 100.0 * (1.0 - got.mean()) if len(got) else math.nan,
+        'rtt_median_ms': percentile(rtt_ms, 50), 'rtt_p90_ms': percentile(rtt_ms, 90),
+        'rtt_p99_ms': percentile(rtt_ms, 99), 'rtt_max_ms': float(rtt_ms.max()) if len(rtt_ms) else math.nan,
+        'max_force_n': float(fnorm.max()) if len(fnorm) else math.nan,
+        'forces_finite': bool(np.all(np.isfinite(force[sel][got]))),
+    }
+    # what the hand got (tissue_common.feel): every reply, each with the pose it answered (from the
+    # first pose: E_in counts what went in before the skipped second too)
+    k_got = np.flatnonzero(recv_ns > 0)
+    if k_got.size >= 3:
+        path_xyz = np.array([pressing_path(k / args.rate, args.depth, args.press_period) for k in k_got])
+        felt = feel(path_xyz, force[k_got], k_got / args.rate, 1.0 / args.rate)
+        out.update({key: felt[key] for key in FEEL_KEYS})
+    else:
+        out.update({key: math.nan for key in FEEL_KEYS})
+    return out
 
 
 def run(args) -> dict:
@@ -76,14 +126,20 @@ def run(args) -> dict:
         params['step_thread'] = args.step_thread == 'on'
     if args.model == 'block':
         params['block_size'] = [0.08, 0.08, 0.04]
+    names = instrument_names(args.instruments)
+    n_inst = len(names)
+    if n_inst > 1:
+        params['instruments'] = names
+        params['instrument_offsets'] = [v for i in range(n_inst)
+                                        for v in (0.0, INSTRUMENT_SPACING * (i - 0.5 * (n_inst - 1)), 0.0)]
     lockstep = args.timing == 'lockstep'
     io_qos = QoSProfile(depth=1000 if lockstep else 1, history=HistoryPolicy.KEEP_LAST,
                         reliability=ReliabilityPolicy.RELIABLE if lockstep
                         else ReliabilityPolicy.BEST_EFFORT)
     n_total = int(round(args.duration * args.rate))
-    send_ns = np.zeros(n_total, dtype=np.int64)
-    recv_ns = np.zeros(n_total, dtype=np.int64)
-    force = np.full((n_total, 3), np.nan)
+    send_ns = np.zeros((n_inst, n_total), dtype=np.int64)
+    recv_ns = np.zeros((n_inst, n_total), dtype=np.int64)
+    force = np.full((n_inst, n_total, 3), np.nan)
     step_wall: list[float] = []
     stamp0 = time.time_ns()
     period_ns = int(round(1e9 / args.rate))
@@ -104,23 +160,27 @@ def run(args) -> dict:
     node = rclpy.create_node('sim_latency_probe')
     executor = EventsExecutor()
     executor.add_node(node)
-    pub = node.create_publisher(PoseStamped, 'omni/pose', io_qos)
+    pubs = [node.create_publisher(PoseStamped, topic_of(name, 'omni/pose'), io_qos) for name in names]
+    # the i-th instrument's poses are stamped i / n_inst of a period after the first's
+    offset_ns = [i * period_ns // n_inst for i in range(n_inst)]
 
-    def on_wrench(msg: WrenchStamped) -> None:
+    def on_wrench(msg: WrenchStamped, i: int) -> None:
         now = time.monotonic_ns()
         st = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-        k = (st - stamp0) // period_ns
-        if 0 <= k < n_total and recv_ns[k] == 0:
-            recv_ns[k] = now
+        k = (st - stamp0 - offset_ns[i]) // period_ns
+        if 0 <= k < n_total and recv_ns[i, k] == 0:
+            recv_ns[i, k] = now
             f = msg.wrench.force
-            force[k] = (f.x, f.y, f.z)
+            force[i, k] = (f.x, f.y, f.z)
 
     def on_metrics(msg: SimMetrics) -> None:
         step_wall.append(msg.step_wall_time)
 
-    sub = node.create_subscription(WrenchStamped, 'omni/force_feedback', on_wrench,
-                                   QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
-                                              reliability=io_qos.reliability))
+    subs = [node.create_subscription(WrenchStamped, topic_of(name, 'omni/force_feedback'),
+                                     lambda msg, i=i: on_wrench(msg, i),
+                                     QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+                                                reliability=io_qos.reliability))
+            for i, name in enumerate(names)]
     msub = None
     if args.metrics:  # another 1 kHz stream into this process: it delays the wrench callbacks
         msub = node.create_subscription(SimMetrics, 'tissue/metrics', on_metrics,
@@ -134,7 +194,8 @@ def run(args) -> dict:
         ready_s = (time.monotonic_ns() - launched_ns) * 1e-9
         ready_line = [ln for ln in sim.output().splitlines() if 'ready:' in ln][-1]
         deadline = time.monotonic() + 30
-        while (pub.get_subscription_count() < 1 or sub.get_publisher_count() < 1
+        while (any(pub.get_subscription_count() < 1 for pub in pubs)
+               or any(sub.get_publisher_count() < 1 for sub in subs)
                or (msub is not None and msub.get_publisher_count() < 1)):
             executor.spin_once(timeout_sec=0.01)
             if time.monotonic() > deadline:
@@ -148,16 +209,17 @@ def run(args) -> dict:
             msg.pose.orientation.w = 1.0
             t_start = time.monotonic_ns() + 50_000_000
             for k in range(n_total):
-                target = t_start + k * period_ns
-                rest = target - time.monotonic_ns()
-                if rest > 0:  # sleep, never spin: a spinning thread would hold the GIL
-                    time.sleep(rest * 1e-9)
-                stamp = stamp0 + k * period_ns
-                msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
                 x, y, z = pressing_path(k / args.rate, args.depth, args.press_period)
                 msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = x, y, z
-                send_ns[k] = time.monotonic_ns()
-                pub.publish(msg)
+                for i, pub in enumerate(pubs):
+                    target = t_start + k * period_ns + offset_ns[i]
+                    rest = target - time.monotonic_ns()
+                    if rest > 0:  # sleep, never spin: a spinning thread would hold the GIL
+                        time.sleep(rest * 1e-9)
+                    stamp = stamp0 + k * period_ns + offset_ns[i]
+                    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+                    send_ns[i, k] = time.monotonic_ns()
+                    pub.publish(msg)
             done.set()
 
         thread = threading.Thread(target=publisher, daemon=True)
@@ -177,11 +239,6 @@ def run(args) -> dict:
             raise RuntimeError(f'sim_node exited with {code}:\n{sim.output()}')
 
     skip = int(args.skip * args.rate)
-    sel = slice(skip, n_total)
-    got = recv_ns[sel] > 0
-    rtt_ms = (recv_ns[sel][got] - send_ns[sel][got]) * 1e-6
-    span = (send_ns[n_total - 1] - send_ns[skip]) * 1e-9
-    fnorm = np.linalg.norm(force[sel][got], axis=1)
     sw = np.array(step_wall[int(len(step_wall) * skip / max(n_total, 1)):]) * 1e3
     node_steps = [float(v) for v in re.findall(r'([0-9.]+) ms', steps_line[-1])] if steps_line else []
     if not len(sw) and len(node_steps) >= 2:
@@ -194,28 +251,16 @@ def run(args) -> dict:
         'launch_to_ready_s': ready_s,
         'launch_to_first_reply_s': ((recv_ns[recv_ns > 0].min() - launched_ns) * 1e-9 if np.any(recv_ns > 0)
                                     else math.nan),
-        'poses_sent': int(n_total - skip),
-        'send_rate_hz': (n_total - skip - 1) / span if span > 0 else math.nan,
-        'replies': int(got.sum()),
-        'reply_rate_hz': got.sum() / span if span > 0 else math.nan,
-        'no_reply_pct': 100.0 * (1.0 - got.mean()) if len(got) else math.nan,
-        'rtt_median_ms': percentile(rtt_ms, 50), 'rtt_p90_ms': percentile(rtt_ms, 90),
-        'rtt_p99_ms': percentile(rtt_ms, 99), 'rtt_max_ms': float(rtt_ms.max()) if len(rtt_ms) else math.nan,
+        'instruments': ','.join(names),
         'step_median_ms': percentile(sw, 50) if args.metrics else (sw[0] if len(sw) else math.nan),
         'step_p99_ms': percentile(sw, 99) if args.metrics else (sw[1] if len(sw) > 1 else math.nan),
-        'max_force_n': float(fnorm.max()) if len(fnorm) else math.nan,
-        'forces_finite': bool(np.all(np.isfinite(force[sel][got]))),
         'sim_totals': totals[-1].split('totals: ')[-1] if totals else '',
     }
-    # what the hand got (tissue_common.feel): every reply, each with the pose it answered (from the
-    # first pose: E_in counts what went in before the skipped second too)
-    k_got = np.flatnonzero(recv_ns > 0)
-    if k_got.size >= 3:
-        path_xyz = np.array([pressing_path(k / args.rate, args.depth, args.press_period) for k in k_got])
-        felt = feel(path_xyz, force[k_got], k_got / args.rate, 1.0 / args.rate)
-        summary.update({key: felt[key] for key in FEEL_KEYS})
-    else:
-        summary.update({key: math.nan for key in FEEL_KEYS})
+    # each instrument's loop; the summary's own loop columns are the first instrument's
+    per = [loop_stats(args, send_ns[i], recv_ns[i], force[i]) for i in range(n_inst)]
+    summary.update(per[0])
+    if n_inst > 1:   # and each one's, for the summary CSV
+        summary.update({f'{name}_{key}': value for name, stats in zip(names, per) for key, value in stats.items()})
     steps = re.search(r'([0-9]+) steps', summary['sim_totals'])
     summary['solver_rate_hz'] = int(steps.group(1)) / args.duration if steps else math.nan
     if args.csv:
@@ -223,11 +268,12 @@ def run(args) -> dict:
         path.parent.mkdir(parents=True, exist_ok=True)
         with path.open('w', newline='') as fh:
             w = csv.writer(fh)
-            w.writerow(['k', 'stamp_ns', 'send_ns', 'recv_ns', 'rtt_ms', 'fx', 'fy', 'fz'])
-            for k in range(n_total):
-                rtt = (recv_ns[k] - send_ns[k]) * 1e-6 if recv_ns[k] else ''
-                w.writerow([k, stamp0 + k * period_ns, send_ns[k], recv_ns[k] or '', rtt,
-                            *force[k].tolist()])
+            w.writerow(['instrument', 'k', 'stamp_ns', 'send_ns', 'recv_ns', 'rtt_ms', 'fx', 'fy', 'fz'])
+            for i, name in enumerate(names):
+                for k in range(n_total):
+                    rtt = (recv_ns[i, k] - send_ns[i, k]) * 1e-6 if recv_ns[i, k] else ''
+                    w.writerow([name, k, stamp0 + k * period_ns + offset_ns[i], send_ns[i, k],
+                                recv_ns[i, k] or '', rtt, *force[i, k].tolist()])
         spath = path.with_name(path.stem + '_summary.csv')
         new = not spath.exists()
         with spath.open('a', newline='') as fh:
@@ -237,6 +283,7 @@ def run(args) -> dict:
             w.writerow(summary)
         summary['csv'] = str(path)
         summary['summary_csv'] = str(spath)
+    summary['per_instrument'] = dict(zip(names, per))
     return summary
 
 
@@ -255,6 +302,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument('--model', default='liver', help='liver | block | beam')
     ap.add_argument('--n-particles', type=int, default=3670)
     ap.add_argument('--mode', default='local', help='local | global')
+    ap.add_argument('--instruments', default='', help='comma-separated instrument names (namespaces), '
+                    'e.g. left,right: one 1 kHz pose stream each; default one at the root')
     ap.add_argument('--scheme', default='tlsph', help='tlsph | mass_spring | paper')
     ap.add_argument('--timing', default='live', help='live | lockstep')
     ap.add_argument('--haptic-mode', default='multirate', help='multirate (the renderer answers, the '
@@ -282,29 +331,41 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
+def loop_rows(s: dict, rate: float, label: str = '') -> list[tuple[str, str]]:
+    """The table rows of one instrument's loop (``label``: its name, when there are several)."""
+    at = f'{label}: ' if label else ''
+    return [
+        (f'{at}poses sent / replies', f"{s['poses_sent']} / {s['replies']}"),
+        (f'{at}pose rate sent', f"{s['send_rate_hz']:.1f} Hz (target {rate:g})"),
+        (f'{at}reply rate', f"{s['reply_rate_hz']:.1f} Hz"),
+        (f'{at}poses without reply', f"{s['no_reply_pct']:.2f} %"),
+        (f'{at}round trip median', f"{s['rtt_median_ms']:.3f} ms"),
+        (f'{at}round trip p90', f"{s['rtt_p90_ms']:.3f} ms"),
+        (f'{at}round trip p99', f"{s['rtt_p99_ms']:.3f} ms"),
+        (f'{at}round trip max', f"{s['rtt_max_ms']:.3f} ms"),
+        (f'{at}max |force|', f"{s['max_force_n']:.3f} N (all finite: {s['forces_finite']})"),
+        (f'{at}force sent, steady contact', f"|dF| per frame p99 {s['dF_p99_mN']:.2f} mN, max "
+                                            f"{s['dF_max_mN']:.1f} mN; {s['reversals']:.0f} one-frame "
+                                            f"reversals > 10 mN; E_in min {s['E_in_min_uJ']:.2f} uJ"),
+    ]
+
+
 def main(argv=None) -> int:
-    args = parser().parse_args(argv)
+    ap = parser()
+    args = ap.parse_args(argv)
+    if len(instrument_names(args.instruments)) > 1 and args.peer:
+        ap.error('several --instruments need sim_node, not --peer')
     s = run(args)
+    per = s['per_instrument']
     rows = [
         ('configuration', 'echo_node (no simulation: the floor)' if args.peer else
                           f"{s['model']} ({s['particles']} particles), {s['scheme']}, {s['mode']}, "
                           f"{s['timing']}, haptic {s['haptic_mode']}, cloud {args.particles_rate:g} Hz, step thread "
-                          f"{args.step_thread}"),
+                          f"{args.step_thread}" + (f", instruments {s['instruments']}" if len(per) > 1 else '')),
         ('numba warm-up + first step', f"{s['compile_s']:.2f} s"),
         ('launch -> ready / first reply', f"{s['launch_to_ready_s']:.2f} / {s['launch_to_first_reply_s']:.2f} s"),
-        ('poses sent / replies', f"{s['poses_sent']} / {s['replies']}"),
-        ('pose rate sent', f"{s['send_rate_hz']:.1f} Hz (target {args.rate:g})"),
-        ('reply rate', f"{s['reply_rate_hz']:.1f} Hz"),
-        ('poses without reply', f"{s['no_reply_pct']:.2f} %"),
-        ('round trip median', f"{s['rtt_median_ms']:.3f} ms"),
-        ('round trip p90', f"{s['rtt_p90_ms']:.3f} ms"),
-        ('round trip p99', f"{s['rtt_p99_ms']:.3f} ms"),
-        ('round trip max', f"{s['rtt_max_ms']:.3f} ms"),
+        *(row for name, stats in per.items() for row in loop_rows(stats, args.rate, name)),
         ('step wall time median / p99', f"{s['step_median_ms']:.3f} / {s['step_p99_ms']:.3f} ms"),
-        ('max |force|', f"{s['max_force_n']:.3f} N (all finite: {s['forces_finite']})"),
-        ('force sent, steady contact', f"|dF| per frame p99 {s['dF_p99_mN']:.2f} mN, max "
-                                       f"{s['dF_max_mN']:.1f} mN; {s['reversals']:.0f} one-frame "
-                                       f"reversals > 10 mN; E_in min {s['E_in_min_uJ']:.2f} uJ"),
         ('node totals', s['sim_totals']),
     ]
     width = max(len(r[0]) for r in rows)
