@@ -165,3 +165,16 @@ def test_the_latency_probe_times_the_echo_peer_that_answers_every_pose():
     sent, replies = (int(v) for v in
                      proc.stdout.split('poses sent / replies')[1].split('\n')[0].split('/'))
     assert sent == 1500 and replies > 0
+
+
+def test_the_latency_probe_drives_two_instruments_and_reports_each():
+    """``sim_latency.py --instruments left,right``: one pose stream per namespace, each answered on
+    its own topic and reported on its own lines."""
+    proc = subprocess.run([sys.executable, str(ROOT / 'benchmarks' / 'sim_latency.py'), '--instruments', 'left,right',
+                           '--model', 'block', '--n-particles', '256', '--duration', '2', '--skip', '0.5',
+                           '--csv', ''], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
+    for name in ('left', 'right'):
+        sent, replies = (int(v) for v in
+                         proc.stdout.split(f'{name}: poses sent / replies')[1].split('\n')[0].split('/'))
+        assert sent == 1500 and replies > 0
