@@ -119,6 +119,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                             'origin, added to translation: three numbers per instrument '
                                             'in the order of instruments (missing ones: 0)', None, True,
                            None),
+    'instrument_tools': ([''], 'each instrument\'s tool, in the order of instruments: \'sphere R\' or '
+                               '\'capsule R L\' (radius, shaft length [m], in tool_radius\'s and tool_length\'s '
+                               'ranges), \'\' or missing: tool_shape, tool_radius and tool_length', None, True,
+                         None),
     # -- device -> tissue -------------------------------------------------------------------------
     'device_frame': ('omni_base', 'frame of accepted poses (and of the force replies)', None, False,
                      None),
@@ -177,6 +181,15 @@ def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
     default = table[name][0]
     if name == 'instruments':
         return check_instruments(value)
+    if name == 'instrument_tools':
+        try:
+            for text in value:
+                parse_tool(text)
+        except ConfigError as exc:
+            return f'parameter {name}: {exc}'
+        except TypeError:
+            return f'parameter {name} must be a list of tool descriptions, got {value!r}'
+        return None
     if name == 'instrument_offsets':
         try:
             arr = np.asarray(list(value), dtype=np.float64)
@@ -193,6 +206,31 @@ def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
         if arr.shape != (len(default),) or not np.all(np.isfinite(arr)):
             return f'parameter {name} must be {len(default)} finite numbers, got {list(value)!r}'
     return None
+
+
+def parse_tool(text: str) -> dict | None:
+    """One ``instrument_tools`` entry: ``'sphere R'`` or ``'capsule R L'`` [m] as SolverConfig's tool
+    fields, ``''``: None (the shared tool). Ranges are the solver's to check."""
+    words = str(text).split()
+    if not words:
+        return None
+    shapes = {'sphere': 1, 'capsule': 2}
+    if words[0] not in shapes or len(words) != 1 + shapes[words[0]]:
+        raise ConfigError(f"{text!r} is not 'sphere R' or 'capsule R L' (radius and shaft length in m)")
+    try:
+        size = [float(w) for w in words[1:]]
+    except ValueError:
+        raise ConfigError(f'{text!r}: {words[1:]} are not numbers') from None
+    tool = {'tool_shape': words[0], 'tool_radius': size[0]}
+    if len(size) > 1:
+        tool['tool_length'] = size[1]
+    return tool
+
+
+def instrument_tools(p: dict) -> list[dict | None]:
+    """Each instrument's tool (:func:`parse_tool`; missing entries: the shared tool)."""
+    given = list(p['instrument_tools'])
+    return [parse_tool(given[k]) if k < len(given) else None for k in range(len(p['instruments']))]
 
 
 def instrument_translations(p: dict) -> list[list[float]]:

@@ -62,7 +62,7 @@ from .haptics.multirate import MultiRate, SolverJob
 from .haptics.renderer import HapticRenderer
 from .mapping import DeviceMapping, anchor_point, check_position
 from .params import (NEXT_STEP_SETTINGS, SIM_PARAMS, build_config, build_material, build_renderer,
-                     check_value, instrument_translations, solves_in_background)
+                     check_value, instrument_tools, instrument_translations, solves_in_background)
 from .timing import BACKWARDS, JUMP, REPEAT, StampClock
 
 STEP_TIME_HISTORY = 100_000
@@ -96,14 +96,15 @@ class Change:
 
 
 def make_solver(model, material, config: SolverConfig, nominal_dt: float, background: bool = False,
-                instruments: int = 1) -> Solver:
+                instruments: int = 1, tools=None) -> Solver:
     """A solver whose scheme can actually step (a probe step without tool, then back to rest).
-    ``background``: the organ's far field solves its responses on a worker thread.
+    ``background``: the organ's far field solves its responses on a worker thread; ``tools``: each
+    instrument's tool (``Solver``'s, None: the config's).
 
     Raises:
         ConfigError: invalid settings, or a scheme this build cannot run yet.
     """
-    solver = Solver(model, material, config, background=background, instruments=instruments)
+    solver = Solver(model, material, config, background=background, instruments=instruments, tools=tools)
     solver.step_tools([None] * instruments, nominal_dt)
     solver.reset()
     return solver
@@ -143,7 +144,8 @@ def metrics_values(res: StepResult, solver: Solver, haptic, k: int = 0) -> dict:
          'n_particles': int(solver.n_particles), 'n_interaction': int(res.n_interaction),
          'n_layer': [int(n) for n in res.n_layer], 'n_relaxing': int(res.n_relaxing),
          'contact_index': int(tool.contact_index), 'penetration': float(tool.penetration),
-         'contact_force': tuple(float(f) for f in tool.force), 'tool_radius': float(solver.tool.radius),
+         'contact_force': tuple(float(f) for f in tool.force),
+         'tool_radius': float(solver.instruments[k].tool.radius),
          'max_displacement': float(res.max_displacement), 'kinetic_energy': float(res.kinetic_energy),
          'scheme': solver.config.scheme_index, 'mode': solver.config.mode_index}
     v.update(tool_position=(0.0, 0.0, 0.0), tool_axis=(0.0, 0.0, 0.0), tool_length=0.0,
@@ -550,7 +552,7 @@ class Runner:
                     self.log('info', f'{ch.label} grasped {n} particles')
                 else:
                     self.throttled('grasp_nothing', 'warn', f'{ch.label} closed on nothing: no particle '
-                                   f'within {self.solver.grasp_reach * 1e3:.1f} mm of its tool')
+                                   f'within {self.solver.grasp_reach(ch.index) * 1e3:.1f} mm of its tool')
             elif not ch.closed and ch.gripping:
                 ch.gripping = False
                 n = self.solver.release(ch.index)
@@ -600,7 +602,7 @@ class Runner:
 
     def _rotation(self, pose: Pose, ch: Channel) -> np.ndarray | None:
         """The stylus orientation in the tissue frame, for a tool that has one (else None)."""
-        if not self.solver.tool.oriented:
+        if not self.solver.instruments[ch.index].tool.oriented:
             return None
         try:
             return ch.mapping.rotation_to_tissue(pose.orientation)
@@ -752,7 +754,8 @@ class Runner:
             solver = None
             if 'solver' in kinds:
                 solver = make_solver(self.model, material or self.solver.material, config, new['nominal_dt'],
-                                     background=solves_in_background(new), instruments=len(self.channels))
+                                     background=solves_in_background(new), instruments=len(self.channels),
+                                     tools=instrument_tools(new))
             elif material is not None:
                 check_material(self.solver.config, material)
             mappings = None

@@ -51,7 +51,7 @@ from .core.compliance import close_all
 from .core.errors import ConfigError, ModelError, SimError
 from .core.solver import warmup
 from .params import (JAW_CLOSED_MAX, SIM_PARAMS, build_config, build_material, build_model, check_value,
-                     solves_in_background)
+                     instrument_tools, solves_in_background)
 from .runner import Pose, Runner, make_solver, metrics_values, pose_history
 from .startup import numba_cache_stats, one_blas_thread, startup_report
 
@@ -79,7 +79,7 @@ class SimNode(Node):
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
         names = list(p['instruments'])
         solver = make_solver(self.model, build_material(p), config, p['nominal_dt'],
-                             background=solves_in_background(p), instruments=len(names))
+                             background=solves_in_background(p), instruments=len(names), tools=instrument_tools(p))
         self.runner = Runner(p, self.model, solver, self._send_force, self._send_metrics, self._send_cloud,
                              self._log)
         self.compile_time = time.perf_counter() - t0

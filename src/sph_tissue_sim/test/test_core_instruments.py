@@ -135,3 +135,31 @@ def test_poses_that_do_not_match_the_instruments_are_refused_and_change_nothing(
         solver.step(tip, 1e-3)
     assert np.array_equal(solver.positions, x)
     assert np.array_equal(solver.instruments[0].tip, held) and solver.instruments[1].tip is None
+
+
+def test_each_instrument_has_its_own_tool_and_the_default_is_the_configs():
+    model = _block()
+    solver = Solver(model, liver_default(), GLOBAL, instruments=2,
+                    tools=[None, {'tool_shape': 'capsule', 'tool_radius': 0.0025, 'tool_length': 0.03}])
+    assert solver.instruments[0].tool.radius == GLOBAL.tool_radius and not solver.instruments[0].tool.oriented
+    assert solver.instruments[1].tool.radius == 0.0025 and solver.instruments[1].tool.oriented
+    assert solver.grasp_reach(1) < solver.grasp_reach(0)
+    left, right = _over(model, (-0.0075, 0.0)), _over(model, (0.0075, 0.0))
+    for k in range(60):
+        dz = [0.0, 0.0, 1e-4 * min(k, 40)]
+        res = solver.step_tools([(left - dz, None), (right - dz, None)], 1e-3)
+    segment = res.tools[1].tool_segment
+    assert np.linalg.norm(segment[1] - segment[0]) == pytest.approx(0.03)
+    # the same descent: the thinner tool reaches the tissue later and presses less
+    assert 0.0 < res.tools[1].force[2] < res.tools[0].force[2]
+
+
+@pytest.mark.parametrize('tools, message', [
+    ([None], 'one entry per instrument'),
+    ([None, {'tool_radius': 1.0}], "instrument 1's tool: tool_radius must be in"),
+    ([None, {'tool_shape': 'cube'}], "instrument 1's tool: tool_shape must be one of"),
+    ([None, {'radius': 0.002}], "is not tool_shape, tool_radius or tool_length"),
+])
+def test_a_tool_out_of_range_or_unknown_is_refused_naming_the_instrument(tools, message):
+    with pytest.raises(ConfigError, match=message):
+        Solver(_block(), liver_default(), GLOBAL, instruments=2, tools=tools)

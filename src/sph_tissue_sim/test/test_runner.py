@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from sim_probe import BLOCK, GRASP_AT, T0_NS, press_path, run_grasp_lift
-from sph_tissue_sim.params import SIM_PARAMS, build_config, build_material, build_model
+from sph_tissue_sim.params import SIM_PARAMS, build_config, build_material, build_model, instrument_tools
 from sph_tissue_sim.runner import Pose, Runner, make_solver, pose_history
 
 LIMIT = 0.5
@@ -26,7 +26,7 @@ def make_runner(**over) -> tuple[Runner, list]:
     p = {name: spec[0] for name, spec in SIM_PARAMS.items()} | BLOCK | {'force_limit': LIMIT, **over}
     model = build_model(p)
     solver = make_solver(model, build_material(p), build_config(p), p['nominal_dt'],
-                         instruments=len(p['instruments']))
+                         instruments=len(p['instruments']), tools=instrument_tools(p))
     out = []
     runner = Runner(p, model, solver, lambda stamp, frame, f, k=0: out.append(('force', stamp, frame, np.array(f), k)),
                     lambda stamp, res, s, h, k=0: out.append(('metrics', stamp, h, k)),
@@ -219,6 +219,25 @@ def test_a_named_instruments_device_may_name_its_frame_in_its_namespace_but_not_
         runner.on_pose(pose(k, p, 'left/omni_base'), 0)
         runner.on_pose(pose(k, p), 1)
     assert runner.counts['rejected'] == 1 and runner.counts['steps'] == len(path)
+
+
+def test_each_instruments_tool_is_its_own_and_its_metrics_say_so():
+    from sph_tissue_sim.params import check_value, parse_tool
+
+    assert parse_tool('') is None
+    assert parse_tool('capsule 0.003 0.04') == {'tool_shape': 'capsule', 'tool_radius': 0.003, 'tool_length': 0.04}
+    for bad in ('cube 0.01', 'sphere', 'capsule 0.003', 'sphere x'):
+        assert 'instrument_tools' in check_value('instrument_tools', [bad], SIM_PARAMS)
+    runner, out = make_runner(**TWO, instrument_tools=['', 'sphere 0.003'], timing_mode='lockstep')
+    path = press_path(30, depth=0.004)
+    for k, p in enumerate(path):
+        runner.on_pose(pose(k, p), 0)
+        runner.on_pose(pose(k, p), 1)
+    radii = [runner.solver.instruments[k].tool.radius for k in range(2)]
+    assert radii == [SIM_PARAMS['tool_radius'][0], 0.003]
+    from sph_tissue_sim.runner import metrics_values
+    res = runner.solver.last_result
+    assert [metrics_values(res, runner.solver, None, k)['tool_radius'] for k in range(2)] == radii
 
 
 def test_a_closed_button_grasps_lifting_pulls_and_opening_lets_go():

@@ -29,12 +29,16 @@ class ToolResult:
 
 
 class Instrument:
-    """One instrument's state across frames: where its tool was, the particle it touches (kept while
-    it still touches, see :meth:`~.solver.Solver._sticky_contact`), its friction anchors
-    (:func:`~.contact.stick_slip`: a slot per particle, then per surface sample) and the particles
-    it holds, with their anchors in the tool's frame."""
+    """One instrument: its tool's shape and contact kind, and its state across frames: where its
+    tool was, the particle it touches (kept while it still touches, see
+    :meth:`~.solver.Solver._sticky_contact`), its friction anchors (:func:`~.contact.stick_slip`: a
+    slot per particle, then per surface sample) and the particles it holds, with their anchors in
+    the tool's frame."""
 
-    def __init__(self, slots: int) -> None:
+    def __init__(self, slots: int, tool, kind) -> None:
+        self.tool = tool                 # its shape (:mod:`.tools`)
+        self.kind = kind                 # its contact kind (:mod:`.contact_kinds`): reaches, samples
+        self.samples = None              # its contact samples, set with the material
         self.anchor = np.zeros((slots, 3))
         self.stuck = np.zeros(slots, dtype=np.bool_)
         self.reset()

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numba
 import numpy as np
@@ -244,6 +244,26 @@ class StepResult:
         return self.tools[0].tool_segment
 
 
+def tool_shapes(cfg: SolverConfig, instruments: int, tools) -> list[SolverConfig]:
+    """Each instrument's tool: ``cfg`` with ``tools[k]`` (a dict of ``tool_shape``, ``tool_radius``,
+    ``tool_length``; None: the config's own) over it, checked against the config's limits."""
+    if tools is None:
+        tools = [None] * instruments
+    if isinstance(tools, (str, dict)) or len(tools) != instruments:
+        raise ConfigError(f'tools must give one entry per instrument ({instruments}), got {tools!r}')
+    out = []
+    for k, over in enumerate(tools):
+        over = dict(over or {})
+        unknown = set(over) - {'tool_shape', 'tool_radius', 'tool_length'}
+        if unknown:
+            raise ConfigError(f'instrument {k}\'s tool: {sorted(unknown)} is not tool_shape, tool_radius or tool_length')
+        try:
+            out.append(replace(cfg, **over).validate())
+        except ConfigError as exc:
+            raise ConfigError(f'instrument {k}\'s tool: {exc}') from exc
+    return out
+
+
 def organ_far_field(cfg: SolverConfig, X: np.ndarray, fixed: np.ndarray, scheme, spacing: float,
                     abort: np.ndarray, background: bool) -> OrganCompliance | None:
     """Local mode's far field from the organ's own linear response (tlsph, up to
@@ -294,7 +314,7 @@ class Solver:
     """
 
     def __init__(self, model: TissueModel, material: Material, config: SolverConfig | None = None,
-                 background: bool = False, instruments: int = 1) -> None:
+                 background: bool = False, instruments: int = 1, tools=None) -> None:
         if model is None or len(model.positions) == 0:
             raise ModelError('the model has no particles')
         if not isinstance(material, Material):
@@ -312,7 +332,7 @@ class Solver:
         self.free_idx = np.flatnonzero(~self.fixed).astype(np.int32)
         self.all_idx = np.arange(self.n, dtype=np.int32)
         self.centre = self.X.mean(axis=0)
-        self.tool = make_tool(cfg.tool_shape, cfg.tool_radius, cfg.tool_length)
+        shapes = tool_shapes(cfg, instruments, tools)
         self.extent = float(np.linalg.norm(self.X.max(axis=0) - self.X.min(axis=0)))
         support = SUPPORT * self.h
         self.grid = CellGrid(self.X, support)
@@ -320,8 +340,11 @@ class Solver:
         if np.diff(self.offsets).max() == 0:
             raise ConfigError(f'smoothing length h = {self.h:.3g} m is too small: no particle has a '
                               f'neighbour within 2h (spacing {model.spacing:.3g} m)')
-        self.contact: BallContact = make_contact(cfg.contact_samples, self.tool.radius, model.spacing, self.X,
-                                                 self.offsets, self.indices, self.h, self.volume)
+        kinds: dict[float, BallContact] = {}      # the surface samples are built once per radius
+        for shape in shapes:
+            if shape.tool_radius not in kinds:
+                kinds[shape.tool_radius] = make_contact(cfg.contact_samples, shape.tool_radius, model.spacing, self.X,
+                                                        self.offsets, self.indices, self.h, self.volume)
         self.x = self.X.copy()
         self.v = np.zeros((self.n, 3))
         self.acc = np.zeros((self.n, 3))
@@ -340,8 +363,12 @@ class Solver:
                                       IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER)
         # every instrument's pushing contacts, for one backward solve
         # (a particle both touched and held is recorded twice)
-        self.touches = make_touches(instruments * (2 * self.n + self.contact.n_samples))
-        self.instruments = [Instrument(self.n + self.contact.n_samples) for _ in range(instruments)]
+        n_samples = kinds[shapes[0].tool_radius].n_samples     # the same samples whatever the radius
+        self.touches = make_touches(instruments * (2 * self.n + n_samples))
+        self.instruments = [Instrument(self.n + n_samples, make_tool(c.tool_shape, c.tool_radius, c.tool_length),
+                                       kinds[c.tool_radius]) for c in shapes]
+        #: the first instrument's tool and contact kind (the only ones of one instrument)
+        self.tool, self.contact = self.instruments[0].tool, self.instruments[0].kind
         self._no_grip = no_grip()
         self._touch_vn = np.zeros(len(self.touches.idx))
         self._touch_vt = np.zeros((len(self.touches.idx), 3))
@@ -410,7 +437,10 @@ class Solver:
         self.inv_mass = 1.0 / self.mass
         self.body = Body(self.X, self.fixed, self.mass, self.inv_mass)
         self.contact_damping = cfg.contact_damping_ratio * 2.0 * math.sqrt(cfg.contact_stiffness * self.mass)
-        self.samples = self.contact.samples(self.n, self.tool.radius, cfg.contact_stiffness, self.contact_damping)
+        for hand in self.instruments:
+            hand.samples = hand.kind.samples(self.n, hand.tool.radius, cfg.contact_stiffness, self.contact_damping)
+        #: the implicit contact's view of the samples: their places are every instrument's
+        self.samples = self.instruments[0].samples
         self.scheme.set_material(material, self.mass)
         self.close()
         #: the organ's compliance for local mode's far field (None: the half-space's, or none)
@@ -508,7 +538,8 @@ class Solver:
 
     @property
     def contact_reach(self) -> float:
-        """[m] from the tool's axis to a particle centre at the first touch (the contact kind's)."""
+        """[m] from the first instrument's tool axis to a particle centre at the first touch (its
+        contact kind's)."""
         return self.contact.contact_reach
 
     @property
@@ -611,22 +642,21 @@ class Solver:
             raise InvalidInput(f'instrument {k!r} is not one of the {len(self.instruments)} instruments')
         return self.instruments[int(k)]
 
-    @property
-    def grasp_reach(self) -> float:
-        """[m] an instrument that closes holds the free particles whose centres lie this close to its
+    def grasp_reach(self, k: int = 0) -> float:
+        """[m] instrument ``k``, closing, holds the free particles whose centres lie this close to its
         segment (:mod:`.grasp`)."""
-        return GRASP_REGION * self.contact.contact_reach
+        return GRASP_REGION * self._hand(k).kind.contact_reach
 
     def grasp(self, k: int = 0) -> int:
         """Close instrument ``k`` on the tissue: it holds the free particles within
-        :attr:`grasp_reach` of its tool (replacing what it held) until :meth:`release`, until it is
+        :meth:`grasp_reach` of its tool (replacing what it held) until :meth:`release`, until it is
         lifted, or each until pulled harder than ``grasp_limit``. Returns how many it holds: 0 for
         a lifted instrument or a grasp on nothing."""
         hand = self._hand(k)
         if hand.segment is None:
             hand.let_go()
             return 0
-        idx = grasp_region(self.x, self.fixed, hand.segment, self.grasp_reach)
+        idx = grasp_region(self.x, self.fixed, hand.segment, GRASP_REGION * hand.kind.contact_reach)
         hand.hold(idx, (self.x[idx] - hand.tip) @ hand.rotation)   # rows of R^T (x - tip)
         return len(idx)
 
@@ -682,8 +712,8 @@ class Solver:
                 tip, rot = pose
                 if hand.tip is not None:
                     tip, lag = self._limit_travel(hand.tip, tip, cfg.max_tool_speed * dt)
-                seg1 = self.tool.segment(tip, rot)
-                if hand.segment is not None and self.tool.oriented:
+                seg1 = hand.tool.segment(tip, rot)
+                if hand.segment is not None and hand.tool.oriented:
                     sweep = self._limit_sweep(hand.segment, seg1, cfg.max_tool_speed * dt)
                     if sweep > 0.0:
                         rot = _turned_to(rot, seg1)     # what it holds turns as far as the shaft did
@@ -698,8 +728,8 @@ class Solver:
             tips.append(tip)
             rots.append(rot)
             lags.append(lag)
-            paths.append(ToolPath(seg0, seg1, pose is not None, self.contact.ball_reach, cfg.contact_stiffness,
-                                  self.contact_damping, self.samples, self.touches,
+            paths.append(ToolPath(seg0, seg1, pose is not None, hand.kind.ball_reach, cfg.contact_stiffness,
+                                  self.contact_damping, hand.samples, self.touches,
                                   cfg.friction, hand.anchor, hand.stuck, k, grip))
         paths = tuple(paths)
         held = [hand.grip_held.copy() if len(hand.grip_idx) else None for hand in self.instruments]
@@ -801,9 +831,9 @@ class Solver:
         for hand, path in zip(self.instruments, paths):
             contact = -1
             if path.on:
-                contact = self._sticky_contact(hand, path.seg1, self.contact.detect_reach)
+                contact = self._sticky_contact(hand, path.seg1, hand.kind.detect_reach)
                 if contact < 0:
-                    contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, self.contact.detect_reach)
+                    contact = deepest_contact(self.x, self.all_idx, self.n, path.seg1, hand.kind.detect_reach)
             contacts.append(contact)
         sets = self.area.global_sets(contacts)
         self._frame(sets, paths, n_sub, sub_dt, dt, 'global')
@@ -823,8 +853,8 @@ class Solver:
             contact = -1
             area.skip(k)
             if path.on:
-                deepest = area.detect(self.x, path.seg1, self.contact.detect_reach, margin, k)
-                contact = self._sticky_contact(hand, path.seg1, self.contact.detect_reach)
+                deepest = area.detect(self.x, path.seg1, hand.kind.detect_reach, margin, k)
+                contact = self._sticky_contact(hand, path.seg1, hand.kind.detect_reach)
                 if contact < 0:
                     contact = deepest
             centre = contact
@@ -833,10 +863,11 @@ class Solver:
                 if len(held):
                     centre = area.hold(held, k)   # the area's centre; nothing touches (contact stays -1)
             k1 = min(max(cfg.k1_gain * self.f_prev[k], cfg.k1_min), cfg.k1_max)
-            reach, Dr = self.contact.area(hand.samples_push, self.organ is not None, k1 * self.h, self.h)
+            reach, Dr = hand.kind.area(hand.samples_push, self.organ is not None, k1 * self.h, self.h)
             if path.grip.n:
                 # what it holds is solved: it sits within the grasp's reach plus its spring's stretch
-                reach = max(reach, self.grasp_reach + cfg.grasp_limit / cfg.contact_stiffness + self.model.spacing)
+                reach = max(reach, GRASP_REGION * hand.kind.contact_reach + cfg.grasp_limit / cfg.contact_stiffness
+                            + self.model.spacing)
             contacts.append(contact)
             k1s.append(k1)
             tools.append((path.seg0 if path.on else None, path.seg1, reach, centre, Dr))
@@ -846,7 +877,7 @@ class Solver:
         self._frame(sets, paths, n_sub, sub_dt, dt, 'local')
         for k, (hand, path) in enumerate(zip(self.instruments, paths)):
             push = path.on and nearest_sample_gap(self.x, self.v, sets.cand, sets.n_cand, path.seg1,
-                                                  self.samples, 0.0) < 0.0
+                                                  hand.samples, 0.0) < 0.0
             # and while the tool still touches: shrinking the area as the samples slide past a
             # deep tool (the tissue giving way) made the 30k liver's step blow up at 28.5 mm
             hand.samples_push = push or (hand.samples_push and self._overlap[k] > 0.0)
