@@ -38,6 +38,7 @@ import numpy as np
 import yaml
 
 from tissue_common.feel import feel
+from tissue_common.instruments import topic_within
 from tissue_testing import harness
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -66,10 +67,6 @@ INSTRUMENT_SPACING = 0.03
 def instrument_names(text: str) -> list[str]:
     """``--instruments``: '' is one instrument at the root namespace."""
     return [n.strip() for n in text.split(',')] if text else ['']
-
-
-def topic_of(instrument: str, name: str) -> str:
-    return f'{instrument}/{name}' if instrument else name
 
 
 def loop_stats(args, send_ns: np.ndarray, recv_ns: np.ndarray, force: np.ndarray) -> dict:
@@ -160,7 +157,7 @@ def run(args) -> dict:
     node = rclpy.create_node('sim_latency_probe')
     executor = EventsExecutor()
     executor.add_node(node)
-    pubs = [node.create_publisher(PoseStamped, topic_of(name, 'omni/pose'), io_qos) for name in names]
+    pubs = [node.create_publisher(PoseStamped, topic_within(name, 'omni/pose'), io_qos) for name in names]
     # the i-th instrument's poses are stamped i / n_inst of a period after the first's
     offset_ns = [i * period_ns // n_inst for i in range(n_inst)]
 
@@ -176,7 +173,7 @@ def run(args) -> dict:
     def on_metrics(msg: SimMetrics) -> None:
         step_wall.append(msg.step_wall_time)
 
-    subs = [node.create_subscription(WrenchStamped, topic_of(name, 'omni/force_feedback'),
+    subs = [node.create_subscription(WrenchStamped, topic_within(name, 'omni/force_feedback'),
                                      lambda msg, i=i: on_wrench(msg, i),
                                      QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                                                 reliability=io_qos.reliability))
@@ -274,7 +271,8 @@ def run(args) -> dict:
                     rtt = (recv_ns[i, k] - send_ns[i, k]) * 1e-6 if recv_ns[i, k] else ''
                     w.writerow([name, k, stamp0 + k * period_ns + offset_ns[i], send_ns[i, k],
                                 recv_ns[i, k] or '', rtt, *force[i, k].tolist()])
-        spath = path.with_name(path.stem + '_summary.csv')
+        # one summary file per number of instruments: their rows have other columns
+        spath = path.with_name(path.stem + ('_summary.csv' if n_inst == 1 else f'_{n_inst}_instruments_summary.csv'))
         new = not spath.exists()
         with spath.open('a', newline='') as fh:
             w = csv.DictWriter(fh, fieldnames=list(summary))

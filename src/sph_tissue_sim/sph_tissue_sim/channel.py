@@ -14,6 +14,7 @@ import threading
 from dataclasses import dataclass, field
 
 import numpy as np
+from tissue_common.instruments import topic_within
 
 from .haptics.multirate import MultiRate
 from .mapping import DeviceMapping
@@ -40,7 +41,7 @@ class Channel:
 
     def device_frame(self, shared: str) -> str:
         """Its device's frame: ``shared`` (the ``device_frame`` parameter) in its namespace."""
-        return f'{self.name}/{shared}' if self.name else shared
+        return topic_within(self.name, shared)
 
     @property
     def label(self) -> str:

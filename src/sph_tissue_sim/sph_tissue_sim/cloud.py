@@ -10,7 +10,7 @@ Point layout (little endian, 24 bytes a point)::
     16      von_mises     float32  Pa     von Mises stress (0 where none was computed)
     20      region        uint8    -      0 still, 1 interaction, 1 + i transmission layer i
     21      held          uint8    -      0 free, k + 1 held by instrument k (the order of the
-                                          ``instruments`` parameter)
+                                          ``instruments`` parameter; held by two: the later's)
     22..23  padding
 
 :class:`CloudBuffer` owns one message-sized byte buffer and refills it with a numba kernel that

@@ -331,11 +331,13 @@ class Runner:
         if not self.lockstep:
             self.handle(pose, ch)
             return
-        reason = self._reject_reason(pose, ch)
+        reason = self._frame_reason(pose, ch)
         if reason is not None:
-            # answered now: a pose that cannot move its tool takes no place in a round, so the others'
-            # poses still pair as sent (and a probe in a foreign frame does not hold a round up)
-            self._reject(pose, f'rejected pose ({reason}): answered zero force, tissue not stepped', ch)
+            # not this device's pose (a probe in a foreign frame): answered now, outside the rounds and
+            # without touching the renderer, so the device's own poses still pair as sent
+            self.counts['rejected'] += 1
+            self.throttled('reject', 'warn', f'rejected pose ({reason}): answered zero force, tissue not stepped')
+            self._answer_with(pose, np.zeros(3), ch)
             return
         with self._cv:
             self._make_room(ch.inbox, f'lockstep: {ch.label} is that far ahead of the others')
@@ -379,12 +381,16 @@ class Runner:
     def _answer_with(self, pose: Pose, force: np.ndarray, ch: Channel) -> None:
         self.send_force(pose.stamp, pose.frame_id or self.p['device_frame'], force, ch.index)
 
-    def _reject_reason(self, pose: Pose, ch: Channel) -> str | None:
+    def _frame_reason(self, pose: Pose, ch: Channel) -> str | None:
+        """Why ``pose`` is not in ``ch``'s device frame (None: it is)."""
         frame, shared = pose.frame_id, self.p['device_frame']
         # a named instrument's device may name its frame as the others do or in its namespace
         if frame not in (shared, ch.device_frame(shared)) and not (frame == '' and self.p['accept_empty_frame']):
             return f'frame {frame!r} is not {ch.device_frame(shared)!r}'
-        return check_position(pose.position, self.p['max_device_distance'])
+        return None
+
+    def _reject_reason(self, pose: Pose, ch: Channel) -> str | None:
+        return self._frame_reason(pose, ch) or check_position(pose.position, self.p['max_device_distance'])
 
     def _process(self, pose: Pose, ch: Channel) -> None:
         if ch.grasps:

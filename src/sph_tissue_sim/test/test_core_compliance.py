@@ -104,6 +104,12 @@ def test_a_particles_column_is_the_organs_displacement_under_a_unit_force_on_it(
     expected = X[idx] + 0.75 * organ.column(c)[idx] @ load + 0.25 * organ.column(other)[idx] @ load
     np.testing.assert_allclose(x[idx], expected, rtol=1e-6, atol=1e-12)
     assert organ.n_columns == 2
+    # two loads (two instruments) displace by the sum of their responses, each shared by its own
+    x2 = X.copy()
+    pull = np.array([0.0, 0.05, 0.2])
+    organ.place_loads(x2, X, idx, [(np.array([c, other], dtype=np.int32), np.array([3.0, 1.0]), load),
+                                   (np.array([other], dtype=np.int32), np.array([2.0]), pull)])
+    np.testing.assert_allclose(x2[idx], expected + organ.column(other)[idx] @ pull, rtol=1e-6, atol=1e-12)
     # a particle next to a solved one borrows its response instead of paying a solve
     beside = int(top[np.argmin(np.where(top == c, np.inf, np.linalg.norm(X[top] - X[c], axis=1)))])
     assert np.array_equal(organ.column(beside), organ.column(c)) and organ.n_columns == 2

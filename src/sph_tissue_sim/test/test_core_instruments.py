@@ -163,3 +163,45 @@ def test_each_instrument_has_its_own_tool_and_the_default_is_the_configs():
 def test_a_tool_out_of_range_or_unknown_is_refused_naming_the_instrument(tools, message):
     with pytest.raises(ConfigError, match=message):
         Solver(_block(), liver_default(), GLOBAL, instruments=2, tools=tools)
+
+
+def test_a_lifted_second_instrument_in_local_mode_leaves_the_first_ones_forces_as_they_were():
+    """To rounding: the second instrument's (empty) layers and far-field load take other sums."""
+    model = _block()
+    config = SolverConfig(mode='local')
+    one = Solver(model, liver_default(), config)
+    two = Solver(model, liver_default(), config, instruments=2)
+    start = _over(model, (0.0, 0.0))
+    for k in range(60):
+        tip = start - [0.0, 0.0, 1e-4 * k]
+        a = one.step(tip, 1e-3)
+        b = two.step_tools([(tip, None), None], 1e-3)
+        np.testing.assert_allclose(b.tools[0].force, a.force, rtol=1e-9, atol=1e-15)
+    assert a.force[2] > 0.05 and not b.tools[1].force.any()
+
+
+def test_the_layers_of_several_instruments_move_as_one_instruments_layers_do():
+    """move_layers_tools with one instrument is move_layers; with two, each layer particle follows
+    its own instrument's touched particles."""
+    from sph_tissue_sim.core.integrate import move_layers, move_layers_tools
+
+    rng = np.random.default_rng(3)
+    n = 40
+    x, v, fixed = rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), np.zeros(n, dtype=np.bool_)
+    layer, layer_w = np.arange(20, 30, dtype=np.int32), rng.uniform(0.2, 0.8, 10)
+    touch, touch_w = np.array([1, 2, 3, 11, 12], dtype=np.int32), rng.uniform(0.1, 1.0, 5)
+    xa, va = x.copy(), v.copy()
+    move_layers(xa, va, fixed, layer, layer_w, 10, touch, touch_w, 3, -1, 1e-3)
+    xb, vb = x.copy(), v.copy()
+    move_layers_tools(xb, vb, fixed, layer, layer_w, 10, np.zeros(n, dtype=np.int32), touch, touch_w,
+                      np.array([0, 3]), np.array([-1]), 1e-3)
+    np.testing.assert_allclose(vb, va, rtol=1e-12)
+    np.testing.assert_allclose(xb, xa, rtol=1e-12)
+    tool = np.zeros(n, dtype=np.int32)
+    tool[25:30] = 1
+    move_layers_tools(x, v, fixed, layer, layer_w, 10, tool, touch, touch_w, np.array([0, 3, 5]),
+                      np.array([-1, -1]), 1e-3)
+    for k, (a, b) in enumerate(((0, 3), (3, 5))):
+        vc = (touch_w[a:b, None] * v[touch[a:b]]).sum(axis=0) / touch_w[a:b].sum()
+        mine = layer[tool[layer] == k]
+        np.testing.assert_allclose(v[mine], layer_w[tool[layer] == k, None] * vc, rtol=1e-12)

@@ -197,16 +197,29 @@ def test_two_instruments_in_lockstep_repeat_bit_for_bit_whatever_order_their_pos
 def test_a_pose_in_a_foreign_frame_is_answered_at_once_and_takes_no_place_in_a_round():
     runner, out = make_runner(**TWO, timing_mode='lockstep')
     path = press_path(3, depth=0.006)
+    runner.on_pose(pose(0, path[0]), 0)                      # waits in its round for the right's
     probe = Pose(T0_NS - MS, T0_NS - MS, 'system_monitor_probe', (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     runner.on_pose(probe, 0)
     assert [(s[1], s[2], s[4]) for s in forces(out)] == [(T0_NS - MS, 'system_monitor_probe', 0)]
     assert runner.counts['rejected'] == 1 and runner.counts['steps'] == 0
-    for k, p in enumerate(path):
+    runner.on_pose(pose(0, path[0]), 1)
+    for k, p in enumerate(path[1:], start=1):
         runner.on_pose(pose(k, p), 0)
         runner.on_pose(pose(k, p), 1)
     # the rounds pair the instruments' poses as sent: each round's two answers carry one stamp
     assert [(s[1], s[4]) for s in forces(out)[1:]] == [(T0_NS + k * MS, i) for k in range(3) for i in (0, 1)]
     assert runner.counts['steps'] == len(path)
+
+
+def test_a_bad_position_of_one_instrument_keeps_its_place_in_the_round():
+    runner, out = make_runner(**TWO, timing_mode='lockstep')
+    path = press_path(4, depth=0.006)
+    for k, p in enumerate(path):
+        runner.on_pose(pose(k, p * np.nan if k == 1 else p), 0)
+        runner.on_pose(pose(k, p), 1)
+    assert runner.counts['rejected'] == 1
+    assert [(s[1], s[4]) for s in forces(out)] == [(T0_NS + k * MS, i) for k in range(4) for i in (0, 1)]
+    assert not np.any(forces(out)[2][3])                     # the bad pose: zero force
 
 
 def test_a_named_instruments_device_may_name_its_frame_in_its_namespace_but_not_in_anothers():

@@ -1,8 +1,8 @@
 """Instrument names: the ``instruments`` parameter of sim_node and viz_node (no rclpy).
 
 ``['']`` is one instrument without a namespace (the topics keep their plain names); several are
-distinct names, each a namespace of its own ``omni/pose``, ``omni/force_feedback``, ``omni/state``
-and ``tissue/metrics``. The order is the simulator's instrument index (``held`` in the particle
+distinct names, each a namespace of its own ``omni/pose``, ``omni/force_feedback``, grasp input
+(``omni/state`` or ``omni/jaw/measured_js``), ``tissue/metrics`` and ``tissue/device_frame``. The order is the simulator's instrument index (``held`` in the particle
 cloud counts from it).
 """
 

@@ -193,7 +193,8 @@ class OrganCompliance:
         self._worker: threading.Thread | None = None
         self._closed = False
         self._closing = np.zeros(1, dtype=np.int8)   # ends the worker's wait for the factor
-        self._ready_since: float | None = None   # when a touch's first response was ready (monotonic s)
+        #: per load (instrument): when its touch's first response was ready (monotonic s)
+        self._ready_since: dict[int, float] = {}
         #: the last exception a background solve raised (None: none did)
         self.failure: Exception | None = None
 
@@ -305,8 +306,8 @@ class OrganCompliance:
         is set (the responses solved so far are kept). In the background they are queued, and each
         load is shared by its particles whose responses are ready (none ready at all: ``idx`` at
         rest), the displacement growing over ``READY_RAMP`` from the first one ready."""
-        loads = [(at, w, load) for at, w, load in loads if len(at)]
         if not self.background:
+            loads = [(at, w, load) for at, w, load in loads if len(at)]
             for at, _, _ in loads:
                 for c in at.tolist():
                     if self.abort[0] != 0 or self.column(c, self.abort) is None:
@@ -315,23 +316,22 @@ class OrganCompliance:
             return True
         with self._publish:
             shares = []
-            for at, w, load in loads:
+            now = time.monotonic()
+            for i, (at, w, load) in enumerate(loads):
                 ready = np.array([self.slot[c] >= 0 or self._share(c) for c in at.tolist()], dtype=bool)
                 for c in at[~ready].tolist():
                     self._request(c)
                 total = float(np.sum(w[ready]))
-                if total > 0.0:
-                    shares.append((at[ready], w[ready], total, load))
-            if shares:
-                now = time.monotonic()
-                if self._ready_since is None:
-                    self._ready_since = now
+                if total <= 0.0:
+                    self._ready_since.pop(i, None)
+                    continue
                 # a response that came late (a busy machine: hundreds of ms) would move the shell
-                # from rest at once, a step in the force; it comes in over READY_RAMP instead
-                gain = min(1.0, (now - self._ready_since) / READY_RAMP)
-                self._place(x, X, idx, [(at, w * (gain / total), load) for at, w, total, load in shares])
+                # from rest at once, a step in the force; each load comes in over READY_RAMP instead
+                gain = min(1.0, (now - self._ready_since.setdefault(i, now)) / READY_RAMP)
+                shares.append((at[ready], w[ready] * (gain / total), load))
+            if shares:
+                self._place(x, X, idx, shares)
             else:
-                self._ready_since = None
                 x[idx] = X[idx]
         return True
 

@@ -428,11 +428,6 @@ class LocalArea:
                            self.layer, self.layer_w, self.stress, self.cand, self.tmp, self.touch,
                            self.touch_w, self.centres, self.layer_counts, self.layer_tool)
 
-    @property
-    def n_touch(self) -> int:
-        """Particles the instruments touch this frame."""
-        return int(self.touch_start[-1])
-
     def reset(self, global_mode: bool) -> None:
         """No active particle; in global mode every free particle is in the interaction area."""
         self.region[:] = 0

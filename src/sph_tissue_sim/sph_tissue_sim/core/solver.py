@@ -212,7 +212,7 @@ class StepResult:
     kinetic_energy: float             # [J]
     wall_time: float                  # [s]
     substeps_capped: bool = False     # the frame needed more than max_substeps (time lagged)
-    k1: float = 0.0                   # interaction radius factor used (local mode)
+    k1: float = 0.0                   # interaction radius factor used (local mode; the first instrument's)
     n_active: int = 0                 # particles integrated this frame
 
     @property

@@ -56,7 +56,8 @@ class Area(NamedTuple):
     touch_w: np.ndarray
     centres: np.ndarray    # (K, 3) each instrument's area's centre in reference space [m]
     layer_counts: np.ndarray  # particles per layer of the last frame
-    layer_tool: np.ndarray  # int32: the instrument whose layer a particle is in (nearest contact)
+    layer_tool: np.ndarray  # int32: the instrument whose layer a layer particle is in (one in two
+                            # instruments' areas is solved, not a layer)
 
 
 class Motion(NamedTuple):
