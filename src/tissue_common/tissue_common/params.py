@@ -67,4 +67,9 @@ def declare_all(node, table: dict, error: type[Exception] = ValueError,
         err = check_choice(table, name, values[name]) or (check(name, values[name]) if check else None)
         if err:
             raise error(err)
+    # a misspelt or retired name would otherwise be dropped without a word (rclpy keeps the
+    # overrides it was given, declared or not)
+    given = getattr(node, '_parameter_overrides', {})
+    for name in sorted(set(given) - set(table) - {'use_sim_time', 'start_type_description_service'}):
+        node.get_logger().warning(f'parameter {name} is not one of this node\'s: ignored')
     return values
