@@ -25,19 +25,22 @@ def _over(model, xy, gap: float = 0.0) -> np.ndarray:
     return np.array([c[0] + xy[0], c[1] + xy[1], X[:, 2].max() + SPACING + 0.005 + gap])
 
 
-def test_a_lifted_second_instrument_leaves_the_first_ones_forces_as_they_were_bit_for_bit():
+@pytest.mark.parametrize('config, rtol', [(GLOBAL, 0.0), (SolverConfig(mode='local'), 1e-9)])
+def test_a_lifted_second_instrument_leaves_the_first_ones_forces_as_they_were(config, rtol):
+    """Bit for bit in global mode; in local mode to rounding (the second instrument's empty layers
+    and far-field load take other sums)."""
     model = _block()
-    one = Solver(model, liver_default(), GLOBAL)
-    two = Solver(model, liver_default(), GLOBAL, instruments=2)
+    one = Solver(model, liver_default(), config)
+    two = Solver(model, liver_default(), config, instruments=2)
     start = _over(model, (0.0, 0.0))
     for k in range(60):
         tip = start - [0.0, 0.0, 1e-4 * k]
         a = one.step(tip, 1e-3)
         b = two.step_tools([(tip, None), None], 1e-3)
-        assert np.array_equal(a.force, b.tools[0].force)
+        np.testing.assert_allclose(b.tools[0].force, a.force, rtol=rtol, atol=rtol * 1e-6)
         assert np.array_equal(b.tools[1].force, np.zeros(3))
     assert a.force[2] > 0.05
-    assert np.array_equal(one.positions, two.positions)
+    np.testing.assert_allclose(two.positions, one.positions, rtol=rtol, atol=rtol * 1e-6)
     assert b.tools[1].tool_segment is None and b.tools[1].contact_index == -1
 
 
@@ -163,21 +166,6 @@ def test_each_instrument_has_its_own_tool_and_the_default_is_the_configs():
 def test_a_tool_out_of_range_or_unknown_is_refused_naming_the_instrument(tools, message):
     with pytest.raises(ConfigError, match=message):
         Solver(_block(), liver_default(), GLOBAL, instruments=2, tools=tools)
-
-
-def test_a_lifted_second_instrument_in_local_mode_leaves_the_first_ones_forces_as_they_were():
-    """To rounding: the second instrument's (empty) layers and far-field load take other sums."""
-    model = _block()
-    config = SolverConfig(mode='local')
-    one = Solver(model, liver_default(), config)
-    two = Solver(model, liver_default(), config, instruments=2)
-    start = _over(model, (0.0, 0.0))
-    for k in range(60):
-        tip = start - [0.0, 0.0, 1e-4 * k]
-        a = one.step(tip, 1e-3)
-        b = two.step_tools([(tip, None), None], 1e-3)
-        np.testing.assert_allclose(b.tools[0].force, a.force, rtol=1e-9, atol=1e-15)
-    assert a.force[2] > 0.05 and not b.tools[1].force.any()
 
 
 def test_the_layers_of_several_instruments_move_as_one_instruments_layers_do():

@@ -253,12 +253,18 @@ def test_each_instruments_tool_is_its_own_and_its_metrics_say_so():
     assert [metrics_values(res, runner.solver, None, k)['tool_radius'] for k in range(2)] == radii
 
 
-def test_a_closed_button_grasps_lifting_pulls_and_opening_lets_go():
-    runner, out = make_runner(timing_mode='lockstep', step_thread=False)
+def _touch_and_close(runner) -> list:
+    """Touch the block 1 mm deep and close the first instrument's jaw; returns the poses sent."""
     path = list(press_path(40, depth=0.001))
     for k, p in enumerate(path):
         runner.on_pose(pose(k, p))
     runner.on_grasp(0, True)
+    return path
+
+
+def test_a_closed_button_grasps_lifting_pulls_and_opening_lets_go():
+    runner, out = make_runner(timing_mode='lockstep', step_thread=False)
+    path = _touch_and_close(runner)
     up = [path[-1] + [0.0, 0.001 * (j + 1) / 10, 0.0] for j in range(40)]   # lifted 4 mm, device +y
     for j, p in enumerate(up):
         runner.on_pose(pose(len(path) + j, p))
@@ -275,10 +281,7 @@ def test_a_closed_button_grasps_lifting_pulls_and_opening_lets_go():
 
 def test_the_cloud_marks_the_particles_an_instrument_holds_until_it_lets_go():
     runner, out = make_runner(timing_mode='lockstep', step_thread=False)
-    path = list(press_path(40, depth=0.001))
-    for k, p in enumerate(path):
-        runner.on_pose(pose(k, p))
-    runner.on_grasp(0, True)
+    path = _touch_and_close(runner)
     runner.on_pose(pose(len(path), path[-1]))
     runner.send_cloud_once()
     hand = runner.solver.instruments[0]
