@@ -156,5 +156,5 @@ def test_lockstep_replay_returns_the_golden_forces_and_the_graph_shuts_down_clea
         from tissue_viz.tissue_images import TissueSnapshots
 
         shots = TissueSnapshots.load(report / 'tissue_snapshots.npz')
-        assert shots.rest.peak < 1e-4 < shots.deepest.peak and shots.deepest.tool is not None
+        assert shots.rest.peak < 1e-4 < shots.deepest.peak and shots.deepest.tools[0] is not None
         assert {'tissue_rest.png', 'tissue_deepest.png', 'tissue_press.gif'} <= set(summary['files'])

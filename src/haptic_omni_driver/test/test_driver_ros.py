@@ -679,12 +679,14 @@ def test_a_button_change_is_stamped_with_the_sample_it_came_with(rclpy_node):
     from tissue_msgs.msg import DeviceState
 
     poses, states = set(), []
+    rclpy_node.create_subscription(DeviceState, 'omni/state', states.append, reliable_qos(1000))
     rclpy_node.create_subscription(PoseStamped, 'omni/pose',
                                    lambda m: poses.add(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec),
                                    reliable_qos(10000))
-    rclpy_node.create_subscription(DeviceState, 'omni/state', states.append, reliable_qos(1000))
+    # the change is sent once: the script starts only once this reader is matched (a busy machine's
+    # discovery took longer than the script's first 0.4 s)
     with driver({'backend': 'scripted', 'reliable': True, 'approach_time': 0.2, 'press_time': 0.2,
-                 'hold_time': 0.2, 'state_rate': 1.0}) as proc:
+                 'hold_time': 0.2, 'state_rate': 1.0, 'wait_for_subscribers': 1}) as proc:
         proc.wait_for_output(r'ready:', 30)
         assert rclpy_node.spin_until(lambda: any(m.button1 for m in states), 30), proc.output()
         change = next(m for m in states if m.button1)
