@@ -168,26 +168,26 @@ def grasp(g: Geometry, rng: np.random.Generator) -> list[Segment]:
 
 
 def bimanual(g: Geometry, rng: np.random.Generator) -> dict[str, list[Segment]]:
-    """Two instruments, 4.5 s each: ``left`` touches the top 10 mm from an edge, closes its jaw
+    """Two instruments, 2.8 s each: ``left`` touches the top 10 mm from an edge, closes its jaw
     (button 1), lifts 12 mm while retracting 10 mm outwards, holds, opens, retreats; ``right`` waits
     while the tissue is lifted, then presses 5 mm, 35 mm beside where the grasp took hold, holds and
     releases. Positions are each device's own; ``instrument_offsets`` (``system_graph.BAG_SIM_PARAMS``)
     place the two devices 20 mm either side of the model centre."""
     left = _Path(g.point(-0.01, depth=-0.02))
-    left.move('approach', g.point(-0.01, depth=-0.004), 0.6)
-    left.move('touch', g.point(-0.01, depth=0.001), 0.4)
-    left.hold(0.2, True)
-    left.move('retract', g.point(-0.02, depth=-0.012), 0.8, True)
-    left.hold(1.6, True)
-    left.hold(0.3)
-    left.move('retreat', g.point(-0.02, depth=-0.03), 0.6)
+    left.move('approach', g.point(-0.01, depth=-0.004), 0.4)
+    left.move('touch', g.point(-0.01, depth=0.001), 0.3)
+    left.hold(0.1, True)
+    left.move('retract', g.point(-0.02, depth=-0.012), 0.6, True)
+    left.hold(0.9, True)
+    left.hold(0.2)
+    left.move('retreat', g.point(-0.02, depth=-0.03), 0.3)
     right = _Path(g.point(-0.015, depth=-0.02))
-    right.hold(1.6)
-    right.move('approach', g.point(-0.015, depth=-0.004), 0.5)
-    right.move('press', g.point(-0.015, depth=0.005), 0.6)
-    right.hold(0.6)
-    right.move('release', g.point(-0.015, depth=-0.004), 0.5)
-    right.move('retreat', g.point(-0.015, depth=-0.02), 0.7)
+    right.hold(0.9)
+    right.move('approach', g.point(-0.015, depth=-0.004), 0.3)
+    right.move('press', g.point(-0.015, depth=0.005), 0.4)
+    right.hold(0.4)
+    right.move('release', g.point(-0.015, depth=-0.004), 0.4)
+    right.move('retreat', g.point(-0.015, depth=-0.02), 0.4)
     return {'left': left.segments, 'right': right.segments}
 
 

@@ -60,14 +60,14 @@ from haptic_omni_driver.bag_reader import read_bag
 from sph_tissue_sim import params as sim_params
 from sph_tissue_sim.haptics.multirate import MultiRate
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
-from sph_tissue_sim.runner import make_mapping, make_solver
+from sph_tissue_sim.runner import Pose, Runner, make_mapping, make_solver
 from tissue_common.feel import TICK, feel
 from tissue_common.force import clamp_norm
 from tissue_common.stamps import stamp_to_ns
 from tissue_testing import system_graph as graph
 
 ROOT = Path(__file__).resolve().parents[1]
-BAGS = ('press', 'pull', 'sweep', 'poke', 'long', 'grasp')
+BAGS = ('press', 'pull', 'sweep', 'poke', 'long', 'grasp', 'bimanual')
 COLUMNS = ('bag', 'way', 'frames', 'steady_frames', 'dF_p99_mN', 'dF_max_mN', 'reversals', 'tick_change_pct',
            'still_tick_change_pct', 'smooth_tick_change_pct', 'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
 
@@ -81,15 +81,16 @@ def golden_params() -> dict:
     return p
 
 
-def bag_poses(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(stamps [ns] (M,), device positions [m] (M, 3), jaw closed at each pose (M,) bool) of a
-    bundled bag, in order. The jaw is closed where the session's ``grasp_input`` button
-    (``system_graph.BAG_SIM_PARAMS``; none: never) was down in the newest state stamped before the
-    pose, as ``sim_node`` applies it in lockstep."""
+def bag_poses(name: str, instrument: str = '') -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps [ns] (M,), device positions [m] (M, 3), jaw closed at each pose (M,) bool) of one
+    instrument of a bundled bag, in order. The jaw is closed where the session's ``grasp_input``
+    button (``system_graph.BAG_SIM_PARAMS``; none: never) was down in the newest state stamped
+    before the pose, as ``sim_node`` applies it in lockstep."""
     stamps, pos, changes = [], [], []
     button = graph.BAG_SIM_PARAMS.get(name, {}).get('grasp_input', '')
-    for topic, _, _, msg in read_bag(ROOT / 'bags' / name, ['/omni/pose', '/omni/state']):
-        if topic == '/omni/state':
+    ns = f'/{instrument}' if instrument else ''
+    for topic, _, _, msg in read_bag(ROOT / 'bags' / name, [f'{ns}/omni/pose', f'{ns}/omni/state']):
+        if topic.endswith('/omni/state'):
             if button:
                 changes.append((stamp_to_ns(msg.header.stamp), bool(getattr(msg, button))))
             continue
@@ -155,6 +156,30 @@ def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int
                 late = delay or max(1, math.ceil(job.dt / (p['nominal_dt'] * rtf) - 1e-9))
                 pending, due = (job, solver.step(job.point, job.dt)), k + late
     return xs, forces
+
+
+def replay_instruments(p: dict, name: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """A bag of several instruments through ``sim_node``'s own loop (its :class:`Runner`, lockstep, in
+    rounds, with the bag's parameters and jaw changes): per instrument, (device positions, the
+    forces sent) per pose, both in the device frame."""
+    q = {**p, **graph.BAG_SIM_PARAMS.get(name, {})}
+    names = graph.bag_instruments(name)
+    model = sim_params.build_model(q)
+    solver = make_solver(model, sim_params.build_material(q), sim_params.build_config(q), q['nominal_dt'],
+                         instruments=len(names), tools=sim_params.instrument_tools(q))
+    sent: list[dict] = [{} for _ in names]
+    runner = Runner(q, model, solver, lambda stamp, frame, force, k=0: sent[k].__setitem__(stamp, np.array(force)),
+                    lambda *_: None, lambda _: None, lambda *_: None)
+    streams = [bag_poses(name, instrument) for instrument in names]
+    for j in range(len(streams[0][0])):
+        for k, (stamps, device, closed) in enumerate(streams):
+            if j and closed[j] != closed[j - 1]:       # the change came with the previous pose
+                runner.on_grasp(k, bool(closed[j]), int(stamps[j - 1]))
+            st = int(stamps[j])
+            runner.on_pose(Pose(st, st, q['device_frame'], tuple(device[j]), (0.0, 0.0, 0.0, 1.0)), k)
+    runner.shutdown()
+    return {instrument: (device, np.array([sent[k][int(s)] for s in stamps]))
+            for k, (instrument, (stamps, device, _)) in enumerate(zip(names, streams))}
 
 
 def quality(xs: np.ndarray, forces: np.ndarray) -> dict:
@@ -331,6 +356,15 @@ def main(argv=None) -> int:
               f'{q["E_in_min_uJ"]:9.2f} {q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
 
     for name in args.bags.split(','):
+        if len(graph.bag_instruments(name)) > 1:
+            # sim_node's loop itself (its answers are the bag's golden forces): each device's feel
+            for instrument, (device, forces) in replay_instruments(p, name).items():
+                gold = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z) for *_, m in
+                                 read_bag(ROOT / 'bags' / name, [f'/{instrument}/omni/force_feedback'])])
+                row(f'{name} {instrument}', 'renderer', quality(device, forces))
+                print(f'  {name} {instrument}: the forces sent differ from the golden ones by at most '
+                      f'{np.abs(forces - gold).max():.1e} N')
+            continue
         stamps, device, closed = bag_poses(name)
         for way in ('direct', 'renderer'):
             xs, forces = replay(p, stamps, device, way, args.every, config, closed=closed)

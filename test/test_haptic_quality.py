@@ -140,3 +140,22 @@ def test_the_grasp_bag_through_the_renderer_is_passive_and_feels_the_pull():
     assert rendered['E_in_min_uJ'] >= -1.0
     assert forces[closed].min(axis=0)[2] < -0.5            # pulled down (tissue frame) while lifting
     assert np.abs(forces[-200:]).max() < 1e-9              # let go, lifted clear
+
+
+def test_the_two_instrument_bag_through_sim_nodes_loop_gives_its_golden_forces_and_each_hand_a_passive_feel():
+    """``replay_instruments`` runs the bimanual bag through the Runner in lockstep rounds, as sim_node
+    did when it was recorded: the forces are the golden ones (to the stated 1e-9 N: in this process
+    the organ's factor is not made with sim_node's one BLAS thread), and each device's feel is
+    passive."""
+    from haptic_omni_driver.bag_reader import read_bag
+
+    hq = _load()
+    out = hq.replay_instruments(hq.golden_params(), 'bimanual')
+    assert list(out) == ['left', 'right']
+    for instrument, (device, forces) in out.items():
+        gold = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z) for *_, m in
+                         read_bag(ROOT / 'bags' / 'bimanual', [f'/{instrument}/omni/force_feedback'])])
+        assert forces.shape == gold.shape and np.abs(forces - gold).max() <= 1e-9
+        q = hq.quality(device, forces)
+        print(instrument, q)
+        assert q['E_in_min_uJ'] >= -1.0 and q['peak_N'] > 0.2
