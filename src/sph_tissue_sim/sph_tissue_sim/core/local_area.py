@@ -410,6 +410,11 @@ class LocalArea:
         # instrument k's touched particles this frame: touch[touch_start[k]:touch_start[k + 1]]
         self.touch_start = np.zeros(instruments + 1, dtype=np.int64)
         self.centres = np.zeros((instruments, 3))
+        # prepare()'s per-instrument inputs, filled in place each frame
+        self.cand_centres = np.zeros((instruments, 3))
+        self.cand_radii = np.zeros(instruments)
+        self.radii = np.zeros(instruments)
+        self.contacts = np.zeros(instruments, dtype=np.int64)
         self.layer_counts = np.zeros(max(n_layers, 1), dtype=np.int64)
         self.buf_x = np.zeros((n, 3))
         self.buf_v = np.zeros((n, 3))
@@ -486,11 +491,9 @@ class LocalArea:
         without a contact (-1). Its candidates are every particle it can reach anywhere on its way
         through the frame (``seg0`` to ``seg1``; ``seg0`` None: no tool).
         """
-        n_tools = len(tools)
-        cand_centres = np.zeros((n_tools, 3))
-        cand_radii = np.full(n_tools, -1.0)
-        radii = np.full(n_tools, -1.0)
-        contacts = np.full(n_tools, -1, dtype=np.int64)
+        cand_centres, cand_radii, radii, contacts = self.cand_centres, self.cand_radii, self.radii, self.contacts
+        cand_radii[:] = -1.0
+        radii[:] = -1.0
         for k, (seg0, seg1, reach, contact, Dr) in enumerate(tools):
             centre = self.centres[k]
             if seg0 is not None:
@@ -514,8 +517,7 @@ class LocalArea:
             body, self.topo, self.grid, self.bundle, self.n_active, self.stamp_val, radii,
             0.5 * self.h, self.n_layers, cand_centres, cand_radii)
         sets = Sets(self.stress, n_stress, self.sph, n_sph, self.layer, self.layer_w, n_lp,
-                    self.cand, n_cand, self.touch, self.touch_w, self.touch_start.copy(), contacts,
-                    self.layer_tool)
+                    self.cand, n_cand, self.touch, self.touch_w, self.touch_start, contacts, self.layer_tool)
         return sets, n_inter, n_relax
 
     def far_field(self, body: Body, x: np.ndarray, sets: Sets, react: np.ndarray, factor: float,
