@@ -74,7 +74,7 @@ class SimNode(Node):
             log.info('numba warm-up: the SPH kernels load from numba\'s cache, or compile (about 30 s '
                      'on 2 cores) at the first start after a change of the core')
             try:
-                warmup(config.scheme, config.integrator)
+                warmup(config.scheme, config.integrator, len(p['instruments']))
             except SimError as exc:  # the probe step below still compiles what this model needs
                 log.warn(f'numba warm-up on the test block failed ({exc}); continuing')
         names = list(p['instruments'])

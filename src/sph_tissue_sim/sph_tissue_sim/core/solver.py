@@ -906,9 +906,10 @@ def _turned_to(rot: np.ndarray, seg: np.ndarray) -> np.ndarray:
     return (np.eye(3) + vx + vx @ vx / (1.0 + c)) @ rot
 
 
-def warmup(scheme: str | None = None, integrator: str = 'explicit') -> float:
+def warmup(scheme: str | None = None, integrator: str = 'explicit', instruments: int = 1) -> float:
     """Compile every numba kernel on a tiny block (numba caches to disk); returns seconds taken.
-    ``integrator`` picks the integrator's specialisation of the frame loop."""
+    ``integrator`` picks the integrator's specialisation of the frame loop; ``instruments`` > 1 also
+    compiles several tools' kernels (their layers, their far-field loads), which one tool never runs."""
     from .models import make_block
 
     t0 = time.perf_counter()
@@ -929,6 +930,12 @@ def warmup(scheme: str | None = None, integrator: str = 'explicit') -> float:
                 except ConfigError:
                     break
             solver.von_mises()
+            if instruments > 1 and sch == 'tlsph':
+                # sim_node steps these in its live loop: compiled there, the first steps took seconds
+                solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode, integrator=integ), instruments=2)
+                for k in range(3):
+                    solver.step_tools([(np.array([0.004, 0.01, top + 0.005 - 0.001 * k]), None),
+                                       (np.array([0.011, 0.01, top + 0.005 - 0.001 * k]), None)], 1e-3)
     if 'tlsph' in schemes:
         # the backstop samples' nearness test runs outside the frame kernel
         solver = Solver(model, mat, SolverConfig(contact_samples=1))
