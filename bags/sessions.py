@@ -13,6 +13,7 @@ instrument's name (its namespace: ``/<name>/omni/pose``); a session of one instr
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -191,6 +192,24 @@ def bimanual(g: Geometry, rng: np.random.Generator) -> dict[str, list[Segment]]:
     return {'left': left.segments, 'right': right.segments}
 
 
+def cut(g: Geometry, rng: np.random.Generator) -> list[Segment]:
+    """A blade held upright (:data:`ORIENTATIONS`): approach above the top 15 mm left of the
+    centre, plunge 5 mm, draw 30 mm across the top at 15 mm/s, lift out, retreat (3.9 s); replayed
+    with a 20 mm blade (``system_graph.BAG_SIM_PARAMS``)."""
+    p = _Path(g.point(-0.015, depth=-0.02))
+    p.move('approach', g.point(-0.015, depth=-0.002), 0.5)
+    p.move('plunge', g.point(-0.015, depth=0.005), 0.5)
+    p.move('cut', g.point(0.015, depth=0.005), 2.0)
+    p.move('lift', g.point(0.015, depth=-0.004), 0.4)
+    p.move('retreat', g.point(0.015, depth=-0.02), 0.5)
+    return p.segments
+
+
+#: the stylus orientation (x, y, z, w) of a session's poses, device frame (others: identity): the
+#: cut's holds the stylus +z (the blade's edge) along the device's +y, up out of the tissue
+ORIENTATIONS = {'cut': (-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5))}
+
+
 #: name -> (builder, description); a builder returns one script, or one per instrument by name
 SESSIONS: dict[str, tuple[Callable, str]] = {
     'press': (press, 'press 6 mm, hold 1 s, release'),
@@ -200,6 +219,7 @@ SESSIONS: dict[str, tuple[Callable, str]] = {
     'long': (long_session, 'about a minute of presses, pulls, sweeps and pokes over the surface'),
     'grasp': (grasp, 'grasp the top 10 mm from an edge, lift 15 mm, hold, release'),
     'bimanual': (bimanual, 'left grasps the top near an edge and retracts it, right presses beside it'),
+    'cut': (cut, 'a blade plunged 5 mm and drawn 30 mm across the top'),
 }
 
 
@@ -243,6 +263,7 @@ def session_messages(name: str, rate: float = 1000.0, geometry: Geometry | None 
     PoseStamped, State = types[POSE_TYPE], types[STATE_TYPE]
     Vec = types['geometry_msgs/msg/Vector3']
     every = max(1, int(round(rate / state_rate)))
+    orientation = Quat(*ORIENTATIONS.get(name, (0.0, 0.0, 0.0, 1.0)))
     out = []
     for instrument in session_scripts(name, geometry, seed):
         t, pos, buttons, _ = session_trajectory(name, rate, geometry, seed, instrument=instrument)
@@ -251,7 +272,7 @@ def session_messages(name: str, rate: float = 1000.0, geometry: Geometry | None 
             stamp = int(t0_ns + round(t[k] * 1e9))
             header = Header(Time(*divmod(stamp, 1_000_000_000)), frame_id)
             out.append((pose_topic, POSE_TYPE, stamp, PoseStamped(
-                header, Pose(Point(*map(float, pos[k])), Quat(0.0, 0.0, 0.0, 1.0)))))
+                header, Pose(Point(*map(float, pos[k])), orientation))))
             if k % every == 0 or (k and buttons[k] != buttons[k - 1]):
                 out.append((state_topic, STATE_TYPE, stamp, State(
                     header, bool(buttons[k]), False, False, False, False, True, Vec(0.0, 0.0, 0.0),

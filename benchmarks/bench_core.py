@@ -65,7 +65,7 @@ ANCHOR_H = 0.3                  # ... is our default h / spacing at our 3670-par
 TABLE4_FEXT = 2.0               # [N] f_ext of eq. 18 for Tables 4/5 (k1 = gain * f_ext pinned)
 
 SCHEMES_SPH = ('tlsph', 'paper')
-ALL_TABLES = ('1', '2', '3', '4', '5', 'scaling', 'memory', 'targets')
+ALL_TABLES = ('1', '2', '3', '4', '5', 'scaling', 'memory', 'targets', 'cut')
 
 CSV_FIELDS = ('table', 'label', 'scheme', 'mode', 'model', 'n_target', 'n_particles', 'spacing_mm',
               'h_paper', 'h_ratio', 'h_mm', 'k1_gain', 'k1_pinned', 'n_layers', 'status',
@@ -459,6 +459,60 @@ def run_targets(st: Settings, models: Models, material, progress) -> list[dict]:
     return [r.row() for r in runners]
 
 
+#: the cut table's path: a vertical edge plunged this deep [m] into the top, then drawn this far [m] at this
+#: speed [m/s]; the blade's edge and its capsule twin
+CUT_DEPTH, CUT_TRAVEL, CUT_SPEED = 0.005, 0.03, 0.02
+CUT_TOOL = dict(tool_radius=0.0005, tool_length=0.02)
+
+
+def run_cut(st: Settings, models: Models, material, progress) -> list[dict]:
+    """A frame while cutting against the same frame without: a blade and a capsule of its size drawn
+    along the same path through the top of the 3670 liver (plunged ``CUT_DEPTH``, drawn ``CUT_TRAVEL``),
+    stepped frame by frame in turn (one run, so machine load hits both alike); timed while drawn."""
+    model = models.get(ANCHOR_N if not st.quick else st.sizes[-1])
+    P = model.positions
+    s = model.spacing
+    cx, cy = (0.0, 0.0) if model.name == 'liver' else (float(P[:, 0].mean()), float(P[:, 1].mean()))
+    col = ~model.fixed & (np.hypot(P[:, 0] - cx, P[:, 1] - cy) < 1.5 * s)
+    top = float(P[col if col.any() else ~model.fixed, 2].max())
+    start = np.array([cx - 0.5 * CUT_TRAVEL + 0.13 * s, cy + 0.37 * s, top + 0.002])
+    plunge = int((CUT_DEPTH + 0.002) / CUT_SPEED / FRAME_DT)
+    drawn = int(CUT_TRAVEL / CUT_SPEED / FRAME_DT) if not st.quick else 50
+    rows = []
+    for mode in ('local', 'global'):
+        solvers = {shape: Solver(model, material, SolverConfig(mode=mode, tool_shape=shape, **CUT_TOOL))
+                   for shape in ('capsule', 'blade')}
+        times = {shape: [] for shape in solvers}
+        forces = {shape: [] for shape in solvers}
+        status = {shape: 'ok' for shape in solvers}
+        for k in range(plunge + drawn):
+            p = start + (np.array([0.0, 0.0, -(k + 1) * CUT_SPEED * FRAME_DT]) if k < plunge else
+                         np.array([(k - plunge + 1) * CUT_SPEED * FRAME_DT, 0.0, -CUT_DEPTH - 0.002]))
+            for shape in (('capsule', 'blade') if k % 2 else ('blade', 'capsule')):
+                if status[shape] != 'ok':
+                    continue
+                t0 = time.perf_counter()
+                try:
+                    res = solvers[shape].step(p, FRAME_DT, np.eye(3))
+                except SimError:
+                    status[shape] = f'unstable at frame {k}'
+                    continue
+                if k >= plunge:
+                    times[shape].append(time.perf_counter() - t0)
+                    forces[shape].append(float(np.linalg.norm(res.tools[0].force_raw)))
+        for shape, solver in solvers.items():
+            t = np.array(times[shape]) * 1e3
+            rows.append(dict(table='cut', label=f'cut {mode} {shape}', scheme='tlsph', mode=mode, model=model.name,
+                             n_target=ANCHOR_N, n_particles=model.n_particles, status=status[shape],
+                             frames=len(t), step_ms=float(np.median(t)) if len(t) else None,
+                             step_p90_ms=float(np.percentile(t, 90)) if len(t) else None,
+                             step_p99_ms=float(np.percentile(t, 99)) if len(t) else None,
+                             force_N=float(np.median(forces[shape])) if forces[shape] else None,
+                             bonds_cut=solver.cutters[0].cut if solver.cutters else 0))
+        progress(f'cut {mode}')
+    return rows
+
+
 def target_lines(rows: list[dict]) -> list[str]:
     """The issue's targets and the ratios, from the interleaved run."""
     by = {r['label']: r for r in rows if r.get('table') == 'targets'}
@@ -705,6 +759,20 @@ def print_tables(rows: list[dict], meta: dict) -> str:
             p(f"{r['label']:<28} {_f(r.get('seconds'), '{:.2f}'):>6} {_f(r.get('rss_mb'), '{:.0f}'):>7} "
               f"{_f(r.get('peak_rss_mb'), '{:.0f}'):>11} {_f(r.get('traced_mb'), '{:.1f}'):>9} "
               f"{_f(r.get('traced_peak_mb'), '{:.1f}'):>11}")
+    cut = [r for r in rows if r.get('table') == 'cut']
+    if cut:
+        p('')
+        p(f'Cutting: a blade ({CUT_TOOL["tool_radius"] * 1e3:g} mm, {CUT_TOOL["tool_length"] * 1e3:g} mm edge) against a '
+          f'capsule of its size, drawn {CUT_TRAVEL * 1e3:g} mm at {CUT_SPEED * 1e3:g} mm/s, '
+          f'{CUT_DEPTH * 1e3:g} mm deep (frames stepped in turn; timed while drawn) [ms per frame]')
+        p(f"{'config':<22} {'N':>6} {'frames':>6} {'median':>8} {'p90':>8} {'p99':>8} {'force N':>8} {'bonds cut':>9} "
+          f"{'x capsule':>9} {'status'}")
+        for r in cut:
+            twin = idx.get(r['label'].replace(' blade', ' capsule'))
+            ratio = (r['step_ms'] / twin['step_ms'] if r.get('step_ms') and twin and twin.get('step_ms') else None)
+            p(f"{r['label']:<22} {r.get('n_particles', ''):>6} {r.get('frames', 0):>6} {_cell(r):>8} "
+              f"{_cell(r, 'step_p90_ms'):>8} {_cell(r, 'step_p99_ms'):>8} {_f(r.get('force_N'), '{:.2f}'):>8} "
+              f"{r.get('bonds_cut', 0):>9} {_f(ratio, '{:.2f}x', ''):>9} {r.get('status')}")
     tg = [r for r in rows if r.get('table') == 'targets']
     if tg:
         p('')
@@ -864,7 +932,8 @@ def main(argv: list[str] | None = None) -> int:
     meta['defaults_fingerprint'] = defaults_fingerprint()
     meta['h_unit_mm'] = h_unit(models) * 1e3
     cases = build_cases(tables, st, models)
-    n_total = len(cases) + ((19 if _numba_threads() > 1 else 14) if 'targets' in tables else 0) + (1 if 'memory' in tables else 0)
+    n_total = (len(cases) + ((19 if _numba_threads() > 1 else 14) if 'targets' in tables else 0)
+               + (1 if 'memory' in tables else 0) + (2 if 'cut' in tables else 0))
     rows: list[dict] = []
     with tqdm(total=n_total, desc='bench', unit='case', file=sys.stderr, dynamic_ncols=True) as bar:
         for case in cases:
@@ -878,6 +947,11 @@ def main(argv: list[str] | None = None) -> int:
                 bar.set_postfix_str(f'targets: {label}')
                 bar.update(1)
             rows.extend(run_targets(st, models, material, progress))
+        if 'cut' in tables:
+            def progress(label):
+                bar.set_postfix_str(label)
+                bar.update(1)
+            rows.extend(run_cut(st, models, material, progress))
         if 'memory' in tables:
             bar.set_postfix_str(f'memory N={st.memory_n}')
             rows.extend(run_memory(st, models.kind))

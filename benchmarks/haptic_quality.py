@@ -67,7 +67,10 @@ from tissue_common.stamps import stamp_to_ns
 from tissue_testing import system_graph as graph
 
 ROOT = Path(__file__).resolve().parents[1]
-BAGS = ('press', 'pull', 'sweep', 'poke', 'long', 'grasp', 'bimanual')
+BAGS = ('press', 'pull', 'sweep', 'poke', 'long', 'grasp', 'bimanual', 'cut')
+#: frames after a blade broke bonds that are its crack step (the force meant to drop), left out of the
+#: steady |dF| of a cutting session
+CRACK_STEP = 3
 COLUMNS = ('bag', 'way', 'frames', 'steady_frames', 'dF_p99_mN', 'dF_max_mN', 'reversals', 'tick_change_pct',
            'still_tick_change_pct', 'smooth_tick_change_pct', 'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
 
@@ -158,33 +161,59 @@ def replay(p: dict, stamps: np.ndarray, device: np.ndarray, way: str, every: int
     return xs, forces
 
 
-def replay_instruments(p: dict, name: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """A bag of several instruments through ``sim_node``'s own loop (its :class:`Runner`, lockstep, in
-    rounds, with the bag's parameters and jaw changes): per instrument, (device positions, the
-    forces sent) per pose, both in the device frame."""
-    q = {**p, **graph.BAG_SIM_PARAMS.get(name, {})}
+def bag_orientations(name: str, instrument: str = '') -> np.ndarray:
+    """(M, 4) the stylus orientation (x, y, z, w) of each pose of one instrument of a bundled bag."""
+    ns = f'/{instrument}' if instrument else ''
+    return np.array([(m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z, m.pose.orientation.w)
+                     for *_, m in read_bag(ROOT / 'bags' / name, [f'{ns}/omni/pose'])])
+
+
+def replay_instruments(p: dict, name: str) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """A bag through ``sim_node``'s own loop (its :class:`Runner`, lockstep, in rounds of one pose of
+    each instrument, with the bag's parameters, orientations and jaw changes): per instrument,
+    (device positions, the forces sent, both in the device frame, and the bonds its blade broke) per
+    pose."""
+    # stepping in the caller's thread: the same forces as sim_node's stepping thread in lockstep
+    q = {**p, **graph.BAG_SIM_PARAMS.get(name, {}), 'step_thread': False}
     names = graph.bag_instruments(name)
     model = sim_params.build_model(q)
     solver = make_solver(model, sim_params.build_material(q), sim_params.build_config(q), q['nominal_dt'],
                          instruments=len(names), tools=sim_params.instrument_tools(q))
     sent: list[dict] = [{} for _ in names]
+    cut: list[dict] = [{} for _ in names]
+
+    def metrics(stamp, res, solver, status, k: int = 0) -> None:
+        cutter = solver.cutters.get(k)
+        cut[k][stamp] = cutter.last_cut if cutter is not None else 0
+
     runner = Runner(q, model, solver, lambda stamp, frame, force, k=0: sent[k].__setitem__(stamp, np.array(force)),
-                    lambda *_: None, lambda _: None, lambda *_: None)
+                    metrics, lambda _: None, lambda *_: None)
     streams = [bag_poses(name, instrument) for instrument in names]
+    turns = [bag_orientations(name, instrument) for instrument in names]
     for j in range(len(streams[0][0])):
         for k, (stamps, device, closed) in enumerate(streams):
             if j and closed[j] != closed[j - 1]:       # the change came with the previous pose
                 runner.on_grasp(k, bool(closed[j]), int(stamps[j - 1]))
             st = int(stamps[j])
-            runner.on_pose(Pose(st, st, q['device_frame'], tuple(device[j]), (0.0, 0.0, 0.0, 1.0)), k)
+            runner.on_pose(Pose(st, st, q['device_frame'], tuple(device[j]), tuple(turns[k][j])), k)
     runner.shutdown()
-    return {instrument: (device, np.array([sent[k][int(s)] for s in stamps]))
+    return {instrument: (device, np.array([sent[k][int(s)] for s in stamps]),
+                         np.array([cut[k].get(int(s), 0) for s in stamps]))
             for k, (instrument, (stamps, device, _)) in enumerate(zip(names, streams))}
 
 
-def quality(xs: np.ndarray, forces: np.ndarray) -> dict:
-    """The smoothness and passivity measures of one replay (:func:`tissue_common.feel.feel`)."""
-    return feel(xs, forces)
+def crack_steps(broke: np.ndarray, frames: int = CRACK_STEP) -> np.ndarray:
+    """(M,) bool: the poses at and up to ``frames`` after one at which a blade broke bonds."""
+    out = np.zeros(len(broke), dtype=bool)
+    for k in np.flatnonzero(broke):
+        out[k:k + frames + 1] = True
+    return out
+
+
+def quality(xs: np.ndarray, forces: np.ndarray, skip: np.ndarray | None = None) -> dict:
+    """The smoothness and passivity measures of one replay (:func:`tissue_common.feel.feel`; ``skip``:
+    frames left out of the steady ones)."""
+    return feel(xs, forces, skip=skip)
 
 
 def stiff_params(p: dict, factor: float = 10.0) -> dict:
@@ -356,13 +385,20 @@ def main(argv=None) -> int:
               f'{q["E_in_min_uJ"]:9.2f} {q["E_in_final_uJ"]:9.1f} {q["peak_N"]:6.3f}', flush=True)
 
     for name in args.bags.split(','):
-        if len(graph.bag_instruments(name)) > 1:
-            # sim_node's loop itself (its answers are the bag's golden forces): each device's feel
-            for instrument, (device, forces) in replay_instruments(p, name).items():
+        if len(graph.bag_instruments(name)) > 1 or 'tool_shape' in graph.BAG_SIM_PARAMS.get(name, {}):
+            # sim_node's loop itself (its answers are the bag's golden forces): each device's feel,
+            # and a blade's outside its crack steps
+            for instrument, (device, forces, broke) in replay_instruments(p, name).items():
                 gold = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z) for *_, m in
-                                 read_bag(ROOT / 'bags' / name, [f'/{instrument}/omni/force_feedback'])])
-                row(f'{name} {instrument}', 'renderer', quality(device, forces))
-                print(f'  {name} {instrument}: the forces sent differ from the golden ones by at most '
+                                 read_bag(ROOT / 'bags' / name, [f'{"/" + instrument if instrument else ""}'
+                                                                 f'/omni/force_feedback'])])
+                label = f'{name} {instrument}'.strip()
+                row(label, 'renderer', quality(device, forces))
+                if broke.any():
+                    row(label, 'uncracked', quality(device, forces, crack_steps(broke)))
+                    print(f'  {label}: bonds broken at {np.count_nonzero(broke)} poses ({int(broke.sum())} '
+                          f'bonds); "uncracked" leaves those and the {CRACK_STEP} after each out')
+                print(f'  {label}: the forces sent differ from the golden ones by at most '
                       f'{np.abs(forces - gold).max():.1e} N')
             continue
         stamps, device, closed = bag_poses(name)

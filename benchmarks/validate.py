@@ -65,11 +65,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sph_tissue_sim.core.errors import ConfigError
+from sph_tissue_sim.core.errors import ConfigError, SimError
 from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import Material, liver_default
 from sph_tissue_sim.core.models import make_block
-from sph_tissue_sim.core.solver import SolverConfig
+from sph_tissue_sim.core.solver import Solver, SolverConfig
 from sph_tissue_sim.haptics.renderer import HapticRenderer, RendererConfig
 from sph_tissue_sim.validation import cases
 from sph_tissue_sim.validation.analytic import hertz_force
@@ -77,7 +77,7 @@ from tissue_common.force import HARD_FORCE_LIMIT
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKS = ('creep', 'uniaxial', 'relaxation', 'cantilever', 'hertz', 'local_global', 'drag', 'press',
-          'press_set', 'grasp')
+          'press_set', 'grasp', 'cut')
 COLUMNS = ('check', 'case', 'measured', 'reference', 'unit', 'error_pct', 'target', 'met')
 
 #: places on the liver's top (x, y) [m] and depths [m] of the local-vs-global presses
@@ -399,6 +399,84 @@ def check_grasp(quick: bool, out: Path) -> list[dict]:
                 '<= 1e-6', balance <= 1e-6)]
 
 
+#: the straight cut: a vertical blade (its edge's length [m]) plunged this deep [m] beside the block,
+#: drawn right across it at this speed [m/s]
+CUT_EDGE, CUT_DEPTH, CUT_SPEED = 0.04, 0.005, 0.02
+
+
+def check_cut(quick: bool, out: Path) -> list[dict]:
+    """A straight cut right across the golden block (16 x 16 x 8 at 5 mm): a vertical blade enters
+    its side ``CUT_DEPTH`` below the top and leaves the opposite side. The crack is then the plane
+    it swept, ``width x CUT_DEPTH``: the work the blade did over it against ``G_c`` times that area.
+    Then the blade is lifted and the tissue left alone (no energy gained: it comes to rest), and a
+    sphere pokes the cut block in random places for 10 000 frames (it stays finite and bounded)."""
+    model = make_block(6, 10, 6, 0.005) if quick else make_block(16, 16, 8, 0.005)
+    depth = CUT_DEPTH
+    material = liver_default()
+    toughness = material.toughness
+    solver = Solver(model, material, solver_config(mode='local', contact_samples=0), instruments=2,
+                    tools=[{'tool_shape': 'blade', 'tool_radius': 0.0005, 'tool_length': CUT_EDGE},
+                           {'tool_shape': 'sphere', 'tool_radius': 0.005}])
+    X = model.positions
+    top, width = X[:, 2].max(), X[:, 0].max() - X[:, 0].min()
+    y = X[:, 1].min() + (4.5 if quick else 7.5) * 0.005 + 0.0011   # between two rows, off the lattice's symmetry
+    x0, x1 = X[:, 0].min() - 0.008, X[:, 0].max() + 0.008
+    z = top - depth
+    dt = 1e-3
+    work, forces, xs = 0.0, [], []
+    prev = None
+    for k in range(int((x1 - x0) / CUT_SPEED / dt) + 1):
+        p = np.array([x0 + k * CUT_SPEED * dt, y, z])
+        try:
+            res = solver.step_tools([(p, np.eye(3)), None], dt)
+        except SimError as exc:      # deeper cuts plough the soft block until a step blows up
+            return [row('cut', f'straight cut {depth * 1e3:.0f} mm deep across the block: blew up {k} ms in '
+                        f'({exc})', float(k), None, 'frames', 'stable', False)]
+        f = res.tools[0].force_raw
+        if prev is not None:
+            work -= float(f @ (p - prev))
+        prev = p
+        forces.append(f)
+        xs.append(p[0])
+    forces = np.array(forces)
+    area = width * depth
+    rows = [row('cut', f'straight cut {width * 1e3:.0f} x {depth * 1e3:.0f} mm across the block: work / crack area',
+                work / area, toughness, 'J/m^2', 'within 20 %', abs(work / area / toughness - 1.0) <= 0.2),
+            row('cut', 'its bonds cut x their crack area / the plane\'s area', solver.crack_area(0) / area, 1.0, '-',
+                'reported', None),
+            row('cut', 'force against the cut in the middle half of the block (median), against G_c x depth', -float(
+                np.median(forces[np.abs(np.array(xs) - X[:, 0].mean()) < 0.25 * width, 0])),
+                toughness * depth, 'N', 'reported', None)]
+    ke = []
+    for _ in range(200 if quick else 500):
+        ke.append(solver.step_tools([None, None], dt).kinetic_energy)
+    rows.append(row('cut', f'kinetic energy {len(ke)} ms after the cut, against its peak after the blade left',
+                    ke[-1], max(ke), 'J', 'below 1 %', ke[-1] <= 0.01 * max(ke)))
+    rng = np.random.default_rng(7)
+    frames = 500 if quick else 10000
+    finite, worst = True, 0.0
+    target = np.array([X[:, 0].mean(), X[:, 1].mean(), top + 0.01])
+    for k in range(frames):
+        if k % 250 == 0:
+            target = np.array([rng.uniform(X[:, 0].min(), X[:, 0].max()), rng.uniform(X[:, 1].min(), X[:, 1].max()),
+                               top - rng.uniform(0.0, 0.01)])
+        phase = (k % 250) / 250.0
+        p = target + np.array([0.0, 0.0, 0.01 * (1.0 - math.sin(math.pi * phase))])
+        res = solver.step_tools([None, (p, None)], dt)
+        finite = finite and bool(np.isfinite(solver.positions).all())
+        worst = max(worst, float(np.abs(solver.positions[~solver.fixed] - X[~solver.fixed]).max()))
+    rows.append(row('cut', f'the cut block poked for {frames} frames: largest displacement', worst, None, 'm',
+                    'finite, below 0.05 m', finite and worst < 0.05))
+    fig, ax = _figure()
+    ax.plot((np.array(xs) - X[:, 0].min()) * 1e3, -forces[:, 0], lw=0.8, label='force against the cut')
+    ax.axhline(toughness * depth, color='k', ls='--', lw=0.8, label='G_c x depth')
+    ax.set_xlabel('blade position across the block [mm]')
+    ax.set_ylabel('force [N]')
+    ax.set_title(f'a straight cut {depth * 1e3:.0f} mm deep, G_c {toughness:g} J/m^2, {CUT_SPEED * 1e3:g} mm/s')
+    _save(fig, ax, out / 'validate_cut.png')
+    return rows
+
+
 def _plot_two_hands(solver, hands: np.ndarray, path: Path) -> None:
     """The liver held by one instrument and pressed by the other: a side view (x-z) of the particles
     near the tools' plane coloured by displacement, the tools, and the forces on both over time."""
@@ -689,7 +767,7 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     runners = {'creep': check_creep, 'uniaxial': check_uniaxial, 'relaxation': check_relaxation, 'cantilever': check_cantilever,
                'hertz': check_hertz, 'local_global': check_local_global, 'drag': check_drag,
-               'press': check_press, 'press_set': check_press_set, 'grasp': check_grasp}
+               'press': check_press, 'press_set': check_press_set, 'grasp': check_grasp, 'cut': check_cut}
     rows, pngs = [], []
     t_all = time.perf_counter()
     for i, name in enumerate(chosen, start=1):

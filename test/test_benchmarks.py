@@ -57,7 +57,7 @@ def test_quick_benchmark_writes_csv_png_txt_and_json(quick_run):
 
 def test_every_tlsph_case_is_measured_with_finite_positive_numbers(quick_run):
     _, _, rows = quick_run
-    timed = [r for r in rows if r['table'] != 'memory']
+    timed = [r for r in rows if r['table'] not in ('memory', 'cut')]
     assert all(r['status'] == 'ok' for r in timed if r['scheme'] in ('tlsph', 'mass_spring'))
     for r in timed:
         if r['status'] != 'ok':
@@ -70,6 +70,17 @@ def test_every_tlsph_case_is_measured_with_finite_positive_numbers(quick_run):
         assert 1 <= _num(r, 'n_active') <= int(r['n_particles'])
         if r['mode'] == 'global':
             assert _num(r, 'n_stress') == int(r['n_particles'])
+
+
+def test_the_cut_table_times_a_blade_against_a_capsule_on_the_same_path(quick_run):
+    out, _, rows = quick_run
+    cut = {r['label']: r for r in rows if r['table'] == 'cut'}
+    assert set(cut) == {f'cut {mode} {shape}' for mode in ('local', 'global') for shape in ('capsule', 'blade')}
+    for r in cut.values():
+        assert r['status'] == 'ok' and int(r['frames']) > 0
+        assert 0.0 < _num(r, 'step_ms') <= _num(r, 'step_p90_ms') <= _num(r, 'step_p99_ms')
+    assert all(int(cut[f'cut {mode} capsule']['bonds_cut']) == 0 for mode in ('local', 'global'))
+    assert 'Cutting: a blade' in (out / 'bench_core_quick.txt').read_text()
 
 
 def test_local_cases_integrate_fewer_particles_than_global_ones(quick_run):

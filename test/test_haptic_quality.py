@@ -152,10 +152,27 @@ def test_the_two_instrument_bag_through_sim_nodes_loop_gives_its_golden_forces_a
     hq = _load()
     out = hq.replay_instruments(hq.golden_params(), 'bimanual')
     assert list(out) == ['left', 'right']
-    for instrument, (device, forces) in out.items():
+    for instrument, (device, forces, broke) in out.items():
+        assert not broke.any()                             # no blade
         gold = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z) for *_, m in
                          read_bag(ROOT / 'bags' / 'bimanual', [f'/{instrument}/omni/force_feedback'])])
         assert forces.shape == gold.shape and np.abs(forces - gold).max() <= 1e-9
         q = hq.quality(device, forces)
         print(instrument, q)
         assert q['E_in_min_uJ'] >= -1.0 and q['peak_N'] > 0.2
+
+
+def test_the_cut_bag_through_sim_nodes_loop_gives_its_golden_forces_and_a_passive_feel_across_the_cracks():
+    """The blade's session through the Runner (its orientation and tool from the bag's parameters):
+    the golden forces, bonds broken along the way, and the hand never given energy back."""
+    from haptic_omni_driver.bag_reader import read_bag
+
+    hq = _load()
+    (device, forces, broke), = hq.replay_instruments(hq.golden_params(), 'cut').values()
+    gold = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z) for *_, m in
+                     read_bag(ROOT / 'bags' / 'cut', ['/omni/force_feedback'])])
+    assert forces.shape == gold.shape and np.abs(forces - gold).max() <= 1e-9
+    assert broke.sum() > 20
+    whole, uncracked = hq.quality(device, forces), hq.quality(device, forces, hq.crack_steps(broke))
+    assert uncracked['steady_frames'] < whole['steady_frames']
+    assert whole['E_in_min_uJ'] >= -1.0 and whole['peak_N'] > 0.2

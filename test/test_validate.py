@@ -34,7 +34,7 @@ def quick_run(tmp_path_factory):
 def test_the_quick_validation_measures_every_check_and_writes_a_plot_for_each(quick_run):
     out, _, rows = quick_run
     checks = {'creep', 'uniaxial', 'relaxation', 'cantilever', 'hertz', 'local_global', 'drag', 'press', 'press_set',
-              'grasp'}
+              'grasp', 'cut'}
     assert {r['check'] for r in rows} == checks
     for r in rows:
         assert math.isfinite(float(r['measured'])), r

@@ -11,7 +11,12 @@ Point layout (little endian, 24 bytes a point)::
     20      region        uint8    -      0 still, 1 interaction, 1 + i transmission layer i
     21      held          uint8    -      0 free, k + 1 held by instrument k (the order of the
                                           ``instruments`` parameter; held by two: the later's)
-    22..23  padding
+    22      severed       uint8    -      reference bonds the particle lost to a cut (at most 255):
+                                          the cut faces
+    23      padding
+
+A particle a cut removed (:attr:`~.core.solver.Solver.removed`) is an invalid point: x, y, z are
+NaN, and the cloud is then not dense (``is_dense`` False), as PointCloud2 marks missing points.
 
 :class:`CloudBuffer` owns one message-sized byte buffer and refills it with a numba kernel that
 releases the GIL: packing a 100k-particle liver (2.4 MB) then never holds up the thread that answers
@@ -29,36 +34,45 @@ import numpy as np
 from numba import njit
 
 POINT_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'displacement', 'von_mises', 'region', 'held'],
-    'formats': ['<f4', '<f4', '<f4', '<f4', '<f4', 'u1', 'u1'],
-    'offsets': [0, 4, 8, 12, 16, 20, 21],
+    'names': ['x', 'y', 'z', 'displacement', 'von_mises', 'region', 'held', 'severed'],
+    'formats': ['<f4', '<f4', '<f4', '<f4', '<f4', 'u1', 'u1', 'u1'],
+    'offsets': [0, 4, 8, 12, 16, 20, 21, 22],
     'itemsize': 24,
 })
 
 # PointField datatype constants (sensor_msgs/PointField): FLOAT32 = 7, UINT8 = 2
 FIELD_SPECS = (('x', 0, 7), ('y', 4, 7), ('z', 8, 7), ('displacement', 12, 7), ('von_mises', 16, 7),
-               ('region', 20, 2), ('held', 21, 2))
-REGION_BYTE, HELD_BYTE = 20, 21
+               ('region', 20, 2), ('held', 21, 2), ('severed', 22, 2))
+REGION_BYTE, HELD_BYTE, SEVERED_BYTE = 20, 21, 22
 
 
 @njit(cache=True, nogil=True)
-def pack_rows(x, X, von_mises, region, held_idx, held_code, f32, u8):
-    """Point i of the cloud from x[i], |x[i] - X[i]|, von_mises[i] and region[i] (clipped to
-    0..255), then ``held`` = held_code[j] at point held_idx[j] (0 elsewhere; the indices are checked
-    by the caller); ``f32`` (N, 6) and ``u8`` (N, 24) view the same bytes (f32[:, 5] is region, held
-    and padding, never written as a float)."""
+def pack_rows(x, X, von_mises, region, held_idx, held_code, severed, removed, f32, u8):
+    """Point i of the cloud from x[i], |x[i] - X[i]|, von_mises[i], region[i] and severed[i]
+    (clipped to 0..255; a ``removed`` one's x, y, z NaN), then ``held`` = held_code[j] at point
+    held_idx[j] (0 elsewhere; the indices are checked by the caller); ``f32`` (N, 6) and ``u8``
+    (N, 24) view the same bytes (f32[:, 5] is region, held, severed and padding, never written as
+    a float)."""
     for i in range(x.shape[0]):
         d0 = x[i, 0] - X[i, 0]
         d1 = x[i, 1] - X[i, 1]
         d2 = x[i, 2] - X[i, 2]
-        f32[i, 0] = x[i, 0]
-        f32[i, 1] = x[i, 1]
-        f32[i, 2] = x[i, 2]
-        f32[i, 3] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        if removed[i]:
+            f32[i, 0] = math.nan
+            f32[i, 1] = math.nan
+            f32[i, 2] = math.nan
+            f32[i, 3] = 0.0
+        else:
+            f32[i, 0] = x[i, 0]
+            f32[i, 1] = x[i, 1]
+            f32[i, 2] = x[i, 2]
+            f32[i, 3] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         f32[i, 4] = von_mises[i]
         r = region[i]
         u8[i, REGION_BYTE] = 0 if r < 0 else (255 if r > 255 else r)
         u8[i, HELD_BYTE] = 0
+        c = severed[i]
+        u8[i, SEVERED_BYTE] = 0 if c < 0 else (255 if c > 255 else c)
     for j in range(held_idx.shape[0]):
         u8[held_idx[j], HELD_BYTE] = held_code[j]
 
@@ -73,6 +87,9 @@ class CloudBuffer:
         # by element; the numpy views write straight into it
         self._bind(array.array('B', bytes(self.n * POINT_DTYPE.itemsize)))
         self._msg = None
+        self._uncut = np.zeros(self.n, dtype=np.int32)     # no cut: nothing severed, nothing removed
+        self._whole = np.zeros(self.n, dtype=np.bool_)
+        self._dense = True
 
     def _bind(self, data: array.array) -> None:
         self.data = data
@@ -82,19 +99,24 @@ class CloudBuffer:
         self.points = raw.view(POINT_DTYPE)
 
     def pack(self, x: np.ndarray, X: np.ndarray, von_mises: np.ndarray, region: np.ndarray,
-             held: Sequence[np.ndarray] = ()) -> np.ndarray:
+             held: Sequence[np.ndarray] = (), severed: np.ndarray | None = None,
+             removed: np.ndarray | None = None) -> np.ndarray:
         """Fill the points from positions ``x`` and reference positions ``X`` ((N, 3) [m]), von Mises
-        stress (N,) [Pa], region codes (N,) and ``held``: per instrument k the indices of the
-        particles it holds (``held`` k + 1 there, 0 elsewhere); returns them as an (N,) array of
-        POINT_DTYPE (a view of the buffer, current until the next :meth:`message`).
+        stress (N,) [Pa], region codes (N,), ``held``: per instrument k the indices of the
+        particles it holds (``held`` k + 1 there, 0 elsewhere), the bonds each particle lost to a
+        cut ``severed`` (N,) and the particles a cut ``removed`` (N,) bool (None: no cut); returns
+        them as an (N,) array of POINT_DTYPE (a view of the buffer, current until the next
+        :meth:`message`).
 
         Raises:
             ValueError: arrays of another length than the buffer's, more than 255 instruments or a
                 held index outside the cloud.
         """
         n = self.n
+        severed = self._uncut if severed is None else severed
+        removed = self._whole if removed is None else removed
         if (np.shape(x) != (n, 3) or np.shape(X) != (n, 3) or np.shape(von_mises) != (n,)
-                or np.shape(region) != (n,)):
+                or np.shape(region) != (n,) or np.shape(severed) != (n,) or np.shape(removed) != (n,)):
             raise ValueError(f'particle arrays do not match a cloud of {n} points: x {np.shape(x)}, '
                              f'X {np.shape(X)}, von_mises {np.shape(von_mises)}, region '
                              f'{np.shape(region)}')
@@ -105,7 +127,8 @@ class CloudBuffer:
         # the kernel writes where the indices say: they are checked here, once per cloud
         if idx.size and not (0 <= idx.min() and idx.max() < n):
             raise ValueError(f'held particle indices must lie in [0, {n}), got {idx.min()} to {idx.max()}')
-        pack_rows(x, X, von_mises, region, idx, code, self._f32, self._u8)
+        pack_rows(x, X, von_mises, region, idx, code, severed, removed, self._f32, self._u8)
+        self._dense = not removed.any()
         return self.points
 
     def message(self, stamp=None):
@@ -128,6 +151,7 @@ class CloudBuffer:
             # message holds from now on
             self._bind(msg.data)
             self._msg = msg
+        self._msg.is_dense = self._dense
         if stamp is not None:
             self._msg.header.stamp = stamp
         return self._msg

@@ -67,6 +67,9 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
     'eta_bulk': (-1.0, '[Pa s] custom material: bulk viscosity (-1 = same retardation time as the '
                        'shear part)', (-1.0, 1e6), False, 'material'),
     'rho': (1060.0, '[kg/m^3] custom material: density', (1.0, 1e5), False, 'material'),
+    'toughness': (200.0, '[J/m^2] custom material: fracture toughness G_c, the work a blade pays per unit '
+                         'area of the crack it opens (a named material has its own in materials_file)',
+                  (1.0, 1e5), False, 'material'),
     # -- solver: every SolverConfig field sim_node declares, from its metadata ----------------------
     **solver_params(),
     # -- force ------------------------------------------------------------------------------------
@@ -119,9 +122,10 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                             'origin, added to translation: three numbers per instrument '
                                             'in the order of instruments (missing ones: 0)', None, True,
                            None),
-    'instrument_tools': ([''], 'each instrument\'s tool, in the order of instruments: \'sphere R\' or '
-                               '\'capsule R L\' (radius, shaft length [m], in tool_radius\'s and tool_length\'s '
-                               'ranges), \'\' or missing: tool_shape, tool_radius and tool_length', None, True,
+    'instrument_tools': ([''], 'each instrument\'s tool, in the order of instruments: \'sphere R\', '
+                               '\'capsule R L\' or \'blade R L\' (radius, shaft or edge length [m], in '
+                               'tool_radius\'s and tool_length\'s ranges), \'\' or missing: tool_shape, '
+                               'tool_radius and tool_length', None, True,
                          None),
     # -- device -> tissue -------------------------------------------------------------------------
     'device_frame': ('omni_base', 'frame of accepted poses (and of the force replies)', None, False,
@@ -209,14 +213,14 @@ def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
 
 
 def parse_tool(text: str) -> dict | None:
-    """One ``instrument_tools`` entry: ``'sphere R'`` or ``'capsule R L'`` [m] as SolverConfig's tool
+    """One ``instrument_tools`` entry: ``'sphere R'``, ``'capsule R L'`` or ``'blade R L'`` [m] as SolverConfig's tool
     fields, ``''``: None (the shared tool). Ranges are the solver's to check."""
     words = str(text).split()
     if not words:
         return None
-    shapes = {'sphere': 1, 'capsule': 2}
+    shapes = {'sphere': 1, 'capsule': 2, 'blade': 2}
     if words[0] not in shapes or len(words) != 1 + shapes[words[0]]:
-        raise ConfigError(f"{text!r} is not 'sphere R' or 'capsule R L' (radius and shaft length in m)")
+        raise ConfigError(f"{text!r} is not 'sphere R', 'capsule R L' or 'blade R L' (radius and length in m)")
     try:
         size = [float(w) for w in words[1:]]
     except ValueError:
@@ -284,12 +288,12 @@ def build_material(p: dict) -> Material:
     """The material selected by the parameters (raises ConfigError)."""
     name = str(p['material'])
     if name == 'custom':
-        E, nu, eta_s, eta_b, rho = (float(p[k]) for k in ('E', 'nu', 'eta_shear', 'eta_bulk', 'rho'))
+        E, nu, eta_s, eta_b, rho, g_c = (float(p[k]) for k in ('E', 'nu', 'eta_shear', 'eta_bulk', 'rho', 'toughness'))
         if eta_b < 0.0:
             G = E / (2.0 * (1.0 + nu))
             K = E / (3.0 * (1.0 - 2.0 * nu))
             eta_b = K * eta_s / G
-        return Material(E, nu, eta_s, eta_b, rho, 'custom')
+        return Material(E, nu, eta_s, eta_b, rho, 'custom', toughness=g_c)
     path = p.get('materials_file') or default_materials_file()
     return load_material(path, name)
 

@@ -149,7 +149,9 @@ def metrics_values(res: StepResult, solver: Solver, haptic, k: int = 0) -> dict:
          'max_displacement': float(res.max_displacement), 'kinetic_energy': float(res.kinetic_energy),
          'scheme': solver.config.scheme_index, 'mode': solver.config.mode_index}
     v.update(tool_position=(0.0, 0.0, 0.0), tool_axis=(0.0, 0.0, 0.0), tool_length=0.0,
-             n_grasped=int(tool.grasped))      # a lifted tool's (the message is reused)
+             n_grasped=int(tool.grasped),      # a lifted tool's (the message is reused)
+             n_bonds_cut=int(tool.bonds_cut), crack_area=float(solver.crack_area(k)),
+             cut_length=float(solver.cut_length(k)))
     if tool.tool_segment is not None:
         tip, shaft = tool.tool_segment[0], tool.tool_segment[1] - tool.tool_segment[0]
         length = float(np.linalg.norm(shaft))
@@ -682,7 +684,7 @@ class Runner:
         s = self.solver
         # each instrument's held particles (not those that slipped) become the cloud's held byte
         self.cloud.pack(s.positions, s.X, s.von_mises(), s.region,
-                        [hand.grip_idx[hand.grip_held] for hand in s.instruments])
+                        [hand.grip_idx[hand.grip_held] for hand in s.instruments], s.severed, s.removed)
 
     def send_cloud_once(self) -> None:
         # never wait for a step here: the timer runs on the executor thread, which must stay free

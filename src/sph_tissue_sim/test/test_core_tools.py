@@ -11,16 +11,18 @@ from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import InvalidInput, Solver, SolverConfig
-from sph_tissue_sim.core.tools import NO_ROTATION, TOOLS, Capsule, Sphere, make_tool
+from sph_tissue_sim.core.tools import NO_ROTATION, TOOLS, Blade, Capsule, Sphere, make_tool
 
 from press import rotation_y, tilted_shaft_press
 
 
 def test_tools_are_made_by_name_with_their_dimensions():
-    assert set(TOOLS) == {'sphere', 'capsule'}
+    assert set(TOOLS) == {'sphere', 'capsule', 'blade'}
     assert isinstance(make_tool('sphere', 0.004), Sphere)
     capsule = make_tool('capsule', 0.004, 0.06)
-    assert isinstance(capsule, Capsule) and capsule.length == 0.06
+    assert isinstance(capsule, Capsule) and capsule.length == 0.06 and not capsule.cuts
+    blade = make_tool('blade', 0.0005, 0.02)
+    assert isinstance(blade, Blade) and blade.cuts and blade.length == 0.02
     assert capsule.bounding_radius() == pytest.approx(0.064)
     for bad in (lambda: make_tool('cone', 0.004), lambda: make_tool('sphere', 0.0),
                 lambda: make_tool('capsule', 0.004, -0.01)):

@@ -17,7 +17,7 @@ import pytest
 from sph_tissue_sim.params import SIM_PARAMS
 from tissue_testing import harness
 from press import tilted_shaft_press
-from sim_probe import (N_BLOCK, START_TIMEOUT, T0_NS, SimProbe, call_reset, finite_and_bounded,
+from sim_probe import (BLOCK, N_BLOCK, START_TIMEOUT, T0_NS, SimProbe, call_reset, finite_and_bounded,
                        force_of, press_path, qos, set_parameters, sim, stamp_ns)
 
 pytestmark = pytest.mark.ros
@@ -181,7 +181,8 @@ def test_particle_cloud_fields_and_count_match_the_model(probe):
     f32, u8 = PointField.FLOAT32, PointField.UINT8
     assert fields == {'x': (0, f32, 1), 'y': (4, f32, 1), 'z': (8, f32, 1),
                       'displacement': (12, f32, 1), 'von_mises': (16, f32, 1), 'region': (20, u8, 1),
-                      'held': (21, u8, 1)}
+                      'held': (21, u8, 1), 'severed': (22, u8, 1)}
+    assert cloud.is_dense                                    # nothing cut away
     pts = unpack_points(cloud.data, cloud.width)
     xyz = np.stack([pts['x'], pts['y'], pts['z']], axis=1)
     assert np.all(np.isfinite(xyz))
@@ -396,6 +397,9 @@ def test_runtime_parameters_are_applied_or_refused_with_a_reason(probe, rclpy_no
     ({'instruments': ['left', 'right'], 'instrument_offsets': [0.0, 0.0]},
      r'three per instrument'),
     ({'grasp_input': 'button3'}, r"grasp_input must be one of '', button1, button2, jaw, got 'button3'"),
+    ({'tool_shape': 'blade', 'scheme': 'paper'}, r'a blade cuts the reference bonds of scheme tlsph; scheme paper has none'),
+    ({'instruments': ['left', 'right'], 'instrument_tools': ['blade 0.0005 0.02', '']},
+     r'a blade and a tool on the surface samples cannot share the tissue'),
     ({'grasp_input': 1}, r"parameter grasp_input: .*expecting type 'STRING'"),    # a number: the choices are strings
 ])
 def test_invalid_start_parameters_exit_with_code_2_and_say_why(ros_domain, params, message):
@@ -623,6 +627,53 @@ def test_a_capsule_chosen_by_parameter_follows_the_stylus_orientation_and_is_pus
     assert np.linalg.norm(f) > 0.1 and f[2] > 0.0
     assert abs(f @ axis) < 0.05 * np.linalg.norm(f)
     assert f[0] / f[2] == pytest.approx(math.tan(math.radians(20.0)), rel=0.25)
+
+
+def test_a_blade_chosen_by_parameter_cuts_and_the_metrics_and_cloud_show_the_cut(rclpy_node):
+    """tool_shape blade through the node: the edge held upright (tissue +z) is plunged into the top
+    of the block and drawn along it; the metrics count the bonds it cut and the crack's area, and
+    the cloud's severed byte marks the cut faces."""
+    from tissue_common.rotation import matrix_quaternion, quaternion_matrix
+
+    from sph_tissue_sim.cloud import unpack_points
+    from sph_tissue_sim.mapping import DEFAULT_ROTATION
+
+    from sph_tissue_sim.core.factory import make_model
+
+    r_map = quaternion_matrix(DEFAULT_ROTATION)          # device -> tissue (anchor origin: no offset)
+    X = make_model('block', size=BLOCK['block_size'], n_particles=N_BLOCK).positions   # the node's block
+    spacing, top = 0.01, X[:, 2].max()
+    y = X[:, 1].min() + 3.5 * spacing + 0.0011           # between two rows
+    x0, x1 = X[:, 0].min() + 1.5 * spacing, X[:, 0].min() + 4.5 * spacing
+    plunge = np.stack([np.full(150, x0), np.full(150, y), np.linspace(top + 0.002, top - 0.012, 150)], axis=1)
+    drawn = np.stack([np.linspace(x0, x1, 300), np.full(300, y), np.full(300, top - 0.012)], axis=1)
+    tips = np.concatenate([plunge, drawn])
+    params = {'tool_shape': 'blade', 'tool_radius': 0.0005, 'tool_length': 0.02, 'material': 'custom', 'toughness': 20.0,
+              'anchor': 'origin', 'particles_rate': 50.0, 'haptic_mode': 'direct'}
+    with sim(params, ros_args=['-r', '__ns:=/blade']) as proc:
+        probe = SimProbe(rclpy_node, ns='/blade/')
+        probe.wait_matched(proc)
+        probe.orientation = matrix_quaternion(r_map.T)    # the tool's +z along tissue +z
+        probe.run_path(tips @ r_map, _unique_t0(41))
+        assert rclpy_node.spin_until(lambda: any(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+                                                 == _unique_t0(41) + (len(tips) - 1) * 1_000_000
+                                                 for m in probe.metrics), 10.0)
+        last = probe.metrics[-1]
+        n_clouds = len(probe.clouds)
+        assert rclpy_node.spin_until(lambda: len(probe.clouds) > n_clouds, 10.0)
+        cloud = probe.clouds[-1]
+        assert proc.stop() == 0
+    assert last.n_bonds_cut > 10 and last.crack_area > 0.0
+    points = unpack_points(cloud.data, N_BLOCK)
+    severed = points['severed']
+    assert np.count_nonzero(severed) >= 4
+    # the cut faces are where the blade went: beside its path, not at the far end of the block
+    faces = np.stack([points['x'], points['y']], axis=1)[severed > 0]
+    faces = faces[np.isfinite(faces).all(axis=1)]           # a particle the cut removed is NaN
+    # a bond reaches 2h = 2.6 spacings: a particle that lost one lies that near the blade's plane and path
+    reach = 2.6 * spacing + 0.002
+    assert len(faces) and np.all(np.abs(faces[:, 1] - y) < reach)
+    assert np.all((faces[:, 0] > x0 - reach) & (faces[:, 0] < x1 + reach))
 
 
 @pytest.mark.parametrize('haptic_mode, step_thread', [(None, None), ('direct', None), ('direct', False)])

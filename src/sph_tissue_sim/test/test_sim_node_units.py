@@ -131,6 +131,24 @@ def test_cloud_held_byte_names_the_instrument_that_holds_each_particle():
     assert cloud.pack(x, X, vm, region, [np.array([4])])['held'].tolist() == [0, 0, 0, 0, 1, 0, 0, 0, 0, 0]
 
 
+def test_cloud_marks_the_cut_faces_and_leaves_a_removed_particle_out_as_a_nan_point():
+    pytest.importorskip('sensor_msgs')
+    n = 6
+    x, X, vm, region = random_particles(n)
+    cloud = CloudBuffer(n, 'tissue')
+    severed = np.array([0, 3, 0, 300, 0, 12], dtype=np.int32)
+    removed = np.array([False, False, False, True, False, False])
+    points = cloud.pack(x, X, vm, region, (), severed, removed)
+    assert points['severed'].tolist() == [0, 3, 0, 255, 0, 12]            # clipped to the byte
+    assert np.isnan([points[c][3] for c in 'xyz']).all() and points['displacement'][3] == 0.0
+    keep = ~removed
+    assert np.array_equal(points['x'][keep], x[keep, 0].astype(np.float32))
+    assert not cloud.message().is_dense
+    # the organ whole again (a reset): a dense cloud with nothing severed
+    points = cloud.pack(x, X, vm, region)
+    assert not points['severed'].any() and np.isfinite(points['x']).all() and cloud.message().is_dense
+
+
 def test_cloud_refuses_held_indices_outside_the_cloud():
     x, X, vm, region = random_particles(3)
     with pytest.raises(ValueError, match=r'held particle indices must lie in \[0, 3\)'):
@@ -170,7 +188,7 @@ def test_cloud_message_header_and_layout():
     msg = cloud.message()
     assert (msg.header.frame_id, msg.height, msg.width, msg.point_step) == ('tissue', 1, 7, 24)
     assert len(msg.data) == 7 * 24 and msg.row_step == 7 * 24 and not msg.is_bigendian
-    assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'displacement', 'von_mises', 'region', 'held']
+    assert [f.name for f in msg.fields] == ['x', 'y', 'z', 'displacement', 'von_mises', 'region', 'held', 'severed']
     # later packs land in the message that is published
     x, X, vm, region = random_particles(7)
     cloud.pack(x, X, vm, region)
@@ -292,7 +310,7 @@ def test_the_contact_parameters_reach_the_solver_config_and_bad_ones_are_refused
     assert (build_config(defaults()).friction, build_config(defaults(friction=0.3)).friction) == (0.0, 0.3)
     with pytest.raises(ConfigError, match='friction'):
         build_config(defaults(friction=-0.1))
-    assert 'must be one of' in check_value('tool_shape', 'blade')
+    assert 'must be one of' in check_value('tool_shape', 'cone')
 
 
 

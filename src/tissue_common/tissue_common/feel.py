@@ -59,8 +59,11 @@ def neighbour_frames(t: np.ndarray | None, m: int, nominal_dt: float = 1e-3) -> 
     return np.diff(t) <= MAX_FRAME_GAP * nominal_dt
 
 
-def feel(x: np.ndarray, f: np.ndarray, t: np.ndarray | None = None, nominal_dt: float = 1e-3) -> dict:
-    """The smoothness and passivity measures of one force series (see the module docstring)."""
+def feel(x: np.ndarray, f: np.ndarray, t: np.ndarray | None = None, nominal_dt: float = 1e-3,
+         skip: np.ndarray | None = None) -> dict:
+    """The smoothness and passivity measures of one force series (see the module docstring);
+    ``skip`` (bool per frame): frames left out of the steady ones (a blade's crack steps, where the
+    force is meant to drop)."""
     x = np.asarray(x, float)
     f = np.asarray(f, float)
     mag = np.linalg.norm(f, axis=1)
@@ -70,6 +73,8 @@ def feel(x: np.ndarray, f: np.ndarray, t: np.ndarray | None = None, nominal_dt: 
         run[k] = run[k - 1] + 1 if mag[k] > 0.0 and k and near[k] else int(mag[k] > 0.0)
     steady = (run > STEADY_AFTER) & near
     steady[1:] &= steady[:-1]
+    if skip is not None:
+        steady &= ~np.asarray(skip, dtype=bool)
     dF = np.r_[0.0, np.linalg.norm(np.diff(f, axis=0), axis=1)]
     moved = np.r_[0.0, np.linalg.norm(np.diff(x, axis=0), axis=1)]
     tick = steady & (np.abs(moved - TICK) < 1e-3 * TICK)

@@ -53,36 +53,45 @@ def _offset(X, i, j, p):
 
 
 @njit(cache=True)
-def _moments(X, offsets, indices, dw, volume):
+def _moments(X, offsets, indices, dw, alive, volume, rows):
+    """``L_i`` (len(rows), 3, 3) of the particles ``rows`` over their ``alive`` pairs."""
     n = 3
-    M = np.zeros((X.shape[0], n, n))
+    M = np.zeros((rows.shape[0], n, n))
     p = np.empty(n)
-    for i in range(X.shape[0]):
+    for t in range(rows.shape[0]):
+        i = rows[t]
         for k in range(offsets[i], offsets[i + 1]):
+            if not alive[k]:
+                continue
             _offset(X, i, indices[k], p)
             phi = -volume * dw[k]
             for a in range(n):
                 for b in range(n):
-                    M[i, a, b] += phi * p[a] * p[b]
+                    M[t, a, b] += phi * p[a] * p[b]
     return M
 
 
 @njit(cache=True)
-def _gradients(X, offsets, indices, dw, volume, Q):
-    """``g_k = phi_k Q_i D_k`` with ``Q_i = L_i^-1`` (N, 3, 3)."""
+def _gradients(X, offsets, indices, dw, alive, volume, rows, Q, g):
+    """``g_k = phi_k Q_t D_k`` into ``g`` for the pairs of the particles ``rows`` (``Q_t =
+    L_i^-1``, (len(rows), 3, 3)); zero for a pair that is not ``alive``."""
     n = Q.shape[2]
-    g = np.empty((indices.shape[0], 3))
     p = np.empty(n)
-    for i in range(X.shape[0]):
+    for t in range(rows.shape[0]):
+        i = rows[t]
         for k in range(offsets[i], offsets[i + 1]):
+            if not alive[k]:
+                g[k, 0] = 0.0
+                g[k, 1] = 0.0
+                g[k, 2] = 0.0
+                continue
             _offset(X, i, indices[k], p)
             phi = -volume * dw[k]
             for a in range(3):
-                t = 0.0
+                t_ = 0.0
                 for b in range(n):
-                    t += Q[i, a, b] * p[b]
-                g[k, a] = phi * t
-    return g
+                    t_ += Q[t, a, b] * p[b]
+                g[k, a] = phi * t_
 
 
 @njit(cache=True)
@@ -99,24 +108,34 @@ def reverse_pairs(offsets, indices):
     return rev
 
 
-def _inverse(M: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    """``M^-1`` per particle; ``fallback`` (N, 3, 3) where ``M`` is singular or its condition
-    number exceeds :data:`MAX_CONDITION`."""
-    Q = fallback.copy()
+def _inverse(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(M^-1, ok)`` per particle: the identity (the plain gradient) where ``M`` is singular or its
+    condition number exceeds :data:`MAX_CONDITION` (``ok`` False there)."""
+    Q = np.zeros_like(M)
+    Q[:] = np.eye(3)
     if len(M) == 0:
-        return Q
+        return Q, np.zeros(0, dtype=bool)
     ok = np.abs(np.linalg.det(M)) > 0.0
     ok[ok] = np.linalg.cond(M[ok]) < MAX_CONDITION
     Q[ok] = np.linalg.inv(M[ok])
-    return Q
+    return Q, ok
+
+
+def fit_gradients(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, dw: np.ndarray,
+                  alive: np.ndarray, volume: float, rows: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Fit ``g`` (nnz, 3) of the particles ``rows`` over their ``alive`` pairs (``dw`` of
+    :func:`pair_weights`); returns per row whether its ``L_i`` was invertible (else the plain gradient)."""
+    rows = np.ascontiguousarray(rows, dtype=np.int64)
+    Q, ok = _inverse(_moments(X, offsets, indices, dw, alive, volume, rows))
+    _gradients(X, offsets, indices, dw, alive, volume, rows, np.ascontiguousarray(Q), g)
+    return ok
 
 
 def corrected_gradients(X: np.ndarray, offsets: np.ndarray, indices: np.ndarray, h: float,
                         volume: float) -> tuple[np.ndarray, np.ndarray]:
     """Per pair ``g_ij`` (nnz, 3) and the hourglass weights ``W(R0) / R0^2`` (nnz,)."""
     dw, w0 = pair_weights(X, offsets, indices, h)
-    plain = np.zeros((len(X), 3, 3))
-    plain[:] = np.eye(3)
-    Q = _inverse(_moments(X, offsets, indices, dw, volume), plain)
-    g = _gradients(X, offsets, indices, dw, volume, np.ascontiguousarray(Q))
+    g = np.empty((len(indices), 3))
+    fit_gradients(X, offsets, indices, dw, np.ones(len(indices), dtype=np.bool_), volume,
+                  np.arange(len(X)), g)
     return g, w0

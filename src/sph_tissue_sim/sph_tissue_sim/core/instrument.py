@@ -26,6 +26,7 @@ class ToolResult:
     tool_lag: float = 0.0             # [m] requested minus simulated tool position (max_tool_speed)
     tool_segment: np.ndarray | None = None  # (2, 3) [m] the tool's segment after the step (None: lifted)
     grasped: int = 0                  # particles it holds after the step
+    bonds_cut: int = 0                # a blade: the bonds it has cut since the last reset
 
 
 class Instrument:

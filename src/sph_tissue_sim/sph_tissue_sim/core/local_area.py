@@ -444,8 +444,21 @@ class LocalArea:
         self.ff_load[:] = 0.0
         self.ff_at = [np.zeros(0, dtype=np.int32)] * len(self.ff_at)
         self.ff_w = [np.zeros(0)] * len(self.ff_w)
+        self.free = np.flatnonzero(~self.fixed).astype(np.int32)
         if global_mode:
             self.region[self.free] = 1
+
+    def drop(self, idx: np.ndarray) -> None:
+        """Particles ``idx`` left the simulation (now ``fixed``): out of the active set and of global
+        mode's free particles."""
+        active = self.active[:self.n_active]
+        keep = active[~np.isin(active, idx)]
+        self.n_active = len(keep)
+        self.active[:self.n_active] = keep
+        self.in_active[idx] = 0
+        self.in_area[idx] = 0
+        self.region[idx] = 0
+        self.free = np.flatnonzero(~self.fixed).astype(np.int32)
 
     def global_sets(self, contacts) -> Sets:
         """Every free particle solved, every particle stressed and a candidate, no layer;

@@ -25,10 +25,12 @@ from tissue_common.force import HARD_FORCE_LIMIT, clamp_norm
 
 from . import frame
 from .contact import contact_vector_py, deepest_contact
-from .contact_kinds import BallContact, make_contact
+from .contact_kinds import BallContact, BladeContact, make_contact
+from .cutting import Cutter
 from .surface_contact import nearest_sample_gap
 from .errors import ConfigError, ModelError, SimError
 from .far_field import make_far_field
+from .gradients import reverse_pairs
 from .grasp import GRASP_REGION, grasp_region, no_grip
 from .implicit_contact import contact_terms, make_touches
 from .instrument import Instrument, ToolResult
@@ -75,6 +77,8 @@ RELAX_DISP_TOL, RELAX_VEL_TOL = 2e-4, 2e-3
 VELOCITY_LIMIT = 50.0
 #: [m] tool positions farther than this from the model centre are refused
 MAX_TOOL_DISTANCE = 10.0
+#: [m] where a particle a cut removed is kept, from its reference place: beyond any tool's reach
+REMOVED_OFFSET = np.array([0.0, 0.0, -10.0 * MAX_TOOL_DISTANCE])
 #: instruments on one tissue at most
 MAX_INSTRUMENTS = 8
 #: [s] low pass on the far field's load: with the samples as the surface the 30k liver's shell and
@@ -121,9 +125,10 @@ class SolverConfig:
     # -- tool and contact -------------------------------------------------------------------------
     tool_shape: str = setting('sphere', 'sphere (a probe tip) | capsule (a shaft of tool_length along '
                               'the tool\'s +z, rounded: an instrument; 1.17x the sphere\'s step at a 6 mm '
-                              'press)', tuple(TOOLS))
+                              'press) | blade (an edge of tool_length along +z that cuts: tlsph only)', tuple(TOOLS))
     tool_radius: float = setting(0.005, '[m] radius of the sphere, or of the capsule\'s shaft', (1e-4, 0.05))
-    tool_length: float = setting(0.05, '[m] length of the capsule\'s shaft (unused by the sphere)', (0.0, 0.3))
+    tool_length: float = setting(0.05, '[m] length of the capsule\'s shaft or of the blade\'s edge (unused by '
+                                 'the sphere)', (0.0, 0.3))
     contact_stiffness: float = setting(300.0, '[N/m] penalty stiffness per touched particle or surface '
                                        'sample', (1.0, 1e5))
     contact_damping_ratio: float = setting(1.0, '[-] contact dashpot as a fraction of critical for one '
@@ -328,7 +333,8 @@ class Solver:
         self.h = cfg.h_ratio * model.spacing
         self.volume = model.particle_volume
         self.X = np.ascontiguousarray(model.positions, dtype=np.float64)
-        self.fixed = np.ascontiguousarray(model.fixed, dtype=np.bool_)
+        self.fixed = np.array(model.fixed, dtype=np.bool_)      # a cut adds the particles it removes
+        self._fixed_at_rest = self.fixed.copy()
         self.free_idx = np.flatnonzero(~self.fixed).astype(np.int32)
         self.all_idx = np.arange(self.n, dtype=np.int32)
         self.centre = self.X.mean(axis=0)
@@ -340,11 +346,24 @@ class Solver:
         if np.diff(self.offsets).max() == 0:
             raise ConfigError(f'smoothing length h = {self.h:.3g} m is too small: no particle has a '
                               f'neighbour within 2h (spacing {model.spacing:.3g} m)')
-        kinds: dict[float, BallContact] = {}      # the surface samples are built once per radius
+        kinds: dict[tuple, BallContact] = {}      # the surface samples are built once per radius
         for shape in shapes:
-            if shape.tool_radius not in kinds:
-                kinds[shape.tool_radius] = make_contact(cfg.contact_samples, shape.tool_radius, model.spacing, self.X,
-                                                        self.offsets, self.indices, self.h, self.volume)
+            key = (shape.tool_radius, shape.tool_shape == 'blade')
+            if key in kinds:
+                continue
+            if key[1]:    # a crack face has no surface samples: a blade meets the balls and the bonds
+                kinds[key] = BladeContact(shape.tool_radius, model.spacing, self.X, self.offsets, self.indices,
+                                          reverse_pairs(self.offsets, self.indices))
+            else:
+                kinds[key] = make_contact(cfg.contact_samples, shape.tool_radius, model.spacing, self.X,
+                                          self.offsets, self.indices, self.h, self.volume)
+        if cfg.scheme != 'tlsph' and any(key[1] for key in kinds):
+            raise ConfigError(f'a blade cuts the reference bonds of scheme tlsph; scheme {cfg.scheme} has none')
+        if any(isinstance(kind, BladeContact) for kind in kinds.values()) and any(
+                kind.n_samples and not isinstance(kind, BladeContact) for kind in kinds.values()):
+            # the implicit contact holds one set of samples: the bonds' or the surface's
+            raise ConfigError('a blade and a tool on the surface samples cannot share the tissue: '
+                              'set contact_samples 0 for the other tools')
         self.x = self.X.copy()
         self.v = np.zeros((self.n, 3))
         self.acc = np.zeros((self.n, 3))
@@ -363,10 +382,10 @@ class Solver:
                                       IMPLICIT_MAX_ITER if stiffness else CONTACT_MAX_ITER)
         # every instrument's pushing contacts, for one backward solve
         # (a particle both touched and held is recorded twice)
-        n_samples = kinds[shapes[0].tool_radius].n_samples     # the same samples whatever the radius
+        n_samples = max(kind.n_samples for kind in kinds.values())   # the same samples whatever the radius
         self.touches = make_touches(instruments * (2 * self.n + n_samples))
         self.instruments = [Instrument(self.n + n_samples, make_tool(c.tool_shape, c.tool_radius, c.tool_length),
-                                       kinds[c.tool_radius]) for c in shapes]
+                                       kinds[c.tool_radius, c.tool_shape == 'blade']) for c in shapes]
         #: the first instrument's tool and contact kind (the only ones of one instrument)
         self.tool, self.contact = self.instruments[0].tool, self.instruments[0].kind
         self._no_grip = no_grip()
@@ -374,6 +393,9 @@ class Solver:
         self._touch_vt = np.zeros((len(self.touches.idx), 3))
         self.area = LocalArea(self.X, self.fixed, Topology(self.offsets, self.indices), self.grid.bundle,
                               self.h, cfg.n_layers, instruments)
+        #: each blade's crack (instrument index -> :class:`~.cutting.Cutter`)
+        self.cutters = {k: Cutter(self.scheme.bonds(self.fixed), hand.kind)
+                        for k, hand in enumerate(self.instruments) if hand.tool.cuts}
         self.set_material(material)
         self.reset()
 
@@ -439,8 +461,9 @@ class Solver:
         self.contact_damping = cfg.contact_damping_ratio * 2.0 * math.sqrt(cfg.contact_stiffness * self.mass)
         for hand in self.instruments:
             hand.samples = hand.kind.samples(self.n, hand.tool.radius, cfg.contact_stiffness, self.contact_damping)
-        #: the implicit contact's view of the samples: their places are every instrument's
-        self.samples = self.instruments[0].samples
+        #: the implicit contact's view of the samples: their places are every sampled instrument's
+        self.samples = next((hand.samples for hand in self.instruments if hand.kind.n_samples),
+                            self.instruments[0].samples)
         self.scheme.set_material(material, self.mass)
         self.close()
         #: the organ's compliance for local mode's far field (None: the half-space's, or none)
@@ -456,7 +479,8 @@ class Solver:
         self.dt_max = min(self.dt_bounds.values())
 
     def reset(self) -> None:
-        """Back to the reference configuration at rest, sim time 0, no active area."""
+        """Back to the reference configuration at rest, sim time 0, no active area, the organ whole."""
+        self.fixed[:] = self._fixed_at_rest   # the particles a cut removed are back
         self.x[:] = self.X
         self.v[:] = 0.0
         self.acc[:] = 0.0
@@ -468,6 +492,9 @@ class Solver:
         self.f_prev = [0.0] * len(self.instruments)   # each tool's last force [N]: its area's size
         for hand in self.instruments:
             hand.reset()
+        for cutter in self.cutters.values():
+            cutter.reset()
+            cutter.kind.reset()
         self.last_result: StepResult | None = None
         self._last_sets: Sets | None = None           # the sets of the last finished frame
 
@@ -745,6 +772,8 @@ class Solver:
             raise
         if self.dashpot_rate is not None:
             self.dashpot_rate.update(self.body, self.x, self._last_sets, sub_dt)
+        if self.cutters:
+            self._cut(paths, contacts)
         tools = []
         for k, hand in enumerate(self.instruments):
             force_raw = self.react[k].copy()
@@ -752,7 +781,7 @@ class Solver:
             on = paths[k].on
             tools.append(ToolResult(force, force_raw, clamped, int(contacts[k]),
                                     float(max(self._overlap[k], 0.0)), lags[k], paths[k].seg1 if on else None,
-                                    hand.holding))
+                                    hand.holding, self.cutters[k].cut if k in self.cutters else 0))
             hand.tip = tips[k]
             hand.segment = paths[k].seg1 if on else None
             hand.rotation = rots[k]
@@ -765,6 +794,55 @@ class Solver:
                             wall_time=time.perf_counter() - t0, substeps_capped=capped, **res)
         self.last_result = result
         return result
+
+    def _cut(self, paths: tuple, contacts: list) -> None:
+        """Each blade breaks the bonds its frame paid for (:mod:`.cutting`); the particles the cut
+        tore off leave the simulation."""
+        sets = self._last_sets
+        for k, cutter in self.cutters.items():
+            path = paths[k]
+            touching = path.on and (contacts[k] >= 0 or self._overlap[k] > 0.0)
+            pairs = cutter.frame(self.x, self.v, path.seg0, path.seg1, self.react[k], touching, sets.cand,
+                                 sets.n_cand, self.instruments[k].samples, self.material.toughness)
+            if len(pairs):
+                cut, gone = cutter.bonds.cut(pairs)
+                for blade in {id(c.kind): c.kind for c in self.cutters.values()}.values():
+                    blade.drop(cut)
+                if len(gone):
+                    self._remove(gone)
+
+    def _remove(self, idx: np.ndarray) -> None:
+        """Particles ``idx`` (bondless now) leave: held still far from every tool (a tool is refused
+        beyond :data:`MAX_TOOL_DISTANCE`) until :meth:`reset`."""
+        self.fixed[idx] = True
+        self.x[idx] = self.X[idx] + REMOVED_OFFSET
+        self.v[idx] = 0.0
+        self.acc[idx] = 0.0
+        self.area.drop(idx)
+
+    @property
+    def removed(self) -> np.ndarray | None:
+        """(N,) bool: the particles a cut removed (None: no blade, nothing can be)."""
+        cutter = next(iter(self.cutters.values()), None)
+        return cutter.bonds.removed if cutter is not None else None
+
+    @property
+    def severed(self) -> np.ndarray | None:
+        """(N,) the reference bonds each particle lost to a cut (None: no blade)."""
+        cutter = next(iter(self.cutters.values()), None)
+        return cutter.bonds.severed if cutter is not None else None
+
+    def crack_area(self, k: int = 0) -> float:
+        """[m^2] the crack instrument ``k`` opened: its bonds cut times a bond's crack area (0: not a
+        blade)."""
+        cutter = self.cutters.get(k)
+        return cutter.cut * cutter.bonds.area if cutter is not None else 0.0
+
+    def cut_length(self, k: int = 0) -> float:
+        """[m] how far instrument ``k``'s edge has cut: its travel across itself from the first bond it
+        broke to the last (0: not a blade)."""
+        cutter = self.cutters.get(k)
+        return cutter.length if cutter is not None else 0.0
 
     @staticmethod
     def _limit_travel(prev: np.ndarray, target: np.ndarray, max_travel: float) -> tuple[np.ndarray, float]:
@@ -807,6 +885,9 @@ class Solver:
         back to their state before the frame and :class:`SimError` is raised.
         """
         self.area.save(self.x, self.v, sets)
+        for k, cutter in self.cutters.items():
+            if paths[k].on:
+                cutter.aim(self.x, paths[k].seg1, sets.cand, sets.n_cand)
         self.scheme.start_frame(self.sim_time, sub_dt)
         status = frame.run(self.scheme, self.substep_integrator(sub_dt), self.body, self.motion, sets,
                            paths, self.loads, n_sub, dt, self.react, self._overlap, self.abort,
@@ -940,4 +1021,12 @@ def warmup(scheme: str | None = None, integrator: str = 'explicit', instruments:
         # the backstop samples' nearness test runs outside the frame kernel
         solver = Solver(model, mat, SolverConfig(contact_samples=1))
         solver.step(np.array([0.01, 0.01, model.positions[:, 2].max() + 0.005]), 1e-3)
+        # a blade's kernels (its bonds' samples, the cut, the refit) run once it cuts: a soft tissue
+        # here, so that it does within a few frames
+        for mode in MODES:
+            solver = Solver(model, replace(mat, toughness=1.0), SolverConfig(
+                mode=mode, integrator=integrator, tool_shape='blade', tool_radius=0.0005, tool_length=0.01))
+            top = model.positions[:, 2].max()
+            for k in range(6):
+                solver.step(np.array([0.0075, 0.0085, top + 0.001 - 0.002 * k]), 1e-3, NO_ROTATION)
     return time.perf_counter() - t0

@@ -58,7 +58,8 @@ import numpy as np
 from numba import njit, prange
 from numba.extending import overload
 
-from .gradients import corrected_gradients, reverse_pairs
+from .bonds import Bonds
+from .gradients import corrected_gradients, pair_weights, reverse_pairs
 from .kernel import ZERO3X3, add_outer, strain_rate
 from .material import Material
 from .protocols import STATUS_OK, FixedStateScheme, internal_forces, is_state
@@ -521,7 +522,9 @@ class TlsphScheme(FixedStateScheme):
         self.offsets, self.indices, self.volume = offsets, indices, volume
         self.hourglass = hourglass
         self.par_min = par_min
+        self.X, self.h = X, h
         self.g, self.gr, self.gsum, self.w0 = _pair_arrays(X, offsets, indices, h, volume)
+        self._bonds: Bonds | None = None
         self.F = np.zeros((n, 3, 3))
         self.Fd = np.zeros((n, 3, 3))
         self.A = np.zeros((n, 3, 3))
@@ -617,7 +620,17 @@ class TlsphScheme(FixedStateScheme):
         top = float(per.max()) if len(per) else 0.0
         return cfl * mass / top if top > 0.0 else math.inf
 
+    def bonds(self, fixed: np.ndarray) -> Bonds:
+        """The reference bonds, made breakable (:mod:`.bonds`; ``fixed``: particles never removed)."""
+        if self._bonds is None:
+            dw, _ = pair_weights(self.X, self.offsets, self.indices, self.h)
+            self._bonds = Bonds(self.X, self.offsets, self.indices, dw, reverse_pairs(self.offsets, self.indices),
+                                self.volume, fixed, self.g, self.gr, self.gsum, self.w0)
+        return self._bonds
+
     def reset(self) -> None:
+        if self._bonds is not None:
+            self._bonds.reset()          # the intact organ again
         self.F[:] = np.eye(3)
         self.Fd[:] = 0.0
         self.A[:] = 0.0

@@ -9,18 +9,19 @@ from __future__ import annotations
 
 from ..errors import ConfigError
 from .base import NO_ROTATION, SweptSphere, Tool
+from .blade import Blade
 from .capsule import Capsule
 from .sphere import Sphere
 
 #: every shape by name
-TOOLS = {'sphere': Sphere, 'capsule': Capsule}
+TOOLS = {'sphere': Sphere, 'capsule': Capsule, 'blade': Blade}
 
 
 def make_tool(shape: str, radius: float, length: float = 0.0) -> Tool:
-    """The tool ``shape`` with its dimensions [m] (``length``: the capsule's shaft)."""
+    """The tool ``shape`` with its dimensions [m] (``length``: the capsule's shaft, the blade's edge)."""
     if shape not in TOOLS:
         raise ConfigError(f'tool_shape must be one of {", ".join(TOOLS)}, got {shape!r}')
     return TOOLS[shape].from_dimensions(radius=radius, length=length)
 
 
-__all__ = ['NO_ROTATION', 'TOOLS', 'Capsule', 'Sphere', 'SweptSphere', 'Tool', 'make_tool']
+__all__ = ['NO_ROTATION', 'TOOLS', 'Blade', 'Capsule', 'Sphere', 'SweptSphere', 'Tool', 'make_tool']

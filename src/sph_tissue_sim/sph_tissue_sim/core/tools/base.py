@@ -21,6 +21,7 @@ class Tool(Protocol):
     name: str
     radius: float            # [m] radius of the swept sphere
     oriented: bool           # whether the pose's orientation moves the shape
+    cuts: bool               # whether its edge breaks the bonds it loads (:mod:`..cutting`)
 
     def segment(self, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
         """(2, 3) ends of the tool's core segment in the tissue frame [m]."""
@@ -39,6 +40,7 @@ class SweptSphere:
     name = 'swept sphere'
     radius = 0.0
     oriented = True
+    cuts = False
 
     def segment(self, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
         raise NotImplementedError
