@@ -35,7 +35,7 @@ from .grasp import GRASP_REGION, grasp_region, no_grip
 from .implicit_contact import contact_terms, make_touches
 from .instrument import Instrument, ToolResult
 from .backward_euler import BackwardSolve
-from .compliance import OrganCompliance
+from .compliance import OrganCompliance, organ_place
 from .integrate import frame_state_ok, substep_bounds, substeps_for
 from .kernel import SUPPORT
 from .local_area import LocalArea, active_stats
@@ -1005,12 +1005,24 @@ def warmup(scheme: str | None = None, integrator: str = 'explicit', instruments:
             except ConfigError:
                 continue
             top = model.positions[:, 2].max()
-            for k in range(3):
+            # held in contact until the dashpots' rate is measured (every DASHPOT_RATE_EVERY frames):
+            # its kernels too, else the live loop loads them at its first touch
+            for k in range(DASHPOT_RATE_EVERY + 1):
                 try:
-                    solver.step(np.array([0.01, 0.01, top + 0.005 - 0.001 * k]), 1e-3)
+                    solver.step(np.array([0.01, 0.01, top + 0.005 - 0.001 * min(k, 2)]), 1e-3)
                 except ConfigError:
                     break
             solver.von_mises()
+            if mode == 'local' and sch == 'tlsph':
+                # the organ's far field places its shell with organ_place, its loads one broadcast
+                # (C or A, read-only) or several concatenated (C or F): the tiny block has no shell,
+                # so each layout is loaded here (loaded at a live first touch, it held the solver
+                # thread for 30-300 ms while the press went on without a contact model)
+                x, idx = np.zeros((2, 3)), np.zeros(2, dtype=np.int32)
+                for loads in (np.broadcast_to(np.zeros(3), (1, 3)), np.broadcast_to(np.zeros(3), (2, 3)),
+                              np.zeros((2, 3)), np.zeros((2, 3), order='F')):
+                    organ_place(x, x.copy(), idx, idx.copy(), np.ones(2), idx.copy(),
+                                np.zeros((1, 2, 3, 3), dtype=np.float32), loads)
             if instruments > 1 and sch == 'tlsph':
                 # sim_node steps these in its live loop: compiled there, the first steps took seconds
                 solver = Solver(model, mat, SolverConfig(scheme=sch, mode=mode, integrator=integ), instruments=2)
