@@ -43,8 +43,9 @@ class BallContact:
 
     per_side = 0
 
-    def __init__(self, tool_radius: float, spacing: float, ball: float = BALL_RADIUS) -> None:
-        self.ball_reach = tool_radius + ball * spacing
+    def __init__(self, tool_radius: float, spacing: float, ball: float | None = None) -> None:
+        # BALL_RADIUS read at each call (None): tests shrink it for the samples alone
+        self.ball_reach = tool_radius + (BALL_RADIUS if ball is None else ball) * spacing
         self.contact_reach = self.detect_reach = self.cand_reach = self.samples_reach = self.ball_reach
 
     @property
