@@ -46,6 +46,7 @@ def _one_ball(anchor_offset: np.ndarray, friction: float):
     from sph_tissue_sim.core.contact import contact_forces
     from sph_tissue_sim.core.state import Body, Motion, ToolPath, no_touches
     from sph_tissue_sim.core.grasp import no_grip
+    from sph_tissue_sim.core.needle import no_shaft
     from sph_tissue_sim.core.surface_contact import no_samples
 
     X = np.array([[0.0, 0.0, 0.009]])                  # 9 mm above the tool centre; reach 10 mm
@@ -54,7 +55,7 @@ def _one_ball(anchor_offset: np.ndarray, friction: float):
     motion = Motion(X.copy(), np.zeros((1, 3)), np.zeros((1, 3)))
     anchor = (X - seg[0]) + anchor_offset
     tool = ToolPath(seg, seg, True, 0.010, 300.0, 0.0, no_samples(1), no_touches(), friction,
-                    anchor, np.ones(1, dtype=np.bool_), 0, no_grip())
+                    anchor, np.ones(1, dtype=np.bool_), 0, no_grip(), no_shaft())
     react = np.zeros(3)
     contact_forces(body, motion, np.zeros(1, dtype=np.int32), 1, tool, seg, np.zeros((2, 3)), react)
     return react, motion.acc[0].copy(), tool.anchor[0].copy(), tool

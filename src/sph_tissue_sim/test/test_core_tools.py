@@ -11,18 +11,20 @@ from sph_tissue_sim.core.factory import make_model
 from sph_tissue_sim.core.material import liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import InvalidInput, Solver, SolverConfig
-from sph_tissue_sim.core.tools import NO_ROTATION, TOOLS, Blade, Capsule, Sphere, make_tool
+from sph_tissue_sim.core.tools import NO_ROTATION, TOOLS, Blade, Capsule, Needle, Sphere, make_tool
 
 from press import rotation_y, tilted_shaft_press
 
 
 def test_tools_are_made_by_name_with_their_dimensions():
-    assert set(TOOLS) == {'sphere', 'capsule', 'blade'}
+    assert set(TOOLS) == {'sphere', 'capsule', 'blade', 'needle'}
     assert isinstance(make_tool('sphere', 0.004), Sphere)
     capsule = make_tool('capsule', 0.004, 0.06)
     assert isinstance(capsule, Capsule) and capsule.length == 0.06 and not capsule.cuts
     blade = make_tool('blade', 0.0005, 0.02)
-    assert isinstance(blade, Blade) and blade.cuts and blade.length == 0.02
+    assert isinstance(blade, Blade) and blade.cuts and blade.length == 0.02 and not blade.pierces
+    needle = make_tool('needle', 0.0005, 0.06)
+    assert isinstance(needle, Needle) and needle.pierces and not needle.cuts and needle.length == 0.06
     assert capsule.bounding_radius() == pytest.approx(0.064)
     for bad in (lambda: make_tool('cone', 0.004), lambda: make_tool('sphere', 0.0),
                 lambda: make_tool('capsule', 0.004, -0.01)):
@@ -116,6 +118,7 @@ def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
     from sph_tissue_sim.core.contact import contact_forces
     from sph_tissue_sim.core.state import Body, Motion, ToolPath, no_touches
     from sph_tissue_sim.core.grasp import no_grip
+    from sph_tissue_sim.core.needle import no_shaft
     from sph_tissue_sim.core.surface_contact import no_samples
 
     X = np.array([[0.1, 0.0, -0.004]])              # 4 mm below the far end of a 100 mm shaft
@@ -127,7 +130,7 @@ def test_the_dashpot_sees_the_velocity_of_the_shaft_point_that_touches():
         body = Body(X, np.zeros(1, dtype=np.bool_), 1.0 / inv_mass, inv_mass)
         motion = Motion(X.copy(), np.zeros((1, 3)), np.zeros((1, 3)))
         tool = ToolPath(seg, seg, True, reach, k, c, no_samples(1), no_touches(), 0.0, np.zeros((1, 3)),
-                        np.zeros(1, dtype=np.bool_), 0, no_grip())
+                        np.zeros(1, dtype=np.bool_), 0, no_grip(), no_shaft())
         overlap = contact_forces(body, motion, np.zeros(1, dtype=np.int32), 1, tool, seg, seg_vel,
                                  react)
         # normal n = (0, 0, -1) at t = 1: relative normal velocity -(0 - v_far) . ... = v_far

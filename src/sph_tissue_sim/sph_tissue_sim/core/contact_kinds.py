@@ -1,13 +1,15 @@
 """Contact kinds: where the tool meets the tissue, as the solver needs it.
 
 A kind owns its reach radii, its surface samples (if any) and how it grows the local area (the
-pushing contacts are integrated backward and bound no sub-step). Two kinds today, chosen by
+pushing contacts are integrated backward and bound no sub-step). The kinds, chosen by
 ``SolverConfig.contact_samples``:
 
 - :class:`BallContact` (0): the tool against the particles' balls of ``BALL_RADIUS`` spacings; the
   tool slips between them.
 - :class:`SampledContact` (n > 0): the balls, and behind them n x n samples per surface particle on
   the material's surface (:mod:`.surface_contact`) that hold the tool out of the gaps.
+- :class:`NeedleContact` (a needle, whatever the setting): small balls, and the particles its
+  shaft's friction holds.
 - :class:`BladeContact` (a blade, whatever the setting): touching balls, and a sample on every
   intact bond where it comes closest to the edge, so that the edge rests on the bonds it must cut
   (:mod:`.cutting`).
@@ -28,6 +30,10 @@ BALL_RADIUS = 1.0
 BLADE_BALL = 0.5
 #: [spacings] how thick a bond is for a blade
 BOND_BALL = 0.5
+#: [spacings] the balls a needle's shaft meets: the hole it opens is its radius and this
+NEEDLE_BALL = 0.5
+#: [spacings] a needle's shaft holds the particles this close to its axis by friction
+NEEDLE_GRIP = 1.5
 #: [m] where a cut bond's sample goes (from the weighted sum, which is then zero): beyond any tool
 BOND_GONE = np.array([0.0, 0.0, -100.0])
 #: backstop samples that push the tool grow the local area's radius by this many h (with the
@@ -168,6 +174,17 @@ class BladeContact(BallContact):
         self.gone[:] = False
         self.w_val[:] = 0.5
         self.offset[:] = 0.0
+
+
+class NeedleContact(BallContact):
+    """Balls of :data:`NEEDLE_BALL` spacings (a needle opens a hole about its own size) and the
+    particles within :data:`NEEDLE_GRIP` spacings of its axis as candidates: its shaft's friction
+    holds them (:mod:`.needle`)."""
+
+    def __init__(self, tool_radius: float, spacing: float) -> None:
+        super().__init__(tool_radius, spacing, NEEDLE_BALL)
+        self.grip_reach = NEEDLE_GRIP * spacing
+        self.cand_reach = self.samples_reach = max(self.ball_reach, self.grip_reach)
 
 
 def make_contact(per_side: int, tool_radius: float, spacing: float, X: np.ndarray, offsets: np.ndarray,

@@ -6,8 +6,9 @@ Per sub-step ``s`` (each instrument's segment moves linearly from its ``seg0`` t
     internal_forces(scheme, ...)      acc of sets.sph (the scheme's overload, :mod:`.protocols`)
     acc += f_ext / m                  constant external loads
     acc += contact / m                penalty contact with each tool and the springs of the particles
-                                      it holds; its reaction summed (:mod:`.contact`,
-                                      :mod:`.surface_contact`, :mod:`.grasp`)
+                                      it holds (a needle: its own shaft and tip); its
+                                      reaction summed (:mod:`.contact`, :mod:`.surface_contact`,
+                                      :mod:`.grasp`, :mod:`.needle`)
     advance(integrator, ...)          x, v of sets.sph (the integrator's overload, :mod:`.integrate`)
     move_layers(...)                  the transmission layers follow the contact (eqs. 20-21)
 
@@ -29,6 +30,7 @@ from numba import njit
 from . import paper, springs, tlsph  # noqa: F401
 from .contact import contact_forces
 from .grasp import grip_forces
+from .needle import needle_forces
 from .surface_contact import sample_contact_forces
 from .integrate import move_layers, move_layers_tools
 from .protocols import (STATUS_ABORTED, STATUS_FULL, STATUS_OK, FrameScheme, advance,
@@ -103,7 +105,10 @@ def run_frame(scheme, integrator, body, motion, sets, tools, loads, first, n_sub
                 continue
             _segment_at(tool.seg0, tool.seg1, s, n_sub, seg)
             rsum[0] = 0.0; rsum[1] = 0.0; rsum[2] = 0.0
-            depth = contact_forces(body, motion, sets.cand, sets.n_cand, tool, seg, seg_vel[k], rsum)
+            if tool.shaft.needle:
+                depth = needle_forces(body, motion, sets.cand, sets.n_cand, tool, seg, seg_vel[k], rsum)
+            else:
+                depth = contact_forces(body, motion, sets.cand, sets.n_cand, tool, seg, seg_vel[k], rsum)
             if tool.samples.w_val.shape[0] > 0:
                 depth = max(depth, sample_contact_forces(body, motion, sets.cand, sets.n_cand, tool, seg,
                                                          seg_vel[k], rsum))

@@ -30,7 +30,7 @@ shear stiffness grows as ``exp(b (I1b - 3))`` (uniaxial stretch 1 + e: ``I1b - 3
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from .errors import ConfigError
@@ -40,6 +40,8 @@ from .errors import ConfigError
 MAX_STIFFENING = 50.0
 #: [J/m^2] the largest fracture toughness accepted
 MAX_TOUGHNESS = 1e5
+#: [N/m] the largest hold of a needle's shaft accepted
+MAX_NEEDLE_HOLD = 1e4
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,9 @@ class Material:
         stiffening: the exponent ``b`` [-] of the strain-stiffening term, 0 <= b <= 50 (0: none).
         toughness: the fracture toughness ``G_c`` [J/m^2] (> 0): the work a blade pays per unit area
             of the crack it opens (porcine liver about 190-225 for a blade).
+        needle_hold: ``(static, dynamic)`` [N/m]: the most a metre of a needle's inserted shaft
+            holds the tissue with along its axis, sticking and sliding, ``0 <= dynamic <= static``
+            (:mod:`.needle`).
     """
 
     E: float
@@ -69,6 +74,7 @@ class Material:
     prony: tuple = ()
     stiffening: float = 0.0
     toughness: float = 200.0
+    needle_hold: tuple = (6.0, 4.0)
 
     def __post_init__(self) -> None:
         for key in ('E', 'nu', 'eta_shear', 'eta_bulk', 'rho'):
@@ -108,6 +114,15 @@ class Material:
         if not (isinstance(g_c, (int, float)) and math.isfinite(g_c) and 0.0 < g_c <= MAX_TOUGHNESS):
             raise ConfigError(f'material {self.name}: toughness must be in (0, {MAX_TOUGHNESS:g}] J/m^2, got {g_c!r}')
         object.__setattr__(self, 'toughness', float(g_c))
+        try:
+            hold_s, hold_d = (float(v) for v in self.needle_hold)
+        except (TypeError, ValueError):
+            raise ConfigError(f'material {self.name}: needle_hold is a pair (static, dynamic) [N/m], '
+                              f'got {self.needle_hold!r}') from None
+        if not (math.isfinite(hold_s) and math.isfinite(hold_d) and 0.0 <= hold_d <= hold_s <= MAX_NEEDLE_HOLD):
+            raise ConfigError(f'material {self.name}: needle_hold must be 0 <= dynamic <= static <= '
+                              f'{MAX_NEEDLE_HOLD:g} N/m, got ({hold_s}, {hold_d})')
+        object.__setattr__(self, 'needle_hold', (hold_s, hold_d))
 
     @property
     def beyond_kelvin_voigt(self) -> bool:
@@ -177,8 +192,7 @@ class Material:
 
     def with_viscosity_scale(self, factor: float) -> 'Material':
         """A copy with both viscosities multiplied by ``factor``."""
-        return Material(self.E, self.nu, self.eta_shear * factor, self.eta_bulk * factor, self.rho,
-                        self.name, self.prony, self.stiffening, self.toughness)
+        return replace(self, eta_shear=self.eta_shear * factor, eta_bulk=self.eta_bulk * factor)
 
 
 DEFAULT_MATERIALS_YAML = Path(__file__).resolve().parents[2] / 'config' / 'materials.yaml'
@@ -190,7 +204,7 @@ def load_material(yaml_path: str | Path | None = None, name: str = 'liver') -> M
     Each entry gives ``rho`` and either (``E``, ``nu``) or (``G``, ``nu``), plus ``eta_shear`` and
     optionally ``eta_bulk`` [Pa s] (default: same retardation time as the shear part), ``prony``
     (a list of ``[g, tau]``, the spring's relaxation), ``stiffening`` (its exponent ``b``) and
-    ``toughness`` [J/m^2]; or ``preset: paper`` with ``E``, ``eta``, ``rho``.
+    ``toughness`` [J/m^2] and ``needle_hold`` ``[static, dynamic]`` [N/m]; or ``preset: paper`` with ``E``, ``eta``, ``rho``.
 
     Raises:
         ConfigError: missing file, unknown name or invalid values.
@@ -210,31 +224,37 @@ def load_material(yaml_path: str | Path | None = None, name: str = 'liver') -> M
         raise ConfigError(f'{path}: no material {name!r}; available: {sorted(mats)}')
     entry = dict(mats[name])
     try:
-        g_c = float(entry.get('toughness', Material.toughness))
-        if entry.get('preset') == 'paper':
-            mat = Material.paper_preset(float(entry['E']), float(entry['eta']), float(entry.get('rho', 1060.0)))
-            return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name,
-                            tuple(tuple(term) for term in entry.get('prony') or ()),
-                            float(entry.get('stiffening', 0.0)), g_c)
-        nu = float(entry['nu'])
-        rho = float(entry['rho'])
-        eta_s = float(entry['eta_shear'])
-        eta_b = entry.get('eta_bulk')
-        prony = tuple(tuple(term) for term in entry.get('prony') or ())
-        b = float(entry.get('stiffening', 0.0))
-        if 'G' in entry:
-            mat = Material.from_shear(float(entry['G']), nu, eta_s,
-                                      None if eta_b is None else float(eta_b), rho, name)
-            return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name, prony, b, g_c)
-        E = float(entry['E'])
-        if eta_b is None:
-            G = E / (2.0 * (1.0 + nu))
-            eta_b = E / (3.0 * (1.0 - 2.0 * nu)) * eta_s / G
-        return Material(E, nu, eta_s, float(eta_b), rho, name, prony, b, g_c)
+        return replace(_material_entry(entry, name),
+                       needle_hold=tuple(entry.get('needle_hold', Material.needle_hold)))
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise
         raise ConfigError(f'{path}: material {name!r} is incomplete or invalid: {exc!r}') from exc
+
+
+def _material_entry(entry: dict, name: str) -> Material:
+    """The material of one ``materials.yaml`` entry (but its needle's hold)."""
+    g_c = float(entry.get('toughness', Material.toughness))
+    if entry.get('preset') == 'paper':
+        mat = Material.paper_preset(float(entry['E']), float(entry['eta']), float(entry.get('rho', 1060.0)))
+        return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name,
+                        tuple(tuple(term) for term in entry.get('prony') or ()),
+                        float(entry.get('stiffening', 0.0)), g_c)
+    nu = float(entry['nu'])
+    rho = float(entry['rho'])
+    eta_s = float(entry['eta_shear'])
+    eta_b = entry.get('eta_bulk')
+    prony = tuple(tuple(term) for term in entry.get('prony') or ())
+    b = float(entry.get('stiffening', 0.0))
+    if 'G' in entry:
+        mat = Material.from_shear(float(entry['G']), nu, eta_s,
+                                  None if eta_b is None else float(eta_b), rho, name)
+        return Material(mat.E, mat.nu, mat.eta_shear, mat.eta_bulk, mat.rho, name, prony, b, g_c)
+    E = float(entry['E'])
+    if eta_b is None:
+        G = E / (2.0 * (1.0 + nu))
+        eta_b = E / (3.0 * (1.0 - 2.0 * nu)) * eta_s / G
+    return Material(E, nu, eta_s, float(eta_b), rho, name, prony, b, g_c)
 
 
 def liver_default() -> Material:

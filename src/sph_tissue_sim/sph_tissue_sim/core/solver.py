@@ -25,8 +25,9 @@ from tissue_common.force import HARD_FORCE_LIMIT, clamp_norm
 
 from . import frame
 from .contact import contact_vector_py, deepest_contact
-from .contact_kinds import BallContact, BladeContact, make_contact
+from .contact_kinds import BallContact, BladeContact, NeedleContact, make_contact
 from .cutting import Cutter
+from .needle import INSERTED, Puncture, no_shaft
 from .surface_contact import nearest_sample_gap
 from .errors import ConfigError, ModelError, SimError
 from .far_field import make_far_field
@@ -125,10 +126,11 @@ class SolverConfig:
     # -- tool and contact -------------------------------------------------------------------------
     tool_shape: str = setting('sphere', 'sphere (a probe tip) | capsule (a shaft of tool_length along '
                               'the tool\'s +z, rounded: an instrument; 1.17x the sphere\'s step at a 6 mm '
-                              'press) | blade (an edge of tool_length along +z that cuts: tlsph only)', tuple(TOOLS))
+                              'press) | blade (an edge of tool_length along +z that cuts: tlsph only) | needle '
+                              '(a shaft that pierces past its puncture force: tlsph only)', tuple(TOOLS))
     tool_radius: float = setting(0.005, '[m] radius of the sphere, or of the capsule\'s shaft', (1e-4, 0.05))
-    tool_length: float = setting(0.05, '[m] length of the capsule\'s shaft or of the blade\'s edge (unused by '
-                                 'the sphere)', (0.0, 0.3))
+    tool_length: float = setting(0.05, '[m] length of the capsule\'s or needle\'s shaft or of the blade\'s edge '
+                                 '(unused by the sphere)', (0.0, 0.3))
     contact_stiffness: float = setting(300.0, '[N/m] penalty stiffness per touched particle or surface '
                                        'sample', (1.0, 1e5))
     contact_damping_ratio: float = setting(1.0, '[-] contact dashpot as a fraction of critical for one '
@@ -269,6 +271,13 @@ def tool_shapes(cfg: SolverConfig, instruments: int, tools) -> list[SolverConfig
     return out
 
 
+def contact_key(shape: SolverConfig) -> tuple[float, str]:
+    """Which tools share a contact kind: those of one radius that meet the same things (a blade
+    its bonds, a needle the balls, the others the surface samples, built once per radius)."""
+    family = shape.tool_shape if shape.tool_shape in ('blade', 'needle') else 'surface'
+    return shape.tool_radius, family
+
+
 def organ_far_field(cfg: SolverConfig, X: np.ndarray, fixed: np.ndarray, scheme, spacing: float,
                     abort: np.ndarray, background: bool) -> OrganCompliance | None:
     """Local mode's far field from the organ's own linear response (tlsph, up to
@@ -348,17 +357,22 @@ class Solver:
                               f'neighbour within 2h (spacing {model.spacing:.3g} m)')
         kinds: dict[tuple, BallContact] = {}      # the surface samples are built once per radius
         for shape in shapes:
-            key = (shape.tool_radius, shape.tool_shape == 'blade')
+            key = contact_key(shape)
             if key in kinds:
                 continue
-            if key[1]:    # a crack face has no surface samples: a blade meets the balls and the bonds
+            if shape.tool_shape == 'needle':    # it enters the tissue: the balls alone, no surface
+                kinds[key] = NeedleContact(shape.tool_radius, model.spacing)
+            elif shape.tool_shape == 'blade':    # a crack face has no surface samples: a blade meets the balls and the bonds
                 kinds[key] = BladeContact(shape.tool_radius, model.spacing, self.X, self.offsets, self.indices,
                                           reverse_pairs(self.offsets, self.indices))
             else:
                 kinds[key] = make_contact(cfg.contact_samples, shape.tool_radius, model.spacing, self.X,
                                           self.offsets, self.indices, self.h, self.volume)
-        if cfg.scheme != 'tlsph' and any(key[1] for key in kinds):
+        if cfg.scheme != 'tlsph' and any(key[1] == 'blade' for key in kinds):
             raise ConfigError(f'a blade cuts the reference bonds of scheme tlsph; scheme {cfg.scheme} has none')
+        if cfg.scheme != 'tlsph' and any(shape.tool_shape == 'needle' for shape in shapes):
+            raise ConfigError(f'a needle pierces the tissue of scheme tlsph (its bonds, its stress); scheme '
+                              f'{cfg.scheme} has none')
         if any(isinstance(kind, BladeContact) for kind in kinds.values()) and any(
                 kind.n_samples and not isinstance(kind, BladeContact) for kind in kinds.values()):
             # the implicit contact holds one set of samples: the bonds' or the surface's
@@ -385,7 +399,7 @@ class Solver:
         n_samples = max(kind.n_samples for kind in kinds.values())   # the same samples whatever the radius
         self.touches = make_touches(instruments * (2 * self.n + n_samples))
         self.instruments = [Instrument(self.n + n_samples, make_tool(c.tool_shape, c.tool_radius, c.tool_length),
-                                       kinds[c.tool_radius, c.tool_shape == 'blade']) for c in shapes]
+                                       kinds[contact_key(c)]) for c in shapes]
         #: the first instrument's tool and contact kind (the only ones of one instrument)
         self.tool, self.contact = self.instruments[0].tool, self.instruments[0].kind
         self._no_grip = no_grip()
@@ -396,6 +410,11 @@ class Solver:
         #: each blade's crack (instrument index -> :class:`~.cutting.Cutter`)
         self.cutters = {k: Cutter(self.scheme.bonds(self.fixed), hand.kind)
                         for k, hand in enumerate(self.instruments) if hand.tool.cuts}
+        #: each needle's phase (instrument index -> :class:`~.needle.Puncture`)
+        self.needles = {k: Puncture(self.n, 2.0 * hand.tool.radius, hand.kind, cfg.contact_stiffness,
+                                    model.spacing)
+                        for k, hand in enumerate(self.instruments) if hand.tool.pierces}
+        self._no_shaft = no_shaft()
         self.set_material(material)
         self.reset()
 
@@ -495,6 +514,8 @@ class Solver:
         for cutter in self.cutters.values():
             cutter.reset()
             cutter.kind.reset()
+        for needle in self.needles.values():
+            needle.reset()
         self.last_result: StepResult | None = None
         self._last_sets: Sets | None = None           # the sets of the last finished frame
 
@@ -755,9 +776,12 @@ class Solver:
             tips.append(tip)
             rots.append(rot)
             lags.append(lag)
+            needle = self.needles.get(k)
+            shaft = (needle.shaft(self.material.toughness, self.material.needle_hold) if needle is not None
+                     else self._no_shaft)
             paths.append(ToolPath(seg0, seg1, pose is not None, hand.kind.ball_reach, cfg.contact_stiffness,
                                   self.contact_damping, hand.samples, self.touches,
-                                  cfg.friction, hand.anchor, hand.stuck, k, grip))
+                                  cfg.friction, hand.anchor, hand.stuck, k, grip, shaft))
         paths = tuple(paths)
         held = [hand.grip_held.copy() if len(hand.grip_idx) else None for hand in self.instruments]
         try:
@@ -774,6 +798,14 @@ class Solver:
             self.dashpot_rate.update(self.body, self.x, self._last_sets, sub_dt)
         if self.cutters:
             self._cut(paths, contacts)
+        for k, needle in self.needles.items():
+            was = needle.state
+            touching = paths[k].on and (contacts[k] >= 0 or self._overlap[k] > 0.0)
+            sets = self._last_sets
+            needle.update(paths[k].seg1 if paths[k].on else None, self.react[k], touching, self.material.toughness,
+                          self.x, sets.cand[:sets.n_cand])
+            if (was == INSERTED) != (needle.state == INSERTED):
+                self.instruments[k].stuck[:] = False    # its anchors were the other contact's
         tools = []
         for k, hand in enumerate(self.instruments):
             force_raw = self.react[k].copy()
@@ -843,6 +875,18 @@ class Solver:
         broke to the last (0: not a blade)."""
         cutter = self.cutters.get(k)
         return cutter.length if cutter is not None else 0.0
+
+    def needle_state(self, k: int = 0) -> int:
+        """Instrument ``k``'s needle: :data:`~.needle.OUTSIDE`, ``TOUCHING`` or ``INSERTED`` (0 for
+        a tool that is not a needle)."""
+        needle = self.needles.get(k)
+        return needle.state if needle is not None else 0
+
+    def needle_depth(self, k: int = 0) -> float:
+        """[m] how far instrument ``k``'s needle tip is below its entry point (0: not inserted, or
+        not a needle)."""
+        needle = self.needles.get(k)
+        return needle.depth if needle is not None else 0.0
 
     @staticmethod
     def _limit_travel(prev: np.ndarray, target: np.ndarray, max_travel: float) -> tuple[np.ndarray, float]:

@@ -151,6 +151,32 @@ class Grip(NamedTuple):
     limit: float           # [N]
 
 
+class Shaft(NamedTuple):
+    """A needle (:mod:`.needle`): once inserted its entry point and axis at the puncture, the
+    crack's front ahead of its tip, the laws of its tip and shaft and the shaft's hold on each
+    particle; before, its dent (``needle`` False: a tool that is not a needle, its arrays empty)."""
+
+    needle: bool
+    inserted: bool         # it has punctured the surface
+    entry: np.ndarray      # (3,) [m] where the tip was when it punctured
+    axis: np.ndarray       # (3,) unit: the needle's +z then (the tip advances along -axis)
+    front: float           # [m] how deep, from the entry along -axis, the tip's crack reaches
+    lead: float            # [m] the tip's cone: it spreads the particles this far ahead of the tip
+    cut_force: float       # [N] the force that advances the crack at the tip
+    cut_stiffness: float   # [N/m] the tip's load below it, per metre short of the front
+    grip_reach: float      # [m] the shaft holds the particles this close to its axis
+    grip_norm: float       # [m] a particle's share of the shaft's length at the axis
+    hold_static: float     # [N/m] per metre of shaft: the most it holds the tissue with, sticking
+    hold_dynamic: float    # [N/m] and sliding
+    anchor: np.ndarray     # (N,) [m] where along the shaft (from the tip) a held particle sticks
+    stuck: np.ndarray      # (N,) bool: it has an anchor
+    sliding: np.ndarray    # (N,) bool: it slides (the dynamic hold)
+    patch_idx: np.ndarray  # (P,) int32: not inserted, the particles of the surface under the tip
+    patch_w: np.ndarray    # (P,) their weights (summing to 1)
+    patch_off: np.ndarray  # (3,) [m] the dent's point: sum w x + patch_off
+    patch_n: int           # 0: no dent
+
+
 class ToolPath(NamedTuple):
     """The tool across one frame and the contact law (see :mod:`.contact`)."""
 
@@ -168,6 +194,7 @@ class ToolPath(NamedTuple):
     stuck: np.ndarray      # (N + S,) bool: it holds an anchor (it touched in the last sub-step)
     slot: int              # which of the solver's instruments this is (the row of its reaction)
     grip: Grip             # the particles it holds (none: n = 0)
+    shaft: Shaft           # a needle's shaft once inserted (:mod:`.needle`)
 
 
 class Loads(NamedTuple):

@@ -22,6 +22,7 @@ class Tool(Protocol):
     radius: float            # [m] radius of the swept sphere
     oriented: bool           # whether the pose's orientation moves the shape
     cuts: bool               # whether its edge breaks the bonds it loads (:mod:`..cutting`)
+    pierces: bool            # whether it enters the tissue past its puncture force (:mod:`..needle`)
 
     def segment(self, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
         """(2, 3) ends of the tool's core segment in the tissue frame [m]."""
@@ -41,6 +42,7 @@ class SweptSphere:
     radius = 0.0
     oriented = True
     cuts = False
+    pierces = False
 
     def segment(self, position: np.ndarray, rotation: np.ndarray) -> np.ndarray:
         raise NotImplementedError
