@@ -307,6 +307,13 @@ class Puncture:
         """[m] how far the tip is below its entry point along the axis (0 unless inserted)."""
         return self._depth if self.state == INSERTED else 0.0
 
+    def holding(self) -> np.ndarray:
+        """The particles the needle loads beyond its shaft's balls: its dent's, or those its shaft
+        holds (int32)."""
+        if self.state == INSERTED:
+            return np.flatnonzero(self.stuck).astype(np.int32)
+        return self.dent_idx
+
     def shaft(self, toughness: float, hold: tuple) -> Shaft:
         """The frame's :class:`~.state.Shaft` in a tissue of ``toughness`` [J/m^2] that the shaft
         holds with ``hold`` (static, dynamic) [N/m]."""

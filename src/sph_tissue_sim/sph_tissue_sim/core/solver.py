@@ -987,6 +987,10 @@ class Solver:
                 held = path.grip.idx[path.grip.held]
                 if len(held):
                     centre = area.hold(held, k)   # the area's centre; nothing touches (contact stays -1)
+            if centre < 0 and k in self.needles and path.on:
+                held = self.needles[k].holding()  # a dent, or a shaft between the particles
+                if len(held):
+                    centre = area.hold(held, k)
             k1 = min(max(cfg.k1_gain * self.f_prev[k], cfg.k1_min), cfg.k1_max)
             reach, Dr = hand.kind.area(hand.samples_push, self.organ is not None, k1 * self.h, self.h)
             if path.grip.n:
