@@ -205,9 +205,24 @@ def cut(g: Geometry, rng: np.random.Generator) -> list[Segment]:
     return p.segments
 
 
+def needle(g: Geometry, rng: np.random.Generator) -> list[Segment]:
+    """A needle held upright (:data:`ORIENTATIONS`): approach above the top 10 mm left of the
+    centre, insert 25 mm at about 18 mm/s (it dents the surface, punctures, slides in), hold 0.4 s,
+    withdraw, retreat (4.5 s); replayed with a 0.5 mm needle (``system_graph.BAG_SIM_PARAMS``)."""
+    p = _Path(g.point(-0.01, depth=-0.02))
+    p.move('approach', g.point(-0.01, depth=-0.003), 0.5)
+    p.move('insert', g.point(-0.01, depth=0.025), 1.6)
+    p.hold(0.4)
+    p.move('withdraw', g.point(-0.01, depth=-0.004), 1.6)
+    p.move('retreat', g.point(-0.01, depth=-0.02), 0.4)
+    return p.segments
+
+
 #: the stylus orientation (x, y, z, w) of a session's poses, device frame (others: identity): the
-#: cut's holds the stylus +z (the blade's edge) along the device's +y, up out of the tissue
-ORIENTATIONS = {'cut': (-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5))}
+#: cut's and the needle's hold the stylus +z (the blade's edge, the needle's shaft) along the
+#: device's +y, up out of the tissue
+UPRIGHT = (-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5))
+ORIENTATIONS = {'cut': UPRIGHT, 'needle': UPRIGHT}
 
 
 #: name -> (builder, description); a builder returns one script, or one per instrument by name
@@ -220,6 +235,7 @@ SESSIONS: dict[str, tuple[Callable, str]] = {
     'grasp': (grasp, 'grasp the top 10 mm from an edge, lift 15 mm, hold, release'),
     'bimanual': (bimanual, 'left grasps the top near an edge and retracts it, right presses beside it'),
     'cut': (cut, 'a blade plunged 5 mm and drawn 30 mm across the top'),
+    'needle': (needle, 'a needle inserted 25 mm, held and withdrawn'),
 }
 
 

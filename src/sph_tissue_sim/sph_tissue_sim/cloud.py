@@ -10,7 +10,8 @@ Point layout (little endian, 24 bytes a point)::
     16      von_mises     float32  Pa     von Mises stress (0 where none was computed)
     20      region        uint8    -      0 still, 1 interaction, 1 + i transmission layer i
     21      held          uint8    -      0 free, k + 1 held by instrument k (the order of the
-                                          ``instruments`` parameter; held by two: the later's)
+                                          ``instruments`` parameter; held by two: the later's):
+                                          grasped, or along its inserted needle (the track)
     22      severed       uint8    -      reference bonds the particle lost to a cut (at most 255):
                                           the cut faces
     23      padding

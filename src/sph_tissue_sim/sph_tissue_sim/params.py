@@ -123,7 +123,7 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                                             'in the order of instruments (missing ones: 0)', None, True,
                            None),
     'instrument_tools': ([''], 'each instrument\'s tool, in the order of instruments: \'sphere R\', '
-                               '\'capsule R L\' or \'blade R L\' (radius, shaft or edge length [m], in '
+                               '\'capsule R L\', \'blade R L\' or \'needle R L\' (radius, shaft or edge length [m], in '
                                'tool_radius\'s and tool_length\'s ranges), \'\' or missing: tool_shape, '
                                'tool_radius and tool_length', None, True,
                          None),
@@ -213,14 +213,16 @@ def check_value(name: str, value, table: dict = SIM_PARAMS) -> str | None:
 
 
 def parse_tool(text: str) -> dict | None:
-    """One ``instrument_tools`` entry: ``'sphere R'``, ``'capsule R L'`` or ``'blade R L'`` [m] as SolverConfig's tool
+    """One ``instrument_tools`` entry: ``'sphere R'`` or ``'capsule R L'``, ``'blade R L'``, ``'needle R L'``
+    [m] as SolverConfig's tool
     fields, ``''``: None (the shared tool). Ranges are the solver's to check."""
     words = str(text).split()
     if not words:
         return None
-    shapes = {'sphere': 1, 'capsule': 2, 'blade': 2}
+    shapes = {'sphere': 1, 'capsule': 2, 'blade': 2, 'needle': 2}
     if words[0] not in shapes or len(words) != 1 + shapes[words[0]]:
-        raise ConfigError(f"{text!r} is not 'sphere R', 'capsule R L' or 'blade R L' (radius and length in m)")
+        raise ConfigError(f"{text!r} is not 'sphere R', 'capsule R L', 'blade R L' or 'needle R L' (radius and "
+                          f"length in m)")
     try:
         size = [float(w) for w in words[1:]]
     except ValueError:

@@ -151,7 +151,8 @@ def metrics_values(res: StepResult, solver: Solver, haptic, k: int = 0) -> dict:
     v.update(tool_position=(0.0, 0.0, 0.0), tool_axis=(0.0, 0.0, 0.0), tool_length=0.0,
              n_grasped=int(tool.grasped),      # a lifted tool's (the message is reused)
              n_bonds_cut=int(tool.bonds_cut), crack_area=float(solver.crack_area(k)),
-             cut_length=float(solver.cut_length(k)))
+             cut_length=float(solver.cut_length(k)), needle_state=int(solver.needle_state(k)),
+             needle_depth=float(solver.needle_depth(k)))
     if tool.tool_segment is not None:
         tip, shaft = tool.tool_segment[0], tool.tool_segment[1] - tool.tool_segment[0]
         length = float(np.linalg.norm(shaft))
@@ -682,9 +683,10 @@ class Runner:
 
     def _pack_cloud(self) -> None:
         s = self.solver
-        # each instrument's held particles (not those that slipped) become the cloud's held byte
+        # each instrument's held particles (grasped and not slipped, or along a needle) become the
+        # cloud's held byte
         self.cloud.pack(s.positions, s.X, s.von_mises(), s.region,
-                        [hand.grip_idx[hand.grip_held] for hand in s.instruments], s.severed, s.removed)
+                        [s.held_particles(k) for k in range(s.n_instruments)], s.severed, s.removed)
 
     def send_cloud_once(self) -> None:
         # never wait for a step here: the timer runs on the executor thread, which must stay free

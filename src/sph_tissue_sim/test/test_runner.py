@@ -239,7 +239,8 @@ def test_each_instruments_tool_is_its_own_and_its_metrics_say_so():
 
     assert parse_tool('') is None
     assert parse_tool('capsule 0.003 0.04') == {'tool_shape': 'capsule', 'tool_radius': 0.003, 'tool_length': 0.04}
-    for bad in ('cube 0.01', 'sphere', 'capsule 0.003', 'sphere x'):
+    assert parse_tool('needle 0.0005 0.06') == {'tool_shape': 'needle', 'tool_radius': 0.0005, 'tool_length': 0.06}
+    for bad in ('cube 0.01', 'sphere', 'capsule 0.003', 'sphere x', 'needle 0.0005'):
         assert 'instrument_tools' in check_value('instrument_tools', [bad], SIM_PARAMS)
     runner, out = make_runner(**TWO, instrument_tools=['', 'sphere 0.003'], timing_mode='lockstep')
     path = press_path(30, depth=0.004)

@@ -398,6 +398,7 @@ def test_runtime_parameters_are_applied_or_refused_with_a_reason(probe, rclpy_no
      r'three per instrument'),
     ({'grasp_input': 'button3'}, r"grasp_input must be one of '', button1, button2, jaw, got 'button3'"),
     ({'tool_shape': 'blade', 'scheme': 'paper'}, r'a blade cuts the reference bonds of scheme tlsph; scheme paper has none'),
+    ({'tool_shape': 'needle', 'scheme': 'mass_spring'}, r'a needle pierces the tissue of scheme tlsph'),
     ({'instruments': ['left', 'right'], 'instrument_tools': ['blade 0.0005 0.02', '']},
      r'a blade and a tool on the surface samples cannot share the tissue'),
     ({'grasp_input': 1}, r"parameter grasp_input: .*expecting type 'STRING'"),    # a number: the choices are strings
@@ -674,6 +675,52 @@ def test_a_blade_chosen_by_parameter_cuts_and_the_metrics_and_cloud_show_the_cut
     reach = 2.6 * spacing + 0.002
     assert len(faces) and np.all(np.abs(faces[:, 1] - y) < reach)
     assert np.all((faces[:, 0] > x0 - reach) & (faces[:, 0] < x1 + reach))
+
+
+def test_a_needle_chosen_by_parameter_punctures_and_the_metrics_and_cloud_show_its_track(rclpy_node):
+    """tool_shape needle through the node: held upright and pushed 25 mm down into the top of the
+    block, its state goes touching, then inserted with a depth below the entry point; the cloud's
+    held byte marks the particles along its shaft."""
+    from tissue_common.rotation import matrix_quaternion, quaternion_matrix
+
+    from sph_tissue_sim.cloud import unpack_points
+    from sph_tissue_sim.core.factory import make_model
+    from sph_tissue_sim.mapping import DEFAULT_ROTATION
+    from tissue_msgs.msg import SimMetrics
+
+    r_map = quaternion_matrix(DEFAULT_ROTATION)          # device -> tissue (anchor origin: no offset)
+    X = make_model('block', size=BLOCK['block_size'], n_particles=N_BLOCK).positions   # the node's block
+    top = X[:, 2].max()
+    xy = X[:, :2].mean(axis=0) + 0.002
+    tips = np.stack([np.full(500, xy[0]), np.full(500, xy[1]),
+                     np.concatenate([np.linspace(top + 0.003, top - 0.025, 400), np.full(100, top - 0.025)])],
+                    axis=1)
+    params = {'tool_shape': 'needle', 'tool_radius': 0.0005, 'tool_length': 0.06, 'material': 'custom',
+              'toughness': 50.0, 'anchor': 'origin', 'particles_rate': 50.0, 'haptic_mode': 'direct'}
+    with sim(params, ros_args=['-r', '__ns:=/needle']) as proc:
+        probe = SimProbe(rclpy_node, ns='/needle/')
+        probe.wait_matched(proc)
+        probe.orientation = matrix_quaternion(r_map.T)    # the tool's +z along tissue +z
+        probe.run_path(tips @ r_map, _unique_t0(43))
+        assert rclpy_node.spin_until(lambda: any(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+                                                 == _unique_t0(43) + (len(tips) - 1) * 1_000_000
+                                                 for m in probe.metrics), 10.0)
+        states = [m.needle_state for m in probe.metrics]
+        last = probe.metrics[-1]
+        n_clouds = len(probe.clouds)
+        assert rclpy_node.spin_until(lambda: len(probe.clouds) > n_clouds, 10.0)
+        cloud = probe.clouds[-1]
+        assert proc.stop() == 0
+    touching, inserted = SimMetrics.NEEDLE_TOUCHING, SimMetrics.NEEDLE_INSERTED
+    assert touching in states and states.index(touching) < states.index(inserted)
+    assert last.needle_state == inserted and 0.005 < last.needle_depth < 0.028
+    assert last.contact_force.z > 0.0                     # the tissue resists along the shaft
+    points = unpack_points(cloud.data, N_BLOCK)
+    track = np.stack([points['x'], points['y'], points['z']], axis=1)[points['held'] == 1]
+    assert len(track) >= 2
+    # held along the shaft: near its axis, below the top and above the tip
+    assert np.all(np.linalg.norm(track[:, :2] - xy, axis=1) < 0.016)
+    assert np.all(track[:, 2] > top - 0.025 - 1e-3)
 
 
 @pytest.mark.parametrize('haptic_mode, step_thread', [(None, None), ('direct', None), ('direct', False)])

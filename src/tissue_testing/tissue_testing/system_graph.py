@@ -30,7 +30,7 @@ REPO_ROOT = harness.REPO_ROOT
 BAGS = REPO_ROOT / 'bags'
 #: sim_node parameters the goldens in bags/ were recorded with (a ROS 2 params file)
 GOLDEN_SIM_PARAMS = BAGS / 'golden_sim_params.yaml'
-SHORT_BAGS = ('press', 'pull', 'sweep', 'poke', 'grasp', 'bimanual', 'cut')
+SHORT_BAGS = ('press', 'pull', 'sweep', 'poke', 'grasp', 'bimanual', 'cut', 'needle')
 #: sim_node parameters a golden was recorded with beyond GOLDEN_SIM_PARAMS (the other sessions press
 #: button 1 as a marker: only the grasp sessions grasp with it)
 BAG_SIM_PARAMS = {
@@ -38,6 +38,7 @@ BAG_SIM_PARAMS = {
     'bimanual': {'grasp_input': 'button1', 'instruments': ['left', 'right'],
                  'instrument_offsets': [-0.02, 0.0, 0.0, 0.02, 0.0, 0.0]},
     'cut': {'tool_shape': 'blade', 'tool_radius': 0.0005, 'tool_length': 0.02},
+    'needle': {'tool_shape': 'needle', 'tool_radius': 0.0005, 'tool_length': 0.06},
 }
 #: the kind of CPU the goldens were made on (:func:`host_kind`), written by bags/make_bags.py
 GOLDEN_HOST = BAGS / 'golden_host.json'

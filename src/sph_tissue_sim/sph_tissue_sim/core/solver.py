@@ -876,6 +876,16 @@ class Solver:
         cutter = self.cutters.get(k)
         return cutter.length if cutter is not None else 0.0
 
+    def held_particles(self, k: int = 0) -> np.ndarray:
+        """The particles instrument ``k`` holds (int32): those it grasped and that have not slipped,
+        and those its inserted needle's shaft holds (the needle's track)."""
+        hand = self._hand(k)
+        held = hand.grip_idx[hand.grip_held]
+        needle = self.needles.get(int(k))
+        if needle is not None and needle.state == INSERTED:
+            held = np.union1d(held, needle.holding()).astype(np.int32)
+        return held
+
     def needle_state(self, k: int = 0) -> int:
         """Instrument ``k``'s needle: :data:`~.needle.OUTSIDE`, ``TOUCHING`` or ``INSERTED`` (0 for
         a tool that is not a needle)."""
@@ -1089,4 +1099,11 @@ def warmup(scheme: str | None = None, integrator: str = 'explicit', instruments:
             top = model.positions[:, 2].max()
             for k in range(6):
                 solver.step(np.array([0.0075, 0.0085, top + 0.001 - 0.002 * k]), 1e-3, NO_ROTATION)
+            # a needle's: its dent, then, punctured at once in a tissue this weak, its shaft and tip
+            solver = Solver(model, replace(mat, toughness=0.01), SolverConfig(
+                mode=mode, integrator=integrator, tool_shape='needle', tool_radius=0.0005, tool_length=0.01))
+            for k in range(8):
+                solver.step(np.array([0.0075, 0.0085, top + 0.003 - 0.001 * k]), 1e-3, NO_ROTATION)
+            if solver.needle_state() != INSERTED:
+                raise SimError('warmup: the needle did not enter the tiny block')
     return time.perf_counter() - t0
