@@ -67,10 +67,10 @@ from tissue_common.stamps import stamp_to_ns
 from tissue_testing import system_graph as graph
 
 ROOT = Path(__file__).resolve().parents[1]
-BAGS = ('press', 'pull', 'sweep', 'poke', 'long', 'grasp', 'bimanual', 'cut')
-#: frames after a blade broke bonds that are its crack step (the force meant to drop), left out of the
-#: steady |dF| of a cutting session
-CRACK_STEP = 3
+BAGS = ('press', 'pull', 'sweep', 'poke', 'long', 'grasp', 'bimanual', 'cut', 'needle')
+#: frames after a blade broke bonds or a needle punctured that are its step (the force meant to drop),
+#: left out of the steady |dF| of a cutting or needle session
+STEP_FRAMES = 3
 COLUMNS = ('bag', 'way', 'frames', 'steady_frames', 'dF_p99_mN', 'dF_max_mN', 'reversals', 'tick_change_pct',
            'still_tick_change_pct', 'smooth_tick_change_pct', 'ticks', 'ripple_mN', 'E_in_min_uJ', 'E_in_final_uJ', 'peak_N')
 
@@ -171,8 +171,8 @@ def bag_orientations(name: str, instrument: str = '') -> np.ndarray:
 def replay_instruments(p: dict, name: str) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """A bag through ``sim_node``'s own loop (its :class:`Runner`, lockstep, in rounds of one pose of
     each instrument, with the bag's parameters, orientations and jaw changes): per instrument,
-    (device positions, the forces sent, both in the device frame, and the bonds its blade broke) per
-    pose."""
+    (device positions, the forces sent, both in the device frame, and its steps: the bonds its blade
+    broke, or 1 where its needle punctured) per pose."""
     # stepping in the caller's thread: the same forces as sim_node's stepping thread in lockstep
     q = {**p, **graph.BAG_SIM_PARAMS.get(name, {}), 'step_thread': False}
     names = graph.bag_instruments(name)
@@ -180,11 +180,12 @@ def replay_instruments(p: dict, name: str) -> dict[str, tuple[np.ndarray, np.nda
     solver = make_solver(model, sim_params.build_material(q), sim_params.build_config(q), q['nominal_dt'],
                          instruments=len(names), tools=sim_params.instrument_tools(q))
     sent: list[dict] = [{} for _ in names]
-    cut: list[dict] = [{} for _ in names]
+    steps: list[dict] = [{} for _ in names]
 
     def metrics(stamp, res, solver, status, k: int = 0) -> None:
-        cutter = solver.cutters.get(k)
-        cut[k][stamp] = cutter.last_cut if cutter is not None else 0
+        cutter, needle = solver.cutters.get(k), solver.needles.get(k)
+        steps[k][stamp] = (cutter.last_cut if cutter is not None
+                           else int(needle.punctured) if needle is not None else 0)
 
     runner = Runner(q, model, solver, lambda stamp, frame, force, k=0: sent[k].__setitem__(stamp, np.array(force)),
                     metrics, lambda _: None, lambda *_: None)
@@ -198,14 +199,15 @@ def replay_instruments(p: dict, name: str) -> dict[str, tuple[np.ndarray, np.nda
             runner.on_pose(Pose(st, st, q['device_frame'], tuple(device[j]), tuple(turns[k][j])), k)
     runner.shutdown()
     return {instrument: (device, np.array([sent[k][int(s)] for s in stamps]),
-                         np.array([cut[k].get(int(s), 0) for s in stamps]))
+                         np.array([steps[k].get(int(s), 0) for s in stamps]))
             for k, (instrument, (stamps, device, _)) in enumerate(zip(names, streams))}
 
 
-def crack_steps(broke: np.ndarray, frames: int = CRACK_STEP) -> np.ndarray:
-    """(M,) bool: the poses at and up to ``frames`` after one at which a blade broke bonds."""
-    out = np.zeros(len(broke), dtype=bool)
-    for k in np.flatnonzero(broke):
+def step_frames(steps: np.ndarray, frames: int = STEP_FRAMES) -> np.ndarray:
+    """(M,) bool: the poses at and up to ``frames`` after one at which a blade broke bonds or a
+    needle punctured."""
+    out = np.zeros(len(steps), dtype=bool)
+    for k in np.flatnonzero(steps):
         out[k:k + frames + 1] = True
     return out
 
@@ -387,17 +389,18 @@ def main(argv=None) -> int:
     for name in args.bags.split(','):
         if len(graph.bag_instruments(name)) > 1 or 'tool_shape' in graph.BAG_SIM_PARAMS.get(name, {}):
             # sim_node's loop itself (its answers are the bag's golden forces): each device's feel,
-            # and a blade's outside its crack steps
-            for instrument, (device, forces, broke) in replay_instruments(p, name).items():
+            # and a blade's or a needle's outside its steps
+            for instrument, (device, forces, steps) in replay_instruments(p, name).items():
                 gold = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z) for *_, m in
                                  read_bag(ROOT / 'bags' / name, [f'{"/" + instrument if instrument else ""}'
                                                                  f'/omni/force_feedback'])])
                 label = f'{name} {instrument}'.strip()
                 row(label, 'renderer', quality(device, forces))
-                if broke.any():
-                    row(label, 'uncracked', quality(device, forces, crack_steps(broke)))
-                    print(f'  {label}: bonds broken at {np.count_nonzero(broke)} poses ({int(broke.sum())} '
-                          f'bonds); "uncracked" leaves those and the {CRACK_STEP} after each out')
+                if steps.any():
+                    row(label, 'no steps', quality(device, forces, step_frames(steps)))
+                    print(f'  {label}: bonds broken or a puncture at {np.count_nonzero(steps)} poses '
+                          f'({int(steps.sum())} in all); "no steps" leaves those and the {STEP_FRAMES} after '
+                          f'each out')
                 print(f'  {label}: the forces sent differ from the golden ones by at most '
                       f'{np.abs(forces - gold).max():.1e} N')
             continue

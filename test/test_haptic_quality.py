@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -162,17 +163,20 @@ def test_the_two_instrument_bag_through_sim_nodes_loop_gives_its_golden_forces_a
         assert q['E_in_min_uJ'] >= -1.0 and q['peak_N'] > 0.2
 
 
-def test_the_cut_bag_through_sim_nodes_loop_gives_its_golden_forces_and_a_passive_feel_across_the_cracks():
-    """The blade's session through the Runner (its orientation and tool from the bag's parameters):
-    the golden forces, bonds broken along the way, and the hand never given energy back."""
+@pytest.mark.parametrize('name, least_steps', [('cut', 20), ('needle', 1)])
+def test_cut_and_needle_bags_through_sim_nodes_loop_give_their_golden_forces_and_a_passive_feel_across_the_steps(
+        name, least_steps):
+    """The blade's and the needle's sessions through the Runner (their orientation and tool from the
+    bag's parameters): the golden forces, the steps along the way (bonds broken, the puncture), and
+    the hand never given energy back."""
     from haptic_omni_driver.bag_reader import read_bag
 
     hq = _load()
-    (device, forces, broke), = hq.replay_instruments(hq.golden_params(), 'cut').values()
+    (device, forces, steps), = hq.replay_instruments(hq.golden_params(), name).values()
     gold = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z) for *_, m in
-                     read_bag(ROOT / 'bags' / 'cut', ['/omni/force_feedback'])])
+                     read_bag(ROOT / 'bags' / name, ['/omni/force_feedback'])])
     assert forces.shape == gold.shape and np.abs(forces - gold).max() <= 1e-9
-    assert broke.sum() > 20
-    whole, uncracked = hq.quality(device, forces), hq.quality(device, forces, hq.crack_steps(broke))
-    assert uncracked['steady_frames'] < whole['steady_frames']
+    assert steps.sum() >= least_steps
+    whole, steady = hq.quality(device, forces), hq.quality(device, forces, hq.step_frames(steps))
+    assert steady['steady_frames'] < whole['steady_frames']
     assert whole['E_in_min_uJ'] >= -1.0 and whole['peak_N'] > 0.2

@@ -264,6 +264,54 @@ def needle_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
     return best
 
 
+@njit(cache=True)
+def find_dent(x, cand, tip, e, reach, spacing, radius, idx, w, off):
+    """Where the tip comes within a spacing of touching a particle of ``cand`` ahead of it (within a
+    spacing of its axis ``e``): the particles within ``radius`` of that point on the axis into
+    ``idx``, their weights ``(1 - s^2 / radius^2)^2`` (summing to 1) into ``w`` and the dent's
+    offset into ``off``, placed no nearer than touching (a dent found late, or under a tip drawn
+    back, starts without a jump). Returns how many (0: none ahead). Not fast-math: a replay finds the
+    same dent on every CPU."""
+    best = 1.0
+    for t in range(cand.shape[0]):
+        i = cand[t]
+        r0 = x[i, 0] - tip[0]; r1 = x[i, 1] - tip[1]; r2 = x[i, 2] - tip[2]
+        a = r0 * e[0] + r1 * e[1] + r2 * e[2]
+        r2_axis = r0 * r0 + r1 * r1 + r2 * r2 - a * a
+        if -reach - spacing < a <= 0.0 and r2_axis < spacing * spacing and (best > 0.0 or a > best):
+            best = a
+    if best > 0.0:
+        return 0
+    a_c = min(best, -reach)
+    p0 = tip[0] + a_c * e[0]; p1 = tip[1] + a_c * e[1]; p2 = tip[2] + a_c * e[2]
+    n = 0
+    total = 0.0
+    for i in range(x.shape[0]):
+        d0 = x[i, 0] - p0; d1 = x[i, 1] - p1; d2 = x[i, 2] - p2
+        s2 = d0 * d0 + d1 * d1 + d2 * d2
+        if s2 < radius * radius and n < idx.shape[0]:
+            u = 1.0 - s2 / (radius * radius)
+            idx[n] = i
+            w[n] = u * u
+            total += u * u
+            n += 1
+    m0 = 0.0; m1 = 0.0; m2 = 0.0
+    for t in range(n):
+        w[t] /= total
+        m0 += w[t] * x[idx[t], 0]; m1 += w[t] * x[idx[t], 1]; m2 += w[t] * x[idx[t], 2]
+    off[0] = p0 - m0; off[1] = p1 - m1; off[2] = p2 - m2
+    return n
+
+
+@njit(cache=True)
+def dent_overlap(x, idx, w, off, tip, e, reach):
+    """[m] how far the tip presses its dent (negative: short of it); not fast-math (as :func:`find_dent`)."""
+    p0 = off[0]; p1 = off[1]; p2 = off[2]
+    for t in range(idx.shape[0]):
+        p0 += w[t] * x[idx[t], 0]; p1 += w[t] * x[idx[t], 1]; p2 += w[t] * x[idx[t], 2]
+    return reach + (p0 - tip[0]) * e[0] + (p1 - tip[1]) * e[1] + (p2 - tip[2]) * e[2]
+
+
 class Puncture:
     """One needle's phase across frames (outside, touching, inserted) and what it keeps: its dent
     before, its entry point, axis and crack front after the puncture.
@@ -281,6 +329,8 @@ class Puncture:
         self.reach, self.grip_reach = kind.ball_reach, kind.grip_reach
         # a particle's share of the shaft: its volume over the weighted section, int w dA = pi R^2 / 3
         self.grip_norm = 3.0 * spacing ** 3 / (math.pi * self.grip_reach ** 2)
+        self._idx = np.zeros(n, dtype=np.int32)     # find_dent's buffers
+        self._w = np.zeros(n)
         self.anchor = np.zeros(n)
         self.stuck = np.zeros(n, dtype=np.bool_)
         self.sliding = np.zeros(n, dtype=np.bool_)
@@ -295,6 +345,7 @@ class Puncture:
         self._depth = 0.0
         self.stuck[:] = False
         self.punctures = 0           # since the last reset
+        self.punctured = False       # in the last frame
         self._no_dent()
 
     def _no_dent(self) -> None:
@@ -322,56 +373,47 @@ class Puncture:
                      hold[0], hold[1], self.anchor, self.stuck, self.sliding,
                      self.dent_idx, self.dent_w, self.dent_off, len(self.dent_idx))
 
-    def _dent_overlap(self, x: np.ndarray, tip: np.ndarray, e: np.ndarray) -> float:
-        point = self.dent_w @ x[self.dent_idx] + self.dent_off
-        return self.reach + float((point - tip) @ e)
-
     def _find_dent(self, x: np.ndarray, cand: np.ndarray, tip: np.ndarray, e: np.ndarray) -> None:
-        """Where the tip comes within a spacing of touching a particle ahead of it (and within a
-        spacing of its axis): the surface around that point becomes its dent, placed no nearer than
-        touching (a dent found late, or under a tip drawn back, starts without a jump)."""
-        rel = x[cand] - tip
-        a = rel @ e
-        r2 = np.einsum('ij,ij->i', rel, rel) - a * a
-        ahead = np.flatnonzero((a > -self.reach - self.spacing) & (a <= 0.0) & (r2 < self.spacing ** 2))
-        if not len(ahead):
-            return
-        a_c = min(float(a[ahead].max()), -self.reach)
-        point = tip + a_c * e
-        radius = DENT_RADIUS * self.spacing
-        s2 = np.einsum('ij,ij->i', x - point, x - point)
-        idx = np.flatnonzero(s2 < radius * radius)
-        w = (1.0 - s2[idx] / radius ** 2) ** 2
-        self.dent_idx = idx.astype(np.int32)
-        self.dent_w = w / w.sum()
-        self.dent_off = point - self.dent_w @ x[idx]
+        n = find_dent(x, cand, tip, e, self.reach, self.spacing, DENT_RADIUS * self.spacing, self._idx, self._w,
+                      self.dent_off)
+        self.dent_idx, self.dent_w = self._idx[:n].copy(), self._w[:n].copy()
 
     def update(self, seg: np.ndarray | None, reaction: np.ndarray, touching: bool, toughness: float,
                x: np.ndarray, cand: np.ndarray) -> bool:
         """After a frame that left the needle at ``seg`` (None: lifted) with the tissue's
         ``reaction`` [N] on it (``touching``: it touched), the particles at ``x`` and ``cand`` those
-        near it: its next state. Returns True when it punctured in this frame."""
+        near it: its next state. Returns True (and sets :attr:`punctured`) when it punctured in
+        this frame."""
+        self.punctured = False
         if seg is None:
             self.state = OUTSIDE
             self._no_dent()
             return False
         tip = seg[0]
+        # scalar arithmetic in a fixed order: a replay punctures at the same frame on every CPU
+        t0, t1, t2 = tip.tolist()
         if self.state == INSERTED:
-            self._depth = float((self.entry - tip) @ self.axis)
+            n0, n1, n2 = self.axis.tolist()
+            q0, q1, q2 = self.entry.tolist()
+            self._depth = (q0 - t0) * n0 + (q1 - t1) * n1 + (q2 - t2) * n2
             if self._depth > 0.0:
                 # the crack reaches as deep as the cutting force has pushed it
                 self.front = max(self.front, self._depth - cut_force(toughness, self.diameter) / self.stiffness)
                 return False
             self.stuck[:] = False      # drawn out above its entry point: outside again
-        axis = seg[1] - seg[0]
-        size = float(np.linalg.norm(axis))
-        e = axis / size if size > 0.0 else self.axis
-        if len(self.dent_idx) and self._dent_overlap(x, tip, e) < -DENT_LEAVE * self.spacing:
+        a0, a1, a2 = seg[1].tolist()
+        a0, a1, a2 = a0 - t0, a1 - t1, a2 - t2
+        size = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        e = np.array([a0 / size, a1 / size, a2 / size]) if size > 0.0 else self.axis.copy()
+        if len(self.dent_idx) and (dent_overlap(x, self.dent_idx, self.dent_w, self.dent_off, tip, e, self.reach)
+                                   < -DENT_LEAVE * self.spacing):
             self._no_dent()            # the tip has left its dent
         if not len(self.dent_idx):
             self._find_dent(x, cand, tip, e)
         self.state = TOUCHING if touching or len(self.dent_idx) else OUTSIDE
-        if self.state != TOUCHING or float(reaction @ e) < puncture_force(toughness, self.diameter):
+        f0, f1, f2 = reaction.tolist()
+        e0, e1, e2 = e.tolist()
+        if self.state != TOUCHING or f0 * e0 + f1 * e1 + f2 * e2 < puncture_force(toughness, self.diameter):
             return False
         self.state = INSERTED
         self.entry[:] = tip
@@ -379,5 +421,6 @@ class Puncture:
         self.front = 0.0
         self._depth = 0.0
         self.punctures += 1
+        self.punctured = True
         self._no_dent()
         return True
