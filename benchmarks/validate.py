@@ -43,6 +43,11 @@ with :mod:`sph_tissue_sim.validation.analytic` or with the target it is held to:
   one grasping and pulling, one pressing and dragging: the block's momentum against the impulse
   the tools took (equal and opposite to rounding); and the liver held at its dome (lifted 10 mm)
   while pressed 10 mm 50 mm beside it (the forces reported, ``validate_two_hands.png``).
+* ``cut``: a straight cut across the golden block: work per crack area against G_c, at rest after,
+  stable under 10 000 frames of poking.
+* ``needle``: insertions into the golden block at three places and three speeds (local) and one
+  global, against Okamura's three phases (a rising dent to pi d G_c, the drop, a linear rise with
+  depth from the cut G_c d and the shaft's hold), no energy gained in and out, at rest after.
 
 Writes to ``--out`` (default ``benchmarks/results/validate``): ``validate.csv`` (one row per
 measure: measured, reference, error, target, met), ``validate.md`` (the same as a table, with the
@@ -77,7 +82,7 @@ from tissue_common.force import HARD_FORCE_LIMIT
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKS = ('creep', 'uniaxial', 'relaxation', 'cantilever', 'hertz', 'local_global', 'drag', 'press',
-          'press_set', 'grasp', 'cut')
+          'press_set', 'grasp', 'cut', 'needle')
 COLUMNS = ('check', 'case', 'measured', 'reference', 'unit', 'error_pct', 'target', 'met')
 
 #: places on the liver's top (x, y) [m] and depths [m] of the local-vs-global presses
@@ -477,6 +482,118 @@ def check_cut(quick: bool, out: Path) -> list[dict]:
     return rows
 
 
+#: the needle's insertions: a needle (radius, length [m]) held upright, pushed this far [m] past the
+#: top at each speed [m/s], held, drawn out; at a particle's column, between two and between four
+NEEDLE_RADIUS, NEEDLE_LENGTH, NEEDLE_TRAVEL = 0.0005, 0.06, 0.025
+NEEDLE_SPEEDS = (0.005, 0.010, 0.020)
+NEEDLE_PLACES = ((0.0375, 0.0375), (0.04, 0.0375), (0.04, 0.04))
+#: [m] the needle's phase 3 is fitted from this inserted depth on (past the drop)
+NEEDLE_FIT_FROM = 0.003
+
+
+def needle_insertion(model, mode: str, xy, speed: float, hold: float = 0.3, rest: float = 1.0) -> dict:
+    """One insertion (``check_needle``): per frame the tip's height over the top, the axial force,
+    the needle's state and depth; the work the hand did; the tissue's largest displacement and
+    kinetic energy after ``rest`` s lifted."""
+    from sph_tissue_sim.core.needle import INSERTED
+
+    solver = Solver(model, liver_default(), solver_config(mode=mode, tool_shape='needle', tool_radius=NEEDLE_RADIUS,
+                                                          tool_length=NEEDLE_LENGTH))
+    top, dt = model.positions[:, 2].max(), 1e-3
+    down = np.arange(top + 0.003, top - NEEDLE_TRAVEL, -speed * dt)
+    path = np.concatenate([down, np.full(int(hold / dt), down[-1]), down[::-1]])
+    rows, work, prev = [], 0.0, None
+    for z in path:
+        p = np.array([xy[0], xy[1], z])
+        f = solver.step(p, dt, np.eye(3)).force_raw
+        if prev is not None:
+            work -= float(f @ (p - prev))
+        prev = p
+        rows.append((z - top, float(f[2]), solver.needle_state(), solver.needle_depth()))
+    ke = 0.0
+    for _ in range(int(rest / dt)):
+        ke = solver.step(None, dt).kinetic_energy
+    run = np.array(rows)
+    k = int(np.argmax(run[:, 2] == INSERTED)) if (run[:, 2] == INSERTED).any() else -1
+    return {'run': run, 'puncture': k, 'work': work, 'rest': float(solver.displacement().max()), 'ke': ke,
+            'n_down': len(down)}
+
+
+def check_needle(quick: bool, out: Path) -> list[dict]:
+    """Needle insertions into the golden block (16 x 16 x 8 at 5 mm) against Okamura's three phases:
+    at three places (a particle's column, between two, between four) and three speeds in local
+    mode, and the middle case in global mode, a 0.5 mm needle pushed 25 mm past the top, held
+    0.3 s and drawn out. Each must (1) dent the surface with a rising force until it punctures at
+    ``pi d G_c``, (2) drop (the force 10 ms later below 60 % of the peak), (3) then rise linearly with
+    the inserted depth (the tip's cut ``G_c d`` and the shaft's sliding hold per metre): fitted
+    from 3 mm deep, the slope against the hold, the intercept against the cut, R^2; and over the
+    whole insertion and withdrawal gain no energy (the hand's work >= 0, the tissue at rest after)."""
+    from sph_tissue_sim.core.needle import cut_force, puncture_force
+
+    model = make_block(10, 10, 8, 0.005) if quick else make_block(16, 16, 8, 0.005)
+    mat = liver_default()
+    f_p, f_c = puncture_force(mat.toughness, 2 * NEEDLE_RADIUS), cut_force(mat.toughness, 2 * NEEDLE_RADIUS)
+    places = ((0.025, 0.025),) if quick else NEEDLE_PLACES
+    cases_ = [('local', xy, v) for xy in places for v in ((0.02,) if quick else NEEDLE_SPEEDS)]
+    if not quick:
+        cases_.append(('global', NEEDLE_PLACES[1], NEEDLE_SPEEDS[1]))
+    results, fig, ax = [], *_figure()
+    peaks, drops, slopes, cuts, fits, rises, works, rests = [], [], [], [], [], [], [], []
+    for mode, xy, v in cases_:
+        r = needle_insertion(model, mode, xy, v)
+        run, k = r['run'], r['puncture']
+        label = f'{mode} ({xy[0] * 1e3:.1f}, {xy[1] * 1e3:.1f}) mm {v * 1e3:g} mm/s'
+        if k < 0:
+            results.append(label + ': never punctured')
+            continue
+        force, depth = run[:, 1], run[:, 3]
+        dent = force[:k][run[:k, 0] < 0.0]
+        rises.append(float(np.min(np.diff(dent))) if len(dent) > 1 else 0.0)
+        peaks.append(force[k] / f_p)
+        drops.append(force[k + 10] / force[k])
+        inside = (depth >= NEEDLE_FIT_FROM) & (np.arange(len(force)) < r['n_down'])
+        b, a = np.polyfit(depth[inside], force[inside], 1)
+        pred = a + b * depth[inside]
+        fits.append(1.0 - np.sum((force[inside] - pred) ** 2) / np.sum((force[inside] - force[inside].mean()) ** 2))
+        slopes.append(b / mat.needle_hold[1])
+        cuts.append(a / f_c)
+        works.append(r['work'])
+        rests.append(r['rest'])
+        ax.plot(-run[:r['n_down'], 0] * 1e3, force[:r['n_down']], lw=0.7, label=label)
+    n = len(cases_)
+    ax.axhline(f_p, color='k', ls='--', lw=0.8, label='pi d G_c')
+    ax.axhline(f_c, color='k', ls=':', lw=0.8, label='G_c d')
+    ax.set_xlabel('tip below the top [mm]')
+    ax.set_ylabel('axial force [N]')
+    ax.set_title(f'needle {2 * NEEDLE_RADIUS * 1e3:g} mm, G_c {mat.toughness:g} J/m^2: insertion')
+    _save(fig, ax, out / 'validate_needle.png', legend=len(cases_) <= 4)
+    done = len(peaks)
+    rows = [row('needle', f'insertions that punctured (of {n}: {len(places)} places x speeds, local; one global)',
+                done, n, '-', 'all', done == n)]
+    if results:
+        rows.append(row('needle', '; '.join(results), 0.0, None, '-', 'none', False))
+    if not done:
+        return rows
+    rows += [row('needle', 'phase 1: the dent\'s force, its largest fall from one frame to the next', -min(rises) * 1e3,
+                 None, 'mN', '<= 10 mN (it rises)', min(rises) >= -0.01),
+             row('needle', 'phase 1: the force at the puncture / pi d G_c (lowest)', min(peaks), 1.0, '-',
+                 '>= 1, within 5 %', 1.0 <= min(peaks) and max(peaks) <= 1.05),
+             row('needle', 'phase 2: 10 ms after the puncture / at it (highest)', max(drops), None, '-', '< 0.6',
+                 max(drops) < 0.6),
+             row('needle', 'phase 3: slope of force over depth / the sliding hold (lowest)', min(slopes), 1.0, '-',
+                 '0.5 .. 2 (all)', 0.5 <= min(slopes) and max(slopes) <= 2.0),
+             row('needle', 'phase 3: ... (highest)', max(slopes), 1.0, '-', 'reported', None),
+             row('needle', 'phase 3: intercept / the cut G_c d (lowest, highest)', min(cuts), 1.0, '-',
+                 '0.7 .. 1.5 (all)', 0.7 <= min(cuts) and max(cuts) <= 1.5),
+             row('needle', 'phase 3: ... (highest)', max(cuts), 1.0, '-', 'reported', None),
+             row('needle', 'phase 3: R^2 of the line (lowest)', min(fits), None, '-', '>= 0.8', min(fits) >= 0.8),
+             row('needle', 'in, held and out: work the hand did on the tissue (lowest)', min(works) * 1e6, None, 'uJ',
+                 '>= 0', min(works) >= 0.0),
+             row('needle', 'then 1 s lifted: the largest displacement (highest)', max(rests) * 1e3, None, 'mm',
+                 '<= 0.5 mm', max(rests) <= 5e-4)]
+    return rows
+
+
 def _plot_two_hands(solver, hands: np.ndarray, path: Path) -> None:
     """The liver held by one instrument and pressed by the other: a side view (x-z) of the particles
     near the tools' plane coloured by displacement, the tools, and the forces on both over time."""
@@ -767,7 +884,8 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     runners = {'creep': check_creep, 'uniaxial': check_uniaxial, 'relaxation': check_relaxation, 'cantilever': check_cantilever,
                'hertz': check_hertz, 'local_global': check_local_global, 'drag': check_drag,
-               'press': check_press, 'press_set': check_press_set, 'grasp': check_grasp, 'cut': check_cut}
+               'press': check_press, 'press_set': check_press_set, 'grasp': check_grasp, 'cut': check_cut,
+               'needle': check_needle}
     rows, pngs = [], []
     t_all = time.perf_counter()
     for i, name in enumerate(chosen, start=1):

@@ -34,7 +34,7 @@ def quick_run(tmp_path_factory):
 def test_the_quick_validation_measures_every_check_and_writes_a_plot_for_each(quick_run):
     out, _, rows = quick_run
     checks = {'creep', 'uniaxial', 'relaxation', 'cantilever', 'hertz', 'local_global', 'drag', 'press', 'press_set',
-              'grasp', 'cut'}
+              'grasp', 'cut', 'needle'}
     assert {r['check'] for r in rows} == checks
     for r in rows:
         assert math.isfinite(float(r['measured'])), r
@@ -90,3 +90,9 @@ def test_the_report_names_the_solver_settings_it_ran_with(tmp_path):
                           capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "tool checks' solver settings: contact_samples=3, far_field=0.5;" in (tmp_path / 'validate.md').read_text()
+
+
+def test_the_quick_needle_insertion_shows_the_three_phases_and_gains_no_energy(quick_run):
+    needle = [r for r in quick_run[2] if r['check'] == 'needle']
+    scored = [r for r in needle if r['met']]
+    assert len(scored) >= 9 and all(r['met'] == 'yes' for r in scored), scored
