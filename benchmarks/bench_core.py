@@ -463,12 +463,52 @@ def run_targets(st: Settings, models: Models, material, progress) -> list[dict]:
 #: speed [m/s]; the blade's edge and its capsule twin
 CUT_DEPTH, CUT_TRAVEL, CUT_SPEED = 0.005, 0.03, 0.02
 CUT_TOOL = dict(tool_radius=0.0005, tool_length=0.02)
+#: and the needle's: pushed this far [m] past the top at CUT_SPEED, a needle and its capsule twin
+NEEDLE_TRAVEL = 0.025
+NEEDLE_TOOL = dict(tool_radius=0.0005, tool_length=0.06)
+
+
+def _timed_pair(model, material, mode: str, name: str, shape: str, tool: dict, path, frames: int,
+                first: int) -> list[dict]:
+    """``shape`` and a capsule of its size along ``path(k)`` (a tip position per frame), stepped in
+    turn; frames from ``first`` on timed. A row each, labelled ``'<name> <mode> <shape>'``."""
+    solvers = {s: Solver(model, material, SolverConfig(mode=mode, tool_shape=s, **tool)) for s in ('capsule', shape)}
+    times = {s: [] for s in solvers}
+    forces = {s: [] for s in solvers}
+    status = {s: 'ok' for s in solvers}
+    for k in range(frames):
+        p = path(k)
+        for s in (('capsule', shape) if k % 2 else (shape, 'capsule')):
+            if status[s] != 'ok':
+                continue
+            t0 = time.perf_counter()
+            try:
+                res = solvers[s].step(p, FRAME_DT, np.eye(3))
+            except SimError:
+                status[s] = f'unstable at frame {k}'
+                continue
+            if k >= first:
+                times[s].append(time.perf_counter() - t0)
+                forces[s].append(float(np.linalg.norm(res.tools[0].force_raw)))
+    rows = []
+    for s, solver in solvers.items():
+        t = np.array(times[s]) * 1e3
+        rows.append(dict(table='cut', label=f'{name} {mode} {s}', scheme='tlsph', mode=mode, model=model.name,
+                         n_target=ANCHOR_N, n_particles=model.n_particles, status=status[s],
+                         frames=len(t), step_ms=float(np.median(t)) if len(t) else None,
+                         step_p90_ms=float(np.percentile(t, 90)) if len(t) else None,
+                         step_p99_ms=float(np.percentile(t, 99)) if len(t) else None,
+                         force_N=float(np.median(forces[s])) if forces[s] else None,
+                         bonds_cut=solver.cutters[0].cut if solver.cutters else 0))
+    return rows
 
 
 def run_cut(st: Settings, models: Models, material, progress) -> list[dict]:
     """A frame while cutting against the same frame without: a blade and a capsule of its size drawn
     along the same path through the top of the 3670 liver (plunged ``CUT_DEPTH``, drawn ``CUT_TRAVEL``),
-    stepped frame by frame in turn (one run, so machine load hits both alike); timed while drawn."""
+    stepped frame by frame in turn (one run, so machine load hits both alike); timed while drawn.
+    Then a needle and a capsule of its size pushed ``NEEDLE_TRAVEL`` down into the same place; timed
+    from the top on (the dent, the puncture and the shaft inside)."""
     model = models.get(ANCHOR_N if not st.quick else st.sizes[-1])
     P = model.positions
     s = model.spacing
@@ -478,37 +518,20 @@ def run_cut(st: Settings, models: Models, material, progress) -> list[dict]:
     start = np.array([cx - 0.5 * CUT_TRAVEL + 0.13 * s, cy + 0.37 * s, top + 0.002])
     plunge = int((CUT_DEPTH + 0.002) / CUT_SPEED / FRAME_DT)
     drawn = int(CUT_TRAVEL / CUT_SPEED / FRAME_DT) if not st.quick else 50
+    pierce = int((NEEDLE_TRAVEL + 0.002) / CUT_SPEED / FRAME_DT) if not st.quick else 200
+
+    def cut_path(k):
+        return start + (np.array([0.0, 0.0, -(k + 1) * CUT_SPEED * FRAME_DT]) if k < plunge else
+                        np.array([(k - plunge + 1) * CUT_SPEED * FRAME_DT, 0.0, -CUT_DEPTH - 0.002]))
+
+    def needle_path(k):
+        return np.array([cx + 0.13 * s, cy + 0.37 * s, top + 0.002 - (k + 1) * CUT_SPEED * FRAME_DT])
+
     rows = []
     for mode in ('local', 'global'):
-        solvers = {shape: Solver(model, material, SolverConfig(mode=mode, tool_shape=shape, **CUT_TOOL))
-                   for shape in ('capsule', 'blade')}
-        times = {shape: [] for shape in solvers}
-        forces = {shape: [] for shape in solvers}
-        status = {shape: 'ok' for shape in solvers}
-        for k in range(plunge + drawn):
-            p = start + (np.array([0.0, 0.0, -(k + 1) * CUT_SPEED * FRAME_DT]) if k < plunge else
-                         np.array([(k - plunge + 1) * CUT_SPEED * FRAME_DT, 0.0, -CUT_DEPTH - 0.002]))
-            for shape in (('capsule', 'blade') if k % 2 else ('blade', 'capsule')):
-                if status[shape] != 'ok':
-                    continue
-                t0 = time.perf_counter()
-                try:
-                    res = solvers[shape].step(p, FRAME_DT, np.eye(3))
-                except SimError:
-                    status[shape] = f'unstable at frame {k}'
-                    continue
-                if k >= plunge:
-                    times[shape].append(time.perf_counter() - t0)
-                    forces[shape].append(float(np.linalg.norm(res.tools[0].force_raw)))
-        for shape, solver in solvers.items():
-            t = np.array(times[shape]) * 1e3
-            rows.append(dict(table='cut', label=f'cut {mode} {shape}', scheme='tlsph', mode=mode, model=model.name,
-                             n_target=ANCHOR_N, n_particles=model.n_particles, status=status[shape],
-                             frames=len(t), step_ms=float(np.median(t)) if len(t) else None,
-                             step_p90_ms=float(np.percentile(t, 90)) if len(t) else None,
-                             step_p99_ms=float(np.percentile(t, 99)) if len(t) else None,
-                             force_N=float(np.median(forces[shape])) if forces[shape] else None,
-                             bonds_cut=solver.cutters[0].cut if solver.cutters else 0))
+        rows += _timed_pair(model, material, mode, 'cut', 'blade', CUT_TOOL, cut_path, plunge + drawn, plunge)
+        rows += _timed_pair(model, material, mode, 'needle', 'needle', NEEDLE_TOOL, needle_path, pierce,
+                            int(0.002 / CUT_SPEED / FRAME_DT))
         progress(f'cut {mode}')
     return rows
 
@@ -764,11 +787,13 @@ def print_tables(rows: list[dict], meta: dict) -> str:
         p('')
         p(f'Cutting: a blade ({CUT_TOOL["tool_radius"] * 1e3:g} mm, {CUT_TOOL["tool_length"] * 1e3:g} mm edge) against a '
           f'capsule of its size, drawn {CUT_TRAVEL * 1e3:g} mm at {CUT_SPEED * 1e3:g} mm/s, '
-          f'{CUT_DEPTH * 1e3:g} mm deep (frames stepped in turn; timed while drawn) [ms per frame]')
+          f'{CUT_DEPTH * 1e3:g} mm deep (frames stepped in turn; timed while drawn); a needle '
+          f'({NEEDLE_TOOL["tool_radius"] * 1e3:g} mm) against a capsule of its size pushed {NEEDLE_TRAVEL * 1e3:g} mm '
+          f'down (timed from the top) [ms per frame]')
         p(f"{'config':<22} {'N':>6} {'frames':>6} {'median':>8} {'p90':>8} {'p99':>8} {'force N':>8} {'bonds cut':>9} "
           f"{'x capsule':>9} {'status'}")
         for r in cut:
-            twin = idx.get(r['label'].replace(' blade', ' capsule'))
+            twin = idx.get(r['label'].rsplit(' ', 1)[0] + ' capsule')
             ratio = (r['step_ms'] / twin['step_ms'] if r.get('step_ms') and twin and twin.get('step_ms') else None)
             p(f"{r['label']:<22} {r.get('n_particles', ''):>6} {r.get('frames', 0):>6} {_cell(r):>8} "
               f"{_cell(r, 'step_p90_ms'):>8} {_cell(r, 'step_p99_ms'):>8} {_f(r.get('force_N'), '{:.2f}'):>8} "

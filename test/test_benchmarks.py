@@ -72,10 +72,11 @@ def test_every_tlsph_case_is_measured_with_finite_positive_numbers(quick_run):
             assert _num(r, 'n_stress') == int(r['n_particles'])
 
 
-def test_the_cut_table_times_a_blade_against_a_capsule_on_the_same_path(quick_run):
+def test_the_cut_table_times_a_blade_and_a_needle_against_a_capsule_on_the_same_path(quick_run):
     out, _, rows = quick_run
     cut = {r['label']: r for r in rows if r['table'] == 'cut'}
-    assert set(cut) == {f'cut {mode} {shape}' for mode in ('local', 'global') for shape in ('capsule', 'blade')}
+    assert set(cut) == {f'{name} {mode} {shape}' for mode in ('local', 'global')
+                        for name, tool in (('cut', 'blade'), ('needle', 'needle')) for shape in ('capsule', tool)}
     for r in cut.values():
         assert r['status'] == 'ok' and int(r['frames']) > 0
         assert 0.0 < _num(r, 'step_ms') <= _num(r, 'step_p90_ms') <= _num(r, 'step_p99_ms')
