@@ -694,3 +694,28 @@ def test_a_snapshot_file_from_before_several_instruments_loads_its_one_tool(tmp_
              rest_stamp=np.array(0), rest_tool=np.r_[1.0, 2.0, 3.0, 0.0, 0.0, 1.0, 0.0, 0.004])
     rest = TissueSnapshots.load(tmp_path / 'old.npz').rest
     assert len(rest.tools) == 1 and rest.tools[0][3] == 0.004 and rest.held is None
+
+
+def test_a_cut_cloud_draws_its_faces_and_leaves_its_removed_particles_out(tmp_path):
+    """A block cut through its middle: the particles beside the cut marked (black crosses: more
+    dark ink than the whole cloud), a removed particle (NaN) neither drawn nor stretching the axes;
+    the severed byte is saved and loaded with the snapshots."""
+    snaps = _press_clouds(3)
+    whole = snaps.deepest
+    severed = (np.abs(whole.xyz[:, 0]) < 0.003).astype(np.uint8) * 2
+    xyz = whole.xyz.copy()
+    xyz[0] = np.nan
+    cut = TissueSnapshots()
+    columns = {'x': xyz[:, 0], 'y': xyz[:, 1], 'z': xyz[:, 2], 'displacement': whole.displacement,
+               'von_mises': whole.von_mises, 'severed': severed}
+    cut.add(columns, 0, whole.tools)
+    assert cut.deepest.severed is not None and np.array_equal(cut.deepest.severed, severed)
+    draw_snapshot(cut.deepest, tmp_path / 'cut.png', 'cut', reference=snaps.rest)
+    draw_snapshot(whole, tmp_path / 'whole.png', 'whole', reference=snaps.rest)
+
+    def dark(path):
+        with Image.open(path) as im:
+            return int(np.count_nonzero(np.asarray(im.convert('L')) < 40))
+    assert dark(tmp_path / 'cut.png') > dark(tmp_path / 'whole.png')
+    cut.save(tmp_path / 'snaps.npz')
+    assert np.array_equal(TissueSnapshots.load(tmp_path / 'snaps.npz').deepest.severed, severed)

@@ -311,7 +311,8 @@ def test_markers_show_the_tool_at_the_pose_and_the_force_arrow(rclpy_node, frame
 
 def test_two_instruments_each_get_their_diagnostics_tools_and_held_particles(rclpy_node):
     """instruments [left, right]: each namespace's metrics, poses and forces reach a status and a
-    marker of that instrument; the cloud's held byte marks the particles each one holds."""
+    marker of that instrument; the cloud's held byte marks the particles each one holds, its severed
+    byte the cut faces (one marker)."""
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped, WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -326,8 +327,12 @@ def test_two_instruments_each_get_their_diagnostics_tools_and_held_particles(rcl
     reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     cloud = CloudBuffer(6, 'tissue')
     xyz = np.arange(18, dtype=float).reshape(6, 3) * 1e-3
-    # left (instrument 0) holds particles 1 and 2, right holds particle 4
-    cloud.pack(xyz, xyz, np.zeros(6), np.zeros(6, dtype=np.int8), [np.array([1, 2]), np.array([4])])
+    # left (instrument 0) holds particles 1 and 2, right holds particle 4; a cut took bonds from 3 and 5
+    # and removed 0
+    removed = np.zeros(6, dtype=np.bool_)
+    removed[0] = True
+    cloud.pack(xyz, xyz, np.zeros(6), np.zeros(6, dtype=np.int8), [np.array([1, 2]), np.array([4])],
+               np.array([4, 0, 0, 2, 0, 3], dtype=np.int32), removed)
     with harness.NodeProcess('tissue_viz', 'viz_node', params=params) as viz:
         viz.wait_for_output(r'ready:', timeout=30)
         pubs = {name: (rclpy_node.create_publisher(SimMetrics, f'{name}/tissue/metrics', reliable),
@@ -369,7 +374,7 @@ def test_two_instruments_each_get_their_diagnostics_tools_and_held_particles(rcl
             spaces = {m.ns for a in markers[-3:] for m in a.markers}
             return (all(s is not None and s.message.startswith('active') for s in tissue)
                     and all(s is not None and 'p50' in s.message for s in latency)
-                    and {'left/tool', 'right/tool', 'left/held', 'right/held'} <= spaces)
+                    and {'left/tool', 'right/tool', 'left/held', 'right/held', 'cut'} <= spaces)
         assert rclpy_node.spin_until(both_seen, 30), (viz.output(), [s.name for s in arrays[-1].status]
                                                       if arrays else None)
         names_seen = {s.name for s in arrays[-1].status}
@@ -389,6 +394,8 @@ def test_two_instruments_each_get_their_diagnostics_tools_and_held_particles(rcl
         held = {n: sorted(round(p.x * 1e3) for p in latest[f'{n}/held'].points) for n in names}
         assert held == {'left': [3, 6], 'right': [12]}                    # x of particles 1, 2 and 4
         assert latest['left/held'].type == Marker.SPHERE_LIST and latest['left/held'].header.frame_id == 'tissue'
+        # the cut faces: particles 3 and 5 (x 9 and 15 mm); 0 was removed, so it is not drawn
+        assert sorted(round(p.x * 1e3) for p in latest['cut'].points) == [9, 15]
         assert viz.alive() and 'Traceback' not in viz.output(), viz.output()
 
 

@@ -1,4 +1,4 @@
-"""Tool, force and held-particle marker geometry and colours (pure Python + numpy, no rclpy).
+"""Tool, force, held-particle and cut-face marker geometry and colours (pure Python + numpy, no rclpy).
 
 In the device frame the markers show the stylus tip (``omni/pose``) and the force sent to the
 device. In the tissue frame they show the simulator's own tool (shape and pose, as it reports them
@@ -58,6 +58,16 @@ INSTRUMENT_COLOURS = ((0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), 
 def instrument_colour(k: int) -> tuple[float, float, float]:
     """The colour of instrument ``k`` (the ``instruments`` order; the held byte's k + 1)."""
     return INSTRUMENT_COLOURS[k % len(INSTRUMENT_COLOURS)]
+
+
+#: (r, g, b) of the cut faces' dots (the particles that lost bonds to a blade)
+CUT_COLOUR = (0.1, 0.1, 0.1)
+
+
+def cut_faces(xyz: np.ndarray, severed: np.ndarray) -> np.ndarray:
+    """The positions (m, 3) of the particles that lost bonds to a cut (the cloud's ``severed``
+    byte above 0), leaving out those the cut removed (NaN)."""
+    return xyz[(severed > 0) & np.isfinite(xyz).all(axis=1)]
 
 
 def held_positions(xyz: np.ndarray, held: np.ndarray, instruments: int) -> list[np.ndarray]:

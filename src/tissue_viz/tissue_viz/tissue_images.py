@@ -5,8 +5,10 @@
 that moment, and a short run of clouds around it for an animation. The images are drawn headless
 (matplotlib Agg): every particle as a dot coloured by its displacement and, beside it, by its von
 Mises stress, each tool drawn where the simulation had it and the particles it holds (the cloud's
-``held`` byte) ringed in its colour (:func:`tissue_viz.markers.instrument_colour`; one tool alone
-is drawn dark grey). A cloud of more than
+``held`` byte: a grasp, or a needle's track) ringed in its colour
+(:func:`tissue_viz.markers.instrument_colour`; one tool alone is drawn dark grey), and the cut faces
+(the ``severed`` byte: particles that lost bonds to a blade) marked with black crosses; a particle a cut
+removed (NaN) is not drawn. A cloud of more than
 :data:`MAX_POINTS` particles is kept as a fixed, evenly spread subset (the images stay legible
 and the memory bounded at 100k particles). Snapshots are saved with the report
 (``tissue_snapshots.npz``) so that ``tissue_report`` can draw them again.
@@ -29,7 +31,7 @@ MAX_POINTS = 20000
 ANIMATION_SIDE = 12
 #: PointField datatypes -> numpy (sensor_msgs/PointField constants)
 POINTFIELD_DTYPES = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
-FIELDS = ('x', 'y', 'z', 'displacement', 'von_mises', 'held')
+FIELDS = ('x', 'y', 'z', 'displacement', 'von_mises', 'held', 'severed')
 #: one tool alone (as before there were several): dark grey on the white report
 SINGLE_TOOL_COLOUR = '0.15'
 
@@ -61,8 +63,9 @@ Tool = tuple   # (tip (3,) [m], unit axis (3,), shaft length [m], radius [m]) in
 class Snapshot:
     """One cloud: positions (n, 3) [m], displacement (n,) [m], von Mises (n,) [Pa] (NaN where the
     cloud had no such field), its stamp [ns], each instrument's tool (:data:`Tool`, or None where it
-    is lifted or unknown; index k = instrument k) and the held byte (n,) (0 free, k + 1 held by
-    instrument k; None where the cloud had no such field)."""
+    is lifted or unknown; index k = instrument k), the held byte (n,) (0 free, k + 1 held by
+    instrument k) and the severed byte (n,) (bonds lost to a cut); None where the cloud had no
+    such field."""
 
     xyz: np.ndarray
     displacement: np.ndarray
@@ -70,6 +73,7 @@ class Snapshot:
     stamp_ns: int
     tools: tuple = ()
     held: np.ndarray | None = None
+    severed: np.ndarray | None = None
 
     @property
     def first_tool(self) -> Tool | None:
@@ -115,10 +119,11 @@ class TissueSnapshots:
             return
         pick = self._take(n)
         nan = np.full(n, np.nan)
-        held = columns.get('held')
+        held, severed = columns.get('held'), columns.get('severed')
         snap = Snapshot(np.column_stack([columns['x'][pick], columns['y'][pick], columns['z'][pick]]),
                         columns.get('displacement', nan)[pick], columns.get('von_mises', nan)[pick],
-                        int(stamp_ns), tuple(tools), None if held is None else held[pick].astype(np.uint8))
+                        int(stamp_ns), tuple(tools), None if held is None else held[pick].astype(np.uint8),
+                        None if severed is None else severed[pick].astype(np.uint8))
         if self.rest is None:
             self.rest = snap
         if self.deepest is None or snap.peak > self.deepest.peak:
@@ -147,6 +152,8 @@ class TissueSnapshots:
                                                    else np.full(8, np.nan) for t in snap.tools])
             if snap.held is not None:
                 arrays[f'{name}_held'] = snap.held
+            if snap.severed is not None:
+                arrays[f'{name}_severed'] = snap.severed
         # np.savez_compressed's layout (np.load reads it) at zlib level 1: a quarter of the time
         # of its level 6 for 7 % more bytes
         with zipfile.ZipFile(path, 'w', compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
@@ -167,7 +174,8 @@ class TissueSnapshots:
                               for r in rows)
                 return Snapshot(z[f'{name}_xyz'], z[f'{name}_disp'], z[f'{name}_vm'],
                                 int(z[f'{name}_stamp']), tools,
-                                z[f'{name}_held'] if f'{name}_held' in z else None)
+                                z[f'{name}_held'] if f'{name}_held' in z else None,
+                                z[f'{name}_severed'] if f'{name}_severed' in z else None)
             out.rest, out.deepest = snap('rest'), snap('deepest')
             k = 0
             while (s := snap(f'frame{k:03d}')) is not None:
@@ -211,6 +219,14 @@ def _held_groups(snap: Snapshot, pick: np.ndarray | slice = slice(None)) -> list
     return [(xyz[held == code], instrument_colour(int(code) - 1)) for code in np.unique(held) if code]
 
 
+def _cut_faces(snap: Snapshot, pick: np.ndarray | slice = slice(None)) -> np.ndarray:
+    """Positions (m, 3) [m] of the particles among ``pick`` that lost bonds to a cut (still there)."""
+    if snap.severed is None:
+        return np.zeros((0, 3))
+    xyz = snap.xyz[pick]
+    return xyz[(snap.severed[pick] > 0) & np.isfinite(xyz).all(axis=1)]
+
+
 def _dot_size(n: int) -> float:
     return float(np.clip(20000.0 / max(n, 1), 1.0, 14.0))
 
@@ -246,14 +262,20 @@ def _cloud_axes(fig, ax, label: str, limits, vmax: float, cmap: str, scale: floa
 def _cloud_artists(ax, snap: Snapshot, values: np.ndarray, vmax: float, cmap: str,
                    scale: float, animated: bool = False) -> list:
     """The cloud in 3-D, dots coloured by ``values`` (grey where not finite), and the tool."""
-    ok = np.isfinite(values)
     xyz = snap.xyz * 1e3
+    there = np.isfinite(xyz).all(axis=1)          # a particle a cut removed is NaN
+    ok = np.isfinite(values) & there
     artists = [ax.scatter(xyz[ok, 0], xyz[ok, 1], xyz[ok, 2], c=values[ok] * scale,
                           s=_dot_size(len(xyz)), cmap=cmap, norm=_norm(vmax, scale),
                           depthshade=False, linewidths=0, animated=animated)]
-    if (~ok).any():
-        artists.append(ax.scatter(xyz[~ok, 0], xyz[~ok, 1], xyz[~ok, 2], s=2, color='0.7',
+    grey = ~ok & there
+    if grey.any():
+        artists.append(ax.scatter(xyz[grey, 0], xyz[grey, 1], xyz[grey, 2], s=2, color='0.7',
                                   depthshade=False, animated=animated))
+    faces = _cut_faces(snap) * 1e3
+    if len(faces):
+        artists.append(ax.scatter(faces[:, 0], faces[:, 1], faces[:, 2], s=2 * _dot_size(len(xyz)), marker='x',
+                                  color='k', linewidths=0.6, depthshade=False, animated=animated))
     for pts, colour in _held_groups(snap):
         pts = pts * 1e3
         artists.append(ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=3 * _dot_size(len(xyz)),
@@ -299,7 +321,7 @@ def _section_artists(ax, snap: Snapshot, reference: Snapshot, values: np.ndarray
                      cmap: str, scale: float, animated: bool = False) -> list:
     """The section's particles coloured by ``values`` (those held ringed in their instrument's
     colour), and the tools projected on the section plane."""
-    pick = _section(snap, reference) & np.isfinite(values)
+    pick = _section(snap, reference) & np.isfinite(values) & np.isfinite(snap.xyz).all(axis=1)
     xz = snap.xyz[pick][:, [0, 2]] * 1e3
     size = 4 * _dot_size(int(pick.sum()))
     artists = [ax.scatter(xz[:, 0], xz[:, 1], c=values[pick] * scale, s=size, cmap=cmap,
@@ -307,6 +329,10 @@ def _section_artists(ax, snap: Snapshot, reference: Snapshot, values: np.ndarray
     for pts, colour in _held_groups(snap, pick):
         artists.append(ax.scatter(pts[:, 0] * 1e3, pts[:, 2] * 1e3, s=2 * size, facecolors='none',
                                   edgecolors=[colour], linewidths=1.0, animated=animated))
+    faces = _cut_faces(snap, pick) * 1e3
+    if len(faces):
+        artists.append(ax.scatter(faces[:, 0], faces[:, 2], s=size, marker='x', color='k', linewidths=0.8,
+                                  animated=animated))
     th = np.linspace(0.0, 2.0 * np.pi, 64)
     for _, (tip, axis, length, radius), colour in _tool_colours(snap):
         artists += ax.plot((tip[0] + radius * np.cos(th)) * 1e3,
@@ -322,6 +348,7 @@ def _section_artists(ax, snap: Snapshot, reference: Snapshot, values: np.ndarray
 
 def _limits(snaps) -> tuple[np.ndarray, np.ndarray]:
     pts = np.vstack([s.xyz for s in snaps if s is not None]) * 1e3
+    pts = pts[np.isfinite(pts).all(axis=1)]            # a particle a cut removed is NaN
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     pad = 0.05 * np.max(hi - lo) + 1.0
     return lo - pad, hi + pad

@@ -45,7 +45,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from tissue_viz import figures
 from tissue_viz.diagnostics import RateTarget, Status, Targets, worst_level, evaluate_instruments
 from tissue_viz.errors import ReportError, VizConfigError
-from tissue_viz.markers import ToolShape, force_arrow, held_positions, instrument_colour
+from tissue_viz.markers import CUT_COLOUR, ToolShape, cut_faces, force_arrow, held_positions, instrument_colour
 from tissue_viz.report import ReportData, default_report_dir, prepare_report_dir, write_report
 from tissue_viz.stats import TOPICS, VizStats, summary_line
 from tissue_viz.tissue_images import TissueSnapshots, cloud_arrays
@@ -172,6 +172,7 @@ class VizNode(Node):
         self.sim_tools: list[tuple[str, ToolShape, np.ndarray] | None] = [None] * n
         # the cloud's frame and, per instrument, the positions of the particles it holds
         self.held: tuple[str, list[np.ndarray]] | None = None
+        self.cut_faces: tuple[str, np.ndarray] | None = None    # the particles a cut left bonds short
         self.tissue = TissueSnapshots()
         self._report_lock = threading.Lock()
         self._report_thread: threading.Thread | None = None
@@ -286,12 +287,10 @@ class VizNode(Node):
         frame = msg.header.frame_id
         columns = cloud_arrays([(f.name, f.offset, f.datatype) for f in msg.fields], bytes(msg.data),
                                msg.width * msg.height, msg.point_step, msg.is_bigendian)
-        held = columns.get('held')
-        if held is not None and held.any():
-            xyz = np.column_stack([columns['x'], columns['y'], columns['z']])
-            self.held = (frame, held_positions(xyz, held, len(self.names)))
-        else:
-            self.held = None
+        held, severed = columns.get('held'), columns.get('severed')
+        xyz = np.column_stack([columns['x'], columns['y'], columns['z']])
+        self.held = (frame, held_positions(xyz, held, len(self.names))) if held is not None and held.any() else None
+        self.cut_faces = (frame, cut_faces(xyz, severed)) if severed is not None and severed.any() else None
         if not self.p['tissue_images']:
             return
         tools = tuple((t[1].tip, t[1].axis, t[1].length, t[1].radius)
@@ -346,6 +345,15 @@ class VizNode(Node):
         markers = MarkerArray()
         for k in range(len(self.names)):
             markers.markers += self._instrument_markers(k, stamp)
+        if self.cut_faces is not None and len(self.cut_faces[1]):
+            faces = Marker(type=Marker.SPHERE_LIST, action=Marker.ADD, ns='cut', id=0)
+            faces.header.frame_id, faces.header.stamp = self.cut_faces[0], stamp
+            faces.pose.orientation.w = 1.0
+            faces.lifetime.nanosec = 500_000_000
+            faces.points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in self.cut_faces[1]]
+            faces.scale.x = faces.scale.y = faces.scale.z = HELD_DOT
+            faces.color.r, faces.color.g, faces.color.b, faces.color.a = (*CUT_COLOUR, 1.0)
+            markers.markers.append(faces)
         if markers.markers:
             self.marker_pub.publish(markers)
 
