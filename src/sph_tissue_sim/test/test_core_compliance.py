@@ -267,6 +267,29 @@ def test_a_solver_rebuilt_on_the_same_organ_reuses_its_factor_and_another_materi
                                atol=1e-6 * np.abs(first.organ.column(c)).max())
 
 
+def test_a_cut_before_the_first_solve_reaches_neither_the_factor_nor_a_later_solver_on_the_intact_organ(
+        monkeypatch):
+    """The factoring process gets the organ at the first response not on disk; a blade's cut before
+    it (the scheme's gradients and hourglass weights changed in place) must not reach the factor
+    kept under the intact organ's key (and its disk store), which a later solver on the intact
+    organ reuses."""
+    monkeypatch.setenv(response_store.CACHE_ENV, '')   # every response from the factor
+    cfg = SolverConfig(mode='local', far_field=1.0)
+    first = Solver(_block(), SOFT, cfg)
+    c = int(np.argmax(first.X[:, 2]))
+    reference = first.organ.column(c).copy()
+    compliance._last_factor.close()
+    compliance._last_factor = None
+    cutting = Solver(_block(), SOFT, cfg)   # its factor not started yet
+    bonds = cutting.scheme.bonds(cutting.fixed)
+    bonds.cut(np.arange(bonds.offsets[c], bonds.offsets[c + 1])[::2])
+    assert bonds.n_cut > 0
+    intact = Solver(_block(), SOFT, cfg)
+    assert intact.organ.reused and intact.organ.factor is cutting.organ.factor
+    assert np.array_equal(intact.organ.column(c), reference)
+    assert np.array_equal(cutting.organ.column(c), reference)   # the intact organ's, as its key says
+
+
 def test_the_far_field_moves_the_shell_and_the_shells_neighbours_and_nothing_solved():
     solver = Solver(_block(12, 5), SOFT, SolverConfig(mode='local', far_field=1.0))
     X = solver.X

@@ -35,10 +35,16 @@ POLL = 0.05
 
 
 def organ_arrays(X, fixed, state, free_dofs, folder) -> dict:
-    """What the child needs to build and factor the stiffness, and where it stores responses."""
-    return dict(X=X, fixed=np.asarray(fixed, dtype=bool), offsets=state.offsets, indices=state.indices,
-                g=state.g, gsum=state.gsum, w0=state.w0, volume=float(state.volume), G=float(state.G),
-                K=float(state.K), hg_k=float(state.hg_k), free_dofs=free_dofs,
+    """What the child needs to build and factor the stiffness, and where it stores responses.
+
+    Copies, taken now: the child is sent them at the first response not on disk, maybe long after,
+    and a blade's cut changes the scheme's ``g``, ``gsum`` and ``w0`` in place (:mod:`.bonds`), so
+    the arrays themselves would factor the cut organ under the intact one's key (its disk store,
+    and a later solver on the intact organ that reuses this process)."""
+    return dict(X=np.array(X), fixed=np.array(fixed, dtype=bool), offsets=np.array(state.offsets),
+                indices=np.array(state.indices), g=np.array(state.g), gsum=np.array(state.gsum),
+                w0=np.array(state.w0), volume=float(state.volume), G=float(state.G),
+                K=float(state.K), hg_k=float(state.hg_k), free_dofs=np.array(free_dofs),
                 folder=None if folder is None else str(folder))
 
 
