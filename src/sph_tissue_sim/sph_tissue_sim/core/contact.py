@@ -88,6 +88,18 @@ def touch_normal(i, x, seg, reach):
     return True, reach - r, u0 / r, u1 / r, u2 / r, ts
 
 
+@njit(cache=True, fastmath=True, inline='always')
+def penalty_push(i, v, seg_vel, ts, n0, n1, n2, overlap, k_c, c_c):
+    """The push [N] along ``n`` on particle ``i`` overlapping the tool by ``overlap`` [m] where the
+    tool's closest point lies at ``ts`` on its segment (ends moving at ``seg_vel``): ``k_c d - c_c
+    (v_i - v_tool) . n`` (the module docstring; not positive: no push)."""
+    tv0 = seg_vel[0, 0] + ts * (seg_vel[1, 0] - seg_vel[0, 0])
+    tv1 = seg_vel[0, 1] + ts * (seg_vel[1, 1] - seg_vel[0, 1])
+    tv2 = seg_vel[0, 2] + ts * (seg_vel[1, 2] - seg_vel[0, 2])
+    vn = (v[i, 0] - tv0) * n0 + (v[i, 1] - tv1) * n1 + (v[i, 2] - tv2) * n2
+    return k_c * overlap - c_c * vn
+
+
 @njit(cache=True, inline='always')
 def record_touch(touches, kind, idx, n0, n1, n2, held, seg, t, slot):
     """Append a pushing contact of instrument ``slot`` to ``touches`` (:class:`~.state.Touches`);
@@ -159,11 +171,7 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
             continue
         if overlap > best:
             best = overlap
-        tv0 = seg_vel[0, 0] + ts * (seg_vel[1, 0] - seg_vel[0, 0])
-        tv1 = seg_vel[0, 1] + ts * (seg_vel[1, 1] - seg_vel[0, 1])
-        tv2 = seg_vel[0, 2] + ts * (seg_vel[1, 2] - seg_vel[0, 2])
-        vn = (v[i, 0] - tv0) * n0 + (v[i, 1] - tv1) * n1 + (v[i, 2] - tv2) * n2
-        fmag = k_c * overlap - c_c * vn
+        fmag = penalty_push(i, v, seg_vel, ts, n0, n1, n2, overlap, k_c, c_c)
         if fmag <= 0.0:
             tool.stuck[i] = False
             continue

@@ -36,7 +36,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .contact import record_touch
+from .contact import penalty_push, record_touch
 from .state import Shaft
 
 #: states of a needle, as ``SimMetrics.needle_state`` sends them
@@ -241,11 +241,7 @@ def needle_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
             continue
         if overlap > best:
             best = overlap
-        tv0 = seg_vel[0, 0] + ts * (seg_vel[1, 0] - seg_vel[0, 0])
-        tv1 = seg_vel[0, 1] + ts * (seg_vel[1, 1] - seg_vel[0, 1])
-        tv2 = seg_vel[0, 2] + ts * (seg_vel[1, 2] - seg_vel[0, 2])
-        vn = (v[i, 0] - tv0) * n0 + (v[i, 1] - tv1) * n1 + (v[i, 2] - tv2) * n2
-        fmag = k_c * overlap - c_c * vn
+        fmag = penalty_push(i, v, seg_vel, ts, n0, n1, n2, overlap, k_c, c_c)
         if fmag <= 0.0:
             continue
         react[0] -= fmag * n0; react[1] -= fmag * n1; react[2] -= fmag * n2
