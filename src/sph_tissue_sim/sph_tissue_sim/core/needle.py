@@ -7,8 +7,8 @@ Needle insertion, after Okamura, Simone and O'Leary (IEEE TBME 2004), in three p
   (or squeeze one out ahead of it), so the tip presses a **dent**, a point of the surface that is the
   weighted mean of the particles around where the tip met it (weights ``(1 - s^2 / R_p^2)^2`` at a
   distance ``s`` within ``R_p`` = :data:`DENT_RADIUS` spacings), plus a fixed offset that puts it
-  where the tip meets the first particle (found a spacing before). The tip pushes it along the axis, ``k_c d`` with ``d =
-  reach + (p - tip) . e``: the capsule stiffness of the whole dimple;
+  where the tip meets the first particle (found a spacing before). The tip pushes it along the
+  axis, ``k_c d`` with ``d = reach + (p - tip) . e``: the capsule stiffness of the whole dimple;
 * **puncture**: once the tissue pushes back along the axis with ``F_p`` or more, the tip enters
   (the entry point and the axis are kept). ``F_p = pi d G_c`` (:func:`puncture_force`): the
   toughness paid for a crack as wide as the needle's circumference per unit depth;
@@ -17,12 +17,13 @@ Needle insertion, after Okamura, Simone and O'Leary (IEEE TBME 2004), in three p
 
   - the **tip** cuts: a load ``F_t = min(k_t (q - q_f), F_c)`` on the needle, ``q`` the tip's depth
     below the entry along the axis and ``q_f`` the crack's front, pushed deeper so that ``F_t``
-    never exceeds the cutting force ``F_c = G_c d``; the tissue gets ``-F_t`` on the particles the
-    cone spreads, in proportion to how deep each is in it;
-  - the **shaft** holds each particle it pushes by a stick-slip friction (as
-    :func:`~.contact.stick_slip`, anchored where the particle sat from the tip): a spring ``k_c``
-    capped at ``mu_s |f_n|`` while it sticks and ``mu_d |f_n|`` once it slides, so pulling back drags
-    the tissue until it slips.
+    never exceeds the cutting force ``F_c = G_c d``; the tissue gets ``-F_t`` on the particles
+    within ``grip_reach`` of the tip, by their weights (:func:`tip_cut`);
+  - the **shaft** holds each particle within ``grip_reach`` of its axis by a stick-slip spring
+    along the axis, anchored where the particle sat from the tip (:func:`shaft_hold`): ``k_c w``
+    capped at ``w`` times the static hold per metre while it sticks and the dynamic one once it
+    slides (``w`` the particle's share of the shaft's length), so the friction grows with the
+    inserted depth and pulling back drags the tissue until it slips.
 
 So the axial force rises with the dent, drops when the tip enters, then rises with the depth as the
 shaft's friction grows: the three phases. A tip drawn back above its entry point is outside again.
