@@ -28,14 +28,14 @@ def needle_solver(mode='local', material=None, n=(8, 8, 8)):
     return Solver(model, material or liver_default(), cfg), model
 
 
-def insert(solver, xy, travel=0.02, hold=200, back=True):
-    """Down from 3 mm above the top by ``travel`` [m] below it, held ``hold`` frames, drawn back
-    out; per frame (tip height above the top [m], axial force [N], state, depth [m])."""
+def insert(solver, xy, travel=0.02, hold=200, back=True, speed=SPEED):
+    """Down from 3 mm above the top by ``travel`` [m] below it at ``speed`` [m/s], held ``hold``
+    frames, drawn back out; per frame (tip height above the top [m], axial force [N], state, depth [m])."""
     top = solver.X[:, 2].max()
-    z = [top + 0.003 - SPEED * DT * k for k in range(int(round((travel + 0.003) / (SPEED * DT))) + 1)]
+    z = [top + 0.003 - speed * DT * k for k in range(int(round((travel + 0.003) / (speed * DT))) + 1)]
     z += [z[-1]] * hold
     if back:
-        z += [z[-1] + SPEED * DT * k for k in range(1, len(z) - hold)]
+        z += [z[-1] + speed * DT * k for k in range(1, len(z) - hold)]
     out = []
     for zz in z:
         r = solver.step(np.array([xy[0], xy[1], zz]), DT, np.eye(3))
@@ -164,3 +164,19 @@ def test_needle_needs_the_tlsph_scheme_and_a_valid_hold():
         with pytest.raises(ConfigError, match='needle_hold'):
             Material(5000.0, 0.45, 3.0, 3.0, 1060.0, needle_hold=bad)
     assert no_shaft().needle is False
+
+
+def test_a_needle_lifted_while_inserted_leaves_no_anchor_for_its_next_insertion():
+    """Inserted, then lifted at once (no pose): outside, the shaft's anchors gone, and a second
+    insertion at the same place dents and punctures again as the first did."""
+    solver, _ = needle_solver('local')
+    first = insert(solver, (0.02, 0.02), travel=0.015, hold=0, back=False, speed=0.03)
+    assert first[-1, 2] == INSERTED and solver.needles[0].stuck.any()
+    solver.step(None, DT)
+    assert solver.needle_state() == OUTSIDE and not solver.needles[0].stuck.any()
+    for _ in range(300):
+        solver.step(None, DT)
+    second = insert(solver, (0.02, 0.02), travel=0.015, hold=0, back=False, speed=0.03)
+    k1, k2 = (int(np.argmax(r[:, 2] == INSERTED)) for r in (first, second))
+    assert k2 > 0 and abs(k2 - k1) <= 3
+    assert second[k2, 1] >= puncture_force(solver.material.toughness, 2 * RADIUS)

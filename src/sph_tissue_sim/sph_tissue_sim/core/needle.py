@@ -384,6 +384,7 @@ class Puncture:
         self.punctured = False
         if seg is None:
             self.state = OUTSIDE
+            self.stuck[:] = False      # lifted: the shaft's anchors go with it
             self._no_dent()
             return False
         tip = seg[0]
@@ -415,6 +416,7 @@ class Puncture:
         self.state = INSERTED
         self.entry[:] = tip
         self.axis[:] = e
+        self.stuck[:] = False          # a new track: no anchor from an earlier one
         self.front = 0.0
         self._depth = 0.0
         self.punctures += 1
