@@ -60,23 +60,23 @@ class _Path:
 
 
 def press(g: Geometry, rng: np.random.Generator) -> list[Segment]:
-    """Approach, press 6 mm into the surface, hold 1 s (button 1 down), release, retreat (3.6 s)."""
+    """Approach, press 6 mm into the surface, hold 1 s, release, retreat (3.6 s)."""
     p = _Path(g.point(depth=-0.02))
     p.move('approach', g.point(depth=-0.005), 0.6)
     p.move('press', g.point(depth=0.006), 0.8)
-    p.hold(1.0, True)
+    p.hold(1.0)
     p.move('release', g.point(depth=-0.005), 0.6)
     p.move('retreat', g.point(depth=-0.02), 0.6)
     return p.segments
 
 
 def pull(g: Geometry, rng: np.random.Generator) -> list[Segment]:
-    """Press 5 mm, drag 12 mm laterally while pressed (button 1), hold, release (3.9 s)."""
+    """Press 5 mm, drag 12 mm laterally while pressed, hold, release (3.9 s)."""
     p = _Path(g.point(-0.006, depth=-0.02))
     p.move('approach', g.point(-0.006, depth=-0.005), 0.5)
     p.move('press', g.point(-0.006, depth=0.005), 0.7)
-    p.move('pull', g.point(0.006, depth=0.005), 1.2, True)
-    p.hold(0.4, True)
+    p.move('pull', g.point(0.006, depth=0.005), 1.2)
+    p.hold(0.4)
     p.move('release', g.point(0.006, depth=-0.005), 0.6)
     p.move('retreat', g.point(0.006, depth=-0.02), 0.5)
     return p.segments
@@ -87,7 +87,7 @@ def sweep(g: Geometry, rng: np.random.Generator) -> list[Segment]:
     p = _Path(g.point(-0.02, depth=-0.015))
     p.move('approach', g.point(-0.02, depth=-0.004), 0.5)
     p.move('descend', g.point(-0.02, depth=0.003), 0.5)
-    p.move('sweep', g.point(0.02, depth=0.003), 2.0, True)
+    p.move('sweep', g.point(0.02, depth=0.003), 2.0)
     p.move('lift', g.point(0.02, depth=-0.004), 0.5)
     p.move('retreat', g.point(0.02, depth=-0.015), 0.4)
     return p.segments
@@ -129,20 +129,20 @@ def long_session(g: Geometry, rng: np.random.Generator, duration: float = 66.0) 
         if kind == 'press':
             d = rng.uniform(0.003, 0.007)
             p.move('press', g.point(a, b, d), rng.uniform(0.5, 1.0))
-            p.hold(rng.uniform(0.5, 1.5), True)
+            p.hold(rng.uniform(0.5, 1.5))
             p.move('release', g.point(a, b, -0.005), rng.uniform(0.4, 0.8))
         elif kind == 'pull':
             d = rng.uniform(0.003, 0.006)
             ang = rng.uniform(0.0, 2 * np.pi)
             a2, b2 = a + 0.01 * np.cos(ang), b + 0.01 * np.sin(ang)
             p.move('press', g.point(a, b, d), rng.uniform(0.5, 0.9))
-            p.move('pull', g.point(a2, b2, d), rng.uniform(0.8, 1.4), True)
+            p.move('pull', g.point(a2, b2, d), rng.uniform(0.8, 1.4))
             p.move('release', g.point(a2, b2, -0.005), rng.uniform(0.4, 0.8))
         elif kind == 'sweep':
             d = rng.uniform(0.002, 0.004)
             a2, b2 = -a, b + rng.uniform(-0.005, 0.005)
             p.move('descend', g.point(a, b, d), rng.uniform(0.4, 0.7))
-            p.move('sweep', g.point(a2, b2, d), rng.uniform(1.5, 2.5), True)
+            p.move('sweep', g.point(a2, b2, d), rng.uniform(1.5, 2.5))
             p.move('lift', g.point(a2, b2, -0.005), rng.uniform(0.4, 0.7))
         elif kind == 'poke':
             for _ in range(int(rng.integers(2, 5))):

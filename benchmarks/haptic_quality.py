@@ -90,10 +90,10 @@ def golden_params() -> dict:
 def bag_poses(name: str, instrument: str = '') -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(stamps [ns] (M,), device positions [m] (M, 3), jaw closed at each pose (M,) bool) of one
     instrument of a bundled bag, in order. The jaw is closed where the session's ``grasp_input``
-    button (``system_graph.BAG_SIM_PARAMS``; none: never) was down in the newest state stamped
-    before the pose, as ``sim_node`` applies it in lockstep."""
+    button (the golden parameters with ``system_graph.BAG_SIM_PARAMS``) was down in the newest
+    state stamped before the pose, as ``sim_node`` applies it in lockstep."""
     stamps, pos, changes = [], [], []
-    button = graph.BAG_SIM_PARAMS.get(name, {}).get('grasp_input', '')
+    button = {**golden_params(), **graph.BAG_SIM_PARAMS.get(name, {})}['grasp_input']
     ns = f'/{instrument}' if instrument else ''
     for topic, _, _, msg in read_bag(ROOT / 'bags' / name, [f'{ns}/omni/pose', f'{ns}/omni/state']):
         if topic.endswith('/omni/state'):

@@ -676,7 +676,7 @@ def test_safety_parameters_change_at_run_time_and_bad_values_are_refused(rclpy_n
 
 
 def test_a_button_change_is_stamped_with_the_sample_it_came_with(rclpy_node):
-    """The scripted stylus presses button 1 for its hold: the state that says so carries the stamp
+    """A script's ``close`` presses button 1: the state that says so carries the stamp
     of the pose it came with (the driver sends it before that pose), so a simulation that grasps on
     the button grasps at the same pose of every lockstep replay."""
     from geometry_msgs.msg import PoseStamped
@@ -689,8 +689,8 @@ def test_a_button_change_is_stamped_with_the_sample_it_came_with(rclpy_node):
                                    reliable_qos(10000))
     # the change is sent once: the script starts only once this reader is matched (a busy machine's
     # discovery took longer than the script's first 0.4 s)
-    with driver({'backend': 'scripted', 'reliable': True, 'approach_time': 0.2, 'press_time': 0.2,
-                 'hold_time': 0.2, 'state_rate': 1.0, 'wait_for_subscribers': 1}) as proc:
+    with driver({'backend': 'scripted', 'reliable': True, 'state_rate': 1.0, 'wait_for_subscribers': 1,
+                 'script': ['move 0 0.01 0 0.4', 'close 0.2', 'lift 0 0.02 0 0.2', 'open 0.2']}) as proc:
         proc.wait_for_output(r'ready:', 30)
         assert rclpy_node.spin_until(lambda: any(m.button1 for m in states), 30), proc.output()
         change = next(m for m in states if m.button1)

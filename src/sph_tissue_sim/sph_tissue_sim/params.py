@@ -113,10 +113,9 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                           'omni/force_feedback, grasp input (grasp_input) and tissue/metrics ([""]: '
                           'one, no namespace); several need haptic_mode multirate',
                     None, True, None),
-    'grasp_input': ('', 'what closes the instrument\'s jaw on the tissue in reach: button1 | button2 '
+    'grasp_input': ('button1', 'what closes the instrument\'s jaw on the tissue in reach: button1 | button2 '
                         '(that stylus button, omni/state DeviceState) | jaw (the CRTK omni/jaw/measured_js: '
-                        f'closed at most {JAW_CLOSED_MAX:g} rad) | \'\' off (the bundled sessions press button 1 as a '
-                        'marker); lockstep: from the first pose stamped after the change',
+                        f'closed at most {JAW_CLOSED_MAX:g} rad) | \'\' off (the jaw never closes); lockstep: from the first pose stamped after the change',
                     GRASP_INPUTS, True, None),
     'instrument_offsets': ([0.0, 0.0, 0.0], '[m] tissue-frame offset of each instrument\'s device '
                                             'origin, added to translation: three numbers per instrument '

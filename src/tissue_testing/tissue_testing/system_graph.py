@@ -31,11 +31,10 @@ BAGS = REPO_ROOT / 'bags'
 #: sim_node parameters the goldens in bags/ were recorded with (a ROS 2 params file)
 GOLDEN_SIM_PARAMS = BAGS / 'golden_sim_params.yaml'
 SHORT_BAGS = ('press', 'pull', 'sweep', 'poke', 'grasp', 'bimanual', 'cut', 'needle')
-#: sim_node parameters a golden was recorded with beyond GOLDEN_SIM_PARAMS (the other sessions press
-#: button 1 as a marker: only the grasp sessions grasp with it)
+#: sim_node parameters a golden was recorded with beyond GOLDEN_SIM_PARAMS (button 1, the default
+#: grasp_input, is pressed only by the grasp sessions)
 BAG_SIM_PARAMS = {
-    'grasp': {'grasp_input': 'button1'},
-    'bimanual': {'grasp_input': 'button1', 'instruments': ['left', 'right'],
+    'bimanual': {'instruments': ['left', 'right'],
                  'instrument_offsets': [-0.02, 0.0, 0.0, 0.02, 0.0, 0.0]},
     'cut': {'tool_shape': 'blade', 'tool_radius': 0.0005, 'tool_length': 0.02},
     'needle': {'tool_shape': 'needle', 'tool_radius': 0.0005, 'tool_length': 0.06},

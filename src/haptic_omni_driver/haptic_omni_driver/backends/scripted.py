@@ -153,8 +153,8 @@ def build_script(cfg: ScriptConfig) -> list[Segment]:
     segs = [
         Segment('approach', home, above, cfg.approach_time),
         Segment('press', above, pressed, cfg.press_time),
-        Segment('hold', pressed, pressed, cfg.hold_time, True),
-        Segment('pull', pressed, pulled, cfg.pull_time, True),
+        Segment('hold', pressed, pressed, cfg.hold_time),
+        Segment('pull', pressed, pulled, cfg.pull_time),
         Segment('release', pulled, released, cfg.release_time),
         Segment('sweep', released, sweep_a - cfg.approach_height * down, cfg.release_time),
         Segment('sweep', sweep_a - cfg.approach_height * down, sweep_a + cfg.sweep_depth * down,
