@@ -11,6 +11,7 @@ from sph_tissue_sim.core.errors import ConfigError
 from sph_tissue_sim.core.material import liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import REMOVED_OFFSET, Solver, SolverConfig
+from sph_tissue_sim.core.state import TOUCH_BOND, TOUCH_SAMPLE
 
 SPACING = 0.005
 BLADE = dict(tool_shape='blade', tool_radius=0.0005, tool_length=0.02)
@@ -160,14 +161,45 @@ def test_a_material_says_its_toughness_and_refuses_a_bad_one():
             replace(liver_default(), toughness=bad)
 
 
-def test_a_blade_cannot_cut_a_scheme_without_bonds_or_share_the_tissue_with_surface_samples():
+def test_a_blade_cannot_cut_a_scheme_without_bonds_and_is_one_per_tissue():
     model = make_block(6, 6, 4, SPACING)
     with pytest.raises(ConfigError, match='blade cuts the reference bonds'):
         Solver(model, liver_default(), SolverConfig(scheme='paper', **BLADE))
-    with pytest.raises(ConfigError, match='surface samples'):
-        Solver(model, liver_default(), SolverConfig(mode='global', contact_samples=3), instruments=2,
-               tools=[BLADE, None])
-    Solver(model, liver_default(), SolverConfig(mode='global', contact_samples=0), instruments=2, tools=[BLADE, None])
+    with pytest.raises(ConfigError, match='one blade per tissue'):
+        Solver(model, liver_default(), SolverConfig(mode='global'), instruments=2, tools=[BLADE, BLADE])
+
+
+SPHERE = dict(tool_shape='sphere', tool_radius=0.005)
+
+
+@pytest.mark.parametrize('mode', ['global', 'local'])
+def test_a_blade_cuts_beside_a_tool_held_by_the_surface_samples(mode):
+    """A grasper's or probe's surface samples and the blade's bond samples share one implicit
+    contact: the probe presses as it does alone, and the blade cuts beside it."""
+    model = make_block(16, 8, 6, SPACING, fixed_layers=1)
+    both = Solver(model, liver_default(), SolverConfig(mode=mode, contact_samples=3), instruments=2,
+                  tools=[BLADE, SPHERE])
+    alone = Solver(model, liver_default(), SolverConfig(mode=mode, contact_samples=3, **SPHERE))
+    top = model.positions[:, 2].max()
+    probe = np.array([0.065, 0.02, top + 0.005])
+    pressed = []
+    for k in range(400):       # the probe presses 4 mm at the far end, the blade off the tissue
+        p = probe - np.array([0.0, 0.0, min(k, 300) * 3e-5])
+        f_both = both.step_tools([None, (p, None)], 1e-3).tools[1].force_raw
+        f_alone = alone.step(p, 1e-3).force_raw
+        assert np.allclose(f_both, f_alone, rtol=1e-9, atol=1e-12)
+        pressed.append(f_both[2])
+    assert pressed[-1] > 0.05
+    start, kinds = np.array([0.005, 0.0185, top + 0.004]), set()
+    for k in range(1200):      # the blade plunges 5 mm at the near end and is drawn 15 mm towards it
+        t = k * 1e-3
+        b = start + (np.array([0.0, 0.0, -0.02 * t]) if t < 0.45 else np.array([0.02 * (t - 0.45), 0.0, -0.009]))
+        res = both.step_tools([(b, np.eye(3)), (p, None)], 1e-3)
+        kinds |= set(both.touches.kind[:both.touches.count[0]].tolist())
+        assert np.isfinite(both.positions).all()
+    assert {TOUCH_SAMPLE, TOUCH_BOND} <= kinds        # both sample sets pushed in one solve
+    assert both.cutters[0].cut > 20
+    assert 0.5 * pressed[-1] < res.tools[1].force_raw[2] < 1.5 * pressed[-1]
 
 
 def test_fixed_particles_stay_fixed_when_the_blade_cuts_through_them():

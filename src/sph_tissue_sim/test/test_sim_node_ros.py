@@ -399,8 +399,8 @@ def test_runtime_parameters_are_applied_or_refused_with_a_reason(probe, rclpy_no
     ({'grasp_input': 'button3'}, r"grasp_input must be one of '', button1, button2, jaw, got 'button3'"),
     ({'tool_shape': 'blade', 'scheme': 'paper'}, r'a blade cuts the reference bonds of scheme tlsph; scheme paper has none'),
     ({'tool_shape': 'needle', 'scheme': 'mass_spring'}, r'a needle pierces the tissue of scheme tlsph'),
-    ({'instruments': ['left', 'right'], 'instrument_tools': ['blade 0.0005 0.02', '']},
-     r'a blade and a tool on the surface samples cannot share the tissue'),
+    ({'instruments': ['left', 'right'], 'instrument_tools': ['blade 0.0005 0.02', 'blade 0.0005 0.03']},
+     r'one blade per tissue'),
     ({'grasp_input': 1}, r"parameter grasp_input: .*expecting type 'STRING'"),    # a number: the choices are strings
 ])
 def test_invalid_start_parameters_exit_with_code_2_and_say_why(ros_domain, params, message):

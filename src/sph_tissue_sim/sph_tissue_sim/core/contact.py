@@ -39,6 +39,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .state import TOUCH_BALL
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -187,7 +188,7 @@ def contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
         react[1] -= fmag * n1
         react[2] -= fmag * n2
         if tool.touches.on:
-            record_touch(tool.touches, 0, i, n0, n1, n2, held, seg, ts, tool.slot)
+            record_touch(tool.touches, TOUCH_BALL, i, n0, n1, n2, held, seg, ts, tool.slot)
         if not fixed[i]:
             acc[i, 0] += fmag * n0 * inv_mass
             acc[i, 1] += fmag * n1 * inv_mass

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .state import Samples
+from .state import TOUCH_BOND, Samples
 from .surface_contact import SURFACE_OFFSET, no_samples, surface_samples
 
 #: [spacings] radius of a particle's contact ball
@@ -159,7 +159,8 @@ class BladeContact(BallContact):
 
     def samples(self, n: int, tool_radius: float, stiffness: float, damping: float) -> Samples:
         """The bonds' samples: reach :data:`BOND_BALL` spacings past the edge, the balls' contact law."""
-        return Samples(*self.arrays[:5], self.bond_reach, stiffness, damping, self.margin, *self.arrays[5:])
+        return Samples(*self.arrays[:5], self.bond_reach, stiffness, damping, self.margin, *self.arrays[5:],
+                       TOUCH_BOND)
 
     def drop(self, pairs: np.ndarray) -> None:
         """The bonds ``pairs`` (pair indices, either direction) are cut: their samples leave."""

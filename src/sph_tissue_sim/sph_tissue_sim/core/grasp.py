@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from .contact import record_touch
-from .state import Grip
+from .state import TOUCH_BALL, Grip
 
 #: particles whose centres lie within this times the tool's contact reach of its segment are grasped
 #: (a region a little larger than the tool, as grasping in iMSTK advises)
@@ -80,7 +80,7 @@ def grip_forces(body, motion, tool, seg, frac, frame_dt, seg_vel, react):
             continue
         react[0] -= fmag * n0; react[1] -= fmag * n1; react[2] -= fmag * n2
         if tool.touches.on:
-            record_touch(tool.touches, 0, i, n0, n1, n2, True, seg, 0.0, tool.slot)
+            record_touch(tool.touches, TOUCH_BALL, i, n0, n1, n2, True, seg, 0.0, tool.slot)
         if not fixed[i]:
             acc[i, 0] += fmag * n0 * inv_mass
             acc[i, 1] += fmag * n1 * inv_mass

@@ -36,25 +36,34 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from .state import TOUCH_BALL, TOUCH_SAMPLE
+
 
 
 class ContactTerms(NamedTuple):
     """The pushing contacts of a sub-step and their laws, for a backward-Euler solve.
 
     ``touches`` (:class:`~.state.Touches`) is the record the contact kernels write; ``w_start,
-    w_idx, w_val`` the samples' weights; ``k_ball, c_ball`` and ``k_sample, c_sample`` the contact
-    laws; ``react`` (K, 3) the frame's reaction accumulator, a row per instrument; ``vn`` (cap,) each touch's normal
-    velocity at the sub-step's start and ``vt`` (cap, 3) its tangential one (scratch).
+    w_idx, w_val`` the surface samples' weights and ``b_start, b_idx, b_val`` a blade's bond
+    samples' (the two sets may share the tissue); ``k_ball, c_ball``, ``k_sample, c_sample`` and
+    ``k_bond, c_bond`` the contact laws; ``react`` (K, 3) the frame's reaction accumulator, a row per
+    instrument; ``vn`` (cap,) each touch's normal velocity at the sub-step's start and ``vt`` (cap, 3)
+    its tangential one (scratch).
     """
 
     touches: tuple
     w_start: np.ndarray
     w_idx: np.ndarray
     w_val: np.ndarray
+    b_start: np.ndarray
+    b_idx: np.ndarray
+    b_val: np.ndarray
     k_ball: float
     c_ball: float
     k_sample: float
     c_sample: float
+    k_bond: float
+    c_bond: float
     react: np.ndarray
     vn: np.ndarray
     vt: np.ndarray
@@ -63,9 +72,20 @@ class ContactTerms(NamedTuple):
 @njit(cache=True, fastmath=True, inline='always')
 def _law(c, t):
     """``(k, c)`` of touch ``t``."""
-    if c.touches.kind[t] == 0:
+    kind = c.touches.kind[t]
+    if kind == TOUCH_BALL:
         return c.k_ball, c.c_ball
-    return c.k_sample, c.c_sample
+    if kind == TOUCH_SAMPLE:
+        return c.k_sample, c.c_sample
+    return c.k_bond, c.c_bond
+
+
+@njit(cache=True, fastmath=True, inline='always')
+def _weights(c, t):
+    """``(start, idx, val)``: the weights CSR of sample touch ``t``'s set."""
+    if c.touches.kind[t] == TOUCH_SAMPLE:
+        return c.w_start, c.w_idx, c.w_val
+    return c.b_start, c.b_idx, c.b_val
 
 
 @njit(cache=True, fastmath=True, inline='always')
@@ -74,12 +94,13 @@ def _point_normal_velocity(c, t, vel):
     tc = c.touches
     n0 = tc.normal[t, 0]; n1 = tc.normal[t, 1]; n2 = tc.normal[t, 2]
     j = tc.idx[t]
-    if tc.kind[t] == 0:
+    if tc.kind[t] == TOUCH_BALL:
         return n0 * vel[j, 0] + n1 * vel[j, 1] + n2 * vel[j, 2]
+    w_start, w_idx, w_val = _weights(c, t)
     s = 0.0
-    for k in range(c.w_start[j], c.w_start[j + 1]):
-        i = c.w_idx[k]
-        s += c.w_val[k] * (n0 * vel[i, 0] + n1 * vel[i, 1] + n2 * vel[i, 2])
+    for k in range(w_start[j], w_start[j + 1]):
+        i = w_idx[k]
+        s += w_val[k] * (n0 * vel[i, 0] + n1 * vel[i, 1] + n2 * vel[i, 2])
     return s
 
 
@@ -89,12 +110,13 @@ def _spread(c, t, amount, out):
     tc = c.touches
     n0 = tc.normal[t, 0]; n1 = tc.normal[t, 1]; n2 = tc.normal[t, 2]
     j = tc.idx[t]
-    if tc.kind[t] == 0:
+    if tc.kind[t] == TOUCH_BALL:
         out[j, 0] += amount * n0; out[j, 1] += amount * n1; out[j, 2] += amount * n2
         return
-    for k in range(c.w_start[j], c.w_start[j + 1]):
-        i = c.w_idx[k]
-        a = amount * c.w_val[k]
+    w_start, w_idx, w_val = _weights(c, t)
+    for k in range(w_start[j], w_start[j + 1]):
+        i = w_idx[k]
+        a = amount * w_val[k]
         out[i, 0] += a * n0; out[i, 1] += a * n1; out[i, 2] += a * n2
 
 
@@ -103,13 +125,14 @@ def _tangential_velocity(c, t, vel):
     """``P_t Phi_t vel``, ``P_t = I - n_t n_t^T - a_t a_t^T``: the contact point's velocity across
     its normal (and, inside a shaft, across the tool's axis ``a_t``: the friction's tangent plane)."""
     j = c.touches.idx[t]
-    if c.touches.kind[t] == 0:
+    if c.touches.kind[t] == TOUCH_BALL:
         u0 = vel[j, 0]; u1 = vel[j, 1]; u2 = vel[j, 2]
     else:
+        w_start, w_idx, w_val = _weights(c, t)
         u0 = 0.0; u1 = 0.0; u2 = 0.0
-        for k in range(c.w_start[j], c.w_start[j + 1]):
-            i = c.w_idx[k]
-            w = c.w_val[k]
+        for k in range(w_start[j], w_start[j + 1]):
+            i = w_idx[k]
+            w = w_val[k]
             u0 += w * vel[i, 0]; u1 += w * vel[i, 1]; u2 += w * vel[i, 2]
     n0 = c.touches.normal[t, 0]; n1 = c.touches.normal[t, 1]; n2 = c.touches.normal[t, 2]
     a0 = c.touches.axis[t, 0]; a1 = c.touches.axis[t, 1]; a2 = c.touches.axis[t, 2]
@@ -122,12 +145,13 @@ def _tangential_velocity(c, t, vel):
 def _spread_vector(c, t, f0, f1, f2, out):
     """``out += Phi_t^T f``: a force ``f`` on the contact point, on its particles."""
     j = c.touches.idx[t]
-    if c.touches.kind[t] == 0:
+    if c.touches.kind[t] == TOUCH_BALL:
         out[j, 0] += f0; out[j, 1] += f1; out[j, 2] += f2
         return
-    for k in range(c.w_start[j], c.w_start[j + 1]):
-        i = c.w_idx[k]
-        w = c.w_val[k]
+    w_start, w_idx, w_val = _weights(c, t)
+    for k in range(w_start[j], w_start[j + 1]):
+        i = w_idx[k]
+        w = w_val[k]
         out[i, 0] += w * f0; out[i, 1] += w * f1; out[i, 2] += w * f2
 
 
@@ -198,11 +222,13 @@ def make_touches(cap: int):
                    np.zeros(cap, dtype=np.int32))
 
 
-def contact_terms(touches, samples, k_ball: float, c_ball: float, react: np.ndarray,
+def contact_terms(touches, samples, bonds, k_ball: float, c_ball: float, react: np.ndarray,
                   vn: np.ndarray, vt: np.ndarray) -> ContactTerms:
-    """The :class:`ContactTerms` of ``touches`` with ``samples`` (a :class:`~.state.Samples`)."""
-    return ContactTerms(touches, samples.w_start, samples.w_idx, samples.w_val, k_ball, c_ball,
-                        samples.stiffness, samples.damping, react, vn, vt)
+    """The :class:`ContactTerms` of ``touches`` with the surface ``samples`` and a blade's ``bonds``
+    (each a :class:`~.state.Samples`, maybe empty)."""
+    return ContactTerms(touches, samples.w_start, samples.w_idx, samples.w_val, bonds.w_start, bonds.w_idx,
+                        bonds.w_val, k_ball, c_ball, samples.stiffness, samples.damping, bonds.stiffness,
+                        bonds.damping, react, vn, vt)
 
 
 def no_contact_terms() -> ContactTerms:
@@ -210,4 +236,5 @@ def no_contact_terms() -> ContactTerms:
     from .state import no_touches
 
     return ContactTerms(no_touches(), np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0),
-                        0.0, 0.0, 0.0, 0.0, np.zeros((1, 3)), np.zeros(1), np.zeros((1, 3)))
+                        np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros(0),
+                        0.0, 0.0, 0.0, 0.0, 0.0, 0.0, np.zeros((1, 3)), np.zeros(1), np.zeros((1, 3)))

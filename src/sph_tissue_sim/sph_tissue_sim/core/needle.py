@@ -38,7 +38,7 @@ import numpy as np
 from numba import njit
 
 from .contact import penalty_push, record_touch
-from .state import Shaft
+from .state import TOUCH_BALL, Shaft
 
 #: states of a needle, as ``SimMetrics.needle_state`` sends them
 OUTSIDE, TOUCHING, INSERTED = 0, 1, 2
@@ -247,7 +247,7 @@ def needle_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react):
             continue
         react[0] -= fmag * n0; react[1] -= fmag * n1; react[2] -= fmag * n2
         if tool.touches.on:
-            record_touch(tool.touches, 0, i, n0, n1, n2, False, seg, 0.0, tool.slot)
+            record_touch(tool.touches, TOUCH_BALL, i, n0, n1, n2, False, seg, 0.0, tool.slot)
         if not fixed[i]:
             acc[i, 0] += fmag * n0 * inv_mass
             acc[i, 1] += fmag * n1 * inv_mass

@@ -28,7 +28,7 @@ from .contact import contact_vector_py, deepest_contact
 from .contact_kinds import BallContact, BladeContact, NeedleContact, make_contact
 from .cutting import Cutter
 from .needle import INSERTED, Puncture, no_shaft
-from .surface_contact import nearest_sample_gap
+from .surface_contact import nearest_sample_gap, no_samples
 from .errors import ConfigError, ModelError, SimError
 from .far_field import make_far_field
 from .gradients import reverse_pairs
@@ -370,14 +370,12 @@ class Solver:
                                           self.offsets, self.indices, self.h, self.volume)
         if cfg.scheme != 'tlsph' and any(key[1] == 'blade' for key in kinds):
             raise ConfigError(f'a blade cuts the reference bonds of scheme tlsph; scheme {cfg.scheme} has none')
+        if sum(shape.tool_shape == 'blade' for shape in shapes) > 1:
+            # the bonds' samples are aimed at one edge each frame (cutting.aim_bonds)
+            raise ConfigError('one blade per tissue: the bonds\' contact samples follow one edge')
         if cfg.scheme != 'tlsph' and any(shape.tool_shape == 'needle' for shape in shapes):
             raise ConfigError(f'a needle pierces the tissue of scheme tlsph (its bonds, its stress); scheme '
                               f'{cfg.scheme} has none')
-        if any(isinstance(kind, BladeContact) for kind in kinds.values()) and any(
-                kind.n_samples and not isinstance(kind, BladeContact) for kind in kinds.values()):
-            # the implicit contact holds one set of samples: the bonds' or the surface's
-            raise ConfigError('a blade and a tool on the surface samples cannot share the tissue: '
-                              'set contact_samples 0 for the other tools')
         self.x = self.X.copy()
         self.v = np.zeros((self.n, 3))
         self.acc = np.zeros((self.n, 3))
@@ -480,9 +478,13 @@ class Solver:
         self.contact_damping = cfg.contact_damping_ratio * 2.0 * math.sqrt(cfg.contact_stiffness * self.mass)
         for hand in self.instruments:
             hand.samples = hand.kind.samples(self.n, hand.tool.radius, cfg.contact_stiffness, self.contact_damping)
-        #: the implicit contact's view of the samples: their places are every sampled instrument's
-        self.samples = next((hand.samples for hand in self.instruments if hand.kind.n_samples),
-                            self.instruments[0].samples)
+        #: the implicit contact's view of the surface samples (their places are every sampled
+        #: instrument's) and of a blade's bond samples
+        no = no_samples(self.n)
+        self.samples = next((hand.samples for hand in self.instruments
+                             if hand.kind.n_samples and not isinstance(hand.kind, BladeContact)), no)
+        self.bond_samples = next((hand.samples for hand in self.instruments
+                                  if isinstance(hand.kind, BladeContact)), no)
         self.scheme.set_material(material, self.mass)
         self.close()
         #: the organ's compliance for local mode's far field (None: the half-space's, or none)
@@ -928,7 +930,7 @@ class Solver:
         """The integrator of a sub-step of ``sub_dt`` [s]: symplectic Euler with the pushing contacts
         (and with ``integrator: implicit`` everything) backward in time (:mod:`.backward_euler`)."""
         return self.backward.integrator(sub_dt, contact_terms(
-            self.touches, self.samples, self.config.contact_stiffness, self.contact_damping, self.react,
+            self.touches, self.samples, self.bond_samples, self.config.contact_stiffness, self.contact_damping, self.react,
             self._touch_vn, self._touch_vt))
 
     def _frame(self, sets: Sets, paths: tuple, n_sub: int, sub_dt: float, dt: float, mode: str) -> None:

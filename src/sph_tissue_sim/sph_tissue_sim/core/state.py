@@ -94,8 +94,13 @@ class Sets(NamedTuple):
     layer_tool: np.ndarray
 
 
+#: :attr:`Touches.kind` of a pushing contact: a particle's ball, a surface sample, a bond's sample
+TOUCH_BALL, TOUCH_SAMPLE, TOUCH_BOND = 0, 1, 2
+
+
 class Samples(NamedTuple):
-    """Contact samples on the material's surface and their contact law (:mod:`.surface_contact`)."""
+    """Contact samples on the material's surface (or a blade's on the bonds, :mod:`.cutting`) and
+    their contact law (:mod:`.surface_contact`)."""
 
     start: np.ndarray      # (N + 1,) particle i owns samples start[i] .. start[i + 1] - 1
     w_start: np.ndarray    # (S + 1,) CSR of each sample's interpolation weights
@@ -110,12 +115,13 @@ class Samples(NamedTuple):
     read_start: np.ndarray  # (N + 1,) CSR of the particles any of particle i's samples read
     read_idx: np.ndarray
     own_reach: np.ndarray  # (N,) [m] the farthest reference distance of particle i's samples from it
+    kind: int = TOUCH_SAMPLE  # what a touch of one of them is (Touches.kind)
 
 
 class Touches(NamedTuple):
     """The contacts of the last sub-step that pushed (for an implicit contact update,
-    :mod:`.implicit_contact`): ``kind[t]`` 0 for a particle's ball, 1 for a surface sample, ``idx[t]``
-    the particle or sample, ``normal[t]`` its unit normal, ``held[t]`` whether its friction sticks
+    :mod:`.implicit_contact`): ``kind[t]`` :data:`TOUCH_BALL`, :data:`TOUCH_SAMPLE` or
+    :data:`TOUCH_BOND`, ``idx[t]`` the particle or sample, ``normal[t]`` its unit normal, ``held[t]`` whether its friction sticks
     (its tangential spring acts too), ``axis[t]`` the tool's axis where the closest point is
     inside a shaft (the spring then does not act along it; zero elsewhere) and ``tool[t]`` the
     instrument whose contact or grasp it is; ``count[0]`` of them. ``on`` False: the contact kernels record

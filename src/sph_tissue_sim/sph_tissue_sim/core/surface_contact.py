@@ -265,7 +265,7 @@ def sample_contact_forces(body, motion, cand, n_cand, tool, seg, seg_vel, react)
             react[1] -= fmag * n1
             react[2] -= fmag * n2
             if touches.on:
-                record_touch(touches, 1, s, n0, n1, n2, held, seg, ts, tool.slot)
+                record_touch(touches, samples.kind, s, n0, n1, n2, held, seg, ts, tool.slot)
             for k in range(w_start[s], w_start[s + 1]):
                 j = w_idx[k]
                 if not fixed[j]:
