@@ -44,6 +44,14 @@ from tissue_testing import harness
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def quaternion(text: str) -> tuple[float, float, float, float]:
+    """``x,y,z,w`` as a unit quaternion (argparse type)."""
+    q = np.array([float(v) for v in text.split(',')])
+    if q.shape != (4,) or not np.isfinite(q).all() or np.linalg.norm(q) < 1e-6:
+        raise argparse.ArgumentTypeError(f'a quaternion is four finite numbers x,y,z,w, got {text!r}')
+    return tuple(float(v) for v in q / np.linalg.norm(q))
+
+
 def pressing_path(t: float, depth: float, period: float) -> tuple[float, float, float]:
     """Device-frame tip position [m] at time t: 4 mm above the surface point down to ``depth`` below
     it and back every ``period`` s (cosine), sweeping +-5 mm along x twice as slowly."""
@@ -203,7 +211,8 @@ def run(args) -> dict:
         def publisher() -> None:
             msg = PoseStamped()
             msg.header.frame_id = 'omni_base'
-            msg.pose.orientation.w = 1.0
+            o = msg.pose.orientation
+            o.x, o.y, o.z, o.w = args.orientation
             t_start = time.monotonic_ns() + 50_000_000
             for k in range(n_total):
                 x, y, z = pressing_path(k / args.rate, args.depth, args.press_period)
@@ -307,6 +316,10 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument('--haptic-mode', default='multirate', help='multirate (the renderer answers, the '
                     'solver refreshes it) | direct (one solver step per pose)')
     ap.add_argument('--depth', type=float, default=0.006, help='[m] deepest press below the surface')
+    ap.add_argument('--orientation', type=quaternion, default=(0.0, 0.0, 0.0, 1.0),
+                    help='x,y,z,w: the stylus orientation in omni_base (default identity: a shaft along '
+                         'the stylus +z lies flat in the default map); --orientation=-0.7071,0,0,0.7071 holds it '
+                         'upright, point down into the tissue, as the cut and needle bags do')
     ap.add_argument('--press-period', type=float, default=2.0, help='[s] one press and release')
     ap.add_argument('--particles-rate', type=float, default=30.0, help='[Hz] cloud rate of the node')
     ap.add_argument('--step-thread', default='default', help='on | off | default: the node steps '

@@ -190,3 +190,15 @@ def test_the_latency_probe_drives_two_instruments_and_reports_each():
         sent, replies = (int(v) for v in
                          proc.stdout.split(f'{name}: poses sent / replies')[1].split('\n')[0].split('/'))
         assert sent == 1500 and replies > 0
+
+
+def test_the_latency_probe_takes_the_stylus_orientation_as_a_unit_quaternion():
+    """``--orientation``: an upright needle or blade enters point first (a shaft along the stylus
+    +z lies flat under the identity); four numbers, normalised, anything else refused."""
+    mod = _load('sim_latency')
+    args = mod.parser().parse_args(['--orientation=-1,0,0,1'])
+    assert args.orientation == pytest.approx((-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)))
+    assert mod.parser().parse_args([]).orientation == (0.0, 0.0, 0.0, 1.0)
+    for bad in ('1,2', '0,0,0,0', 'nan,0,0,1'):
+        with pytest.raises(SystemExit):
+            mod.parser().parse_args(['--orientation', bad])

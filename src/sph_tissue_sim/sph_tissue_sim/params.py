@@ -92,8 +92,8 @@ SIM_PARAMS: dict[str, tuple[Any, str, Any, bool, str | None]] = {
                            'the device and the simulated tool: the stiffest the hand can feel (an '
                            'Omni renders about 700; times force_scale / workspace_scale at the '
                            'device)', RENDERER_RANGES['coupling_stiffness'], False, 'renderer'),
-    'coupling_damping': (RendererConfig.coupling_damping, '[N s/m] damper on the device\'s normal '
-                         'velocity in contact (passive above coupling_stiffness * period / 2)',
+    'coupling_damping': (RendererConfig.coupling_damping, '[N s/m] damper on the device\'s velocity '
+                         'along the coupling spring in contact (passive above coupling_stiffness * period / 2)',
                          RENDERER_RANGES['coupling_damping'], False, 'renderer'),
     'proxy_damping': (RendererConfig.proxy_damping, '[N s/m] damper of the simulated tool to the '
                       'world (keeps the loop through the solver stable; the tool lags the device by '

@@ -575,3 +575,24 @@ def test_a_lockstep_answer_without_contact_ends_the_contact_at_once(served):
     assert live.magnitude == pytest.approx(0.2)
     assert live.refresh([0.0, 0.0, 0.0], np.zeros(3), served=served, proxy=np.zeros(3), live=True)
     assert live.magnitude == 0.0
+
+
+def test_an_answer_tilted_for_one_pose_does_not_swing_the_damper_with_it():
+    """A light grasp or touch (tens of mN) whose reaction one encoder tick tilts by 40 degrees for a
+    single answer (a held particle dragged sideways): the coupling's damper acts along the spring,
+    which turns with the proxy, so the hand feels that answer as a small step, not as the damper
+    swung through 40 degrees while the hand moves."""
+    r = HapticRenderer(RendererConfig())
+    wall = Wall(200.0)
+    tilt = np.array([math.sin(math.radians(40.0)), 0.0, math.cos(math.radians(40.0))])
+    forces = []
+    for k in range(400):       # pressing at 10 mm/s, 0.2 mm in at the tilted answer (about 30 mN)
+        x = np.array([0.0, 0.0, quantised(np.array([0.0028 - 1e-5 * k]))[0]])
+        out = r.answer(x, T)
+        forces.append(out.force)
+        f = wall.force(out.proxy)
+        r.refresh(out.proxy, np.linalg.norm(f) * tilt if k == 300 else f)
+    df = np.linalg.norm(np.diff(np.array(forces), axis=0), axis=1)
+    assert np.linalg.norm(forces[300]) < 0.1
+    # the damper swung by 40 degrees at 10 mm/s would step by B_c v sin 40 = 9.6 mN (12 mN measured)
+    assert df[295:310].max() < 7e-3, df[295:310]

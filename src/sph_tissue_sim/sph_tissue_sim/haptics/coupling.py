@@ -59,9 +59,16 @@ through the tissue). The device then feels ``P``, as it would after its own clam
 spring is a function of the stretch alone, so it stores and returns energy like the spring.
 
 The device receives the spring's force ``K_c (x_t - x^)`` (at most ``P``) plus a damper
-``-B_c (n . v^) n`` on the device's normal velocity, while the spring pushes (``. n > 0``); never
-a pull. With zero-order hold, a rendered stiffness ``K`` is passive when the damping exceeds
-``K T / 2`` (Colgate and Brown); the default ``K_c`` 700 N/m (what a PHANTOM Omni renders, about 0.7 N/mm) needs
+``-B_c (u . v^) u`` on the device's velocity along the spring, ``u = a / |a|``, while the spring
+pushes (``. n > 0``); never a pull. At rest ``u`` is the normal ``n``; it differs where the
+reaction turns, and then it turns with the offset, over about ``B_p / K_c``, where ``n`` turns with
+each answer. A grasp's reaction is a bilateral pull: near its onset and where the jaw's press turns
+into a lift the pull is a few tens of mN, and each lateral encoder tick drags the held particles and
+tilts the solver's reaction by 20-60 degrees for one answer; a damper along ``n`` swung with it, by
+7-15 mN a frame (``bags/grasp``: |dF| p99 7.8 mN; 4.5 mN along ``u``).
+
+With zero-order hold, a rendered stiffness ``K`` is passive when the damping exceeds ``K T / 2``
+(Colgate and Brown); the default ``K_c`` 700 N/m (what a PHANTOM Omni renders, about 0.7 N/mm) needs
 ``B_c > 0.35 N s/m`` at 1 kHz. The default ``B_c`` is 1.5 N s/m: the loop through the solver and
 the estimator's overshoot are active too, and with 0.5 a poke session on tissue ten times stiffer
 than the liver gave energy back (E_in -85 uJ; with 1.5 it stays >= 0).
@@ -231,5 +238,9 @@ class VirtualCoupling:
         if pull > self.push_limit:
             spring *= self.push_limit / pull
         self.spring = spring
-        force = spring - (self.damping * float(n @ v_hat)) * n
+        # the damper acts along the spring (its direction the offset's, which moves as smoothly as
+        # the proxy), not along the model's normal, which turns with each answer: a grasp's small
+        # bilateral pull turned it by 20-60 degrees at a tick and the damper with it
+        u = self.offset / math.sqrt(float(self.offset @ self.offset))
+        force = spring - (self.damping * float(u @ v_hat)) * u
         return self.proxy, (force if float(force @ n) > 0.0 else np.zeros(3))

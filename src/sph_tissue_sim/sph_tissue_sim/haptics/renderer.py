@@ -58,9 +58,9 @@ class RendererConfig:
             (which is active).
         coupling_stiffness: ``K_c`` of the virtual coupling [N/m]; the hand never feels more.
             Default 700 N/m, what a PHANTOM Omni renders (about 0.7 N/mm).
-        coupling_damping: ``B_c`` on the device's normal velocity in contact [N s/m]; passivity
-            of the held spring needs ``B_c > K_c T / 2`` (0.35 at 700 N/m and 1 kHz); more
-            covers the loop through the solver (see :mod:`.coupling`).
+        coupling_damping: ``B_c`` on the device's velocity along the spring in contact [N s/m];
+            passivity of the held spring needs ``B_c > K_c T / 2`` (0.35 at 700 N/m and 1 kHz);
+            more covers the loop through the solver (see :mod:`.coupling`).
         proxy_damping: ``B_p`` on the simulated tool's offset from the device [N s/m].
         passivity_max_damping: the most damping the passivity controller may add [N s/m].
         energy_bound_stiffness: the least ``k_b`` of the live energy bound [N/m]: in live timing
