@@ -91,12 +91,13 @@ def test_an_instrument_count_out_of_range_is_refused(count):
         Solver(_block(), liver_default(), GLOBAL, instruments=count)
 
 
-@pytest.mark.parametrize('apart, grasp, bound', [(0.015, False, 0.05), (0.03, False, 0.05), (0.02, True, 0.07)])
+@pytest.mark.parametrize('apart, grasp, bound', [(0.015, False, 0.03), (0.03, False, 0.03), (0.02, True, 0.03)])
 def test_two_instruments_in_local_mode_feel_what_they_feel_in_global_mode(apart, grasp, bound):
     """The local area is the union of the tools' areas, each centred on what its tool touches or
-    holds, with its own layers and far-field load. Two presses agree within the 5 % target; a grasp
-    lifted beside a press was 5.7 % off (validate.py --checks grasp scores the target over more
-    cases), held here to 7 % against regressions."""
+    holds, and the organ's far field places the still particles around it at its response to both
+    tools' loads. Within 1.1 % here (validate.py --checks grasp scores the 5 % target over more
+    cases); with one transmission layer per tool, moving at half its tool's speed, a grasp lifted
+    3 mm beside a press was 5.7 % off (its layer lifted too far, pulling the tissue between)."""
     model = make_block(12, 12, 6, spacing=SPACING, fix='bottom')
     f = {mode: cases.two_tools_on_a_block(model, liver_default(), SolverConfig(mode=mode), apart, grasp)
          for mode in ('global', 'local')}
@@ -108,7 +109,8 @@ def test_two_instruments_in_local_mode_feel_what_they_feel_in_global_mode(apart,
 
 def test_two_instruments_in_local_mode_solve_the_union_of_their_areas():
     model = make_block(16, 8, 5, spacing=SPACING, fix='bottom')
-    solver = Solver(model, liver_default(), SolverConfig(mode='local'), instruments=2)
+    # the paper's still region, whose layers each follow their own tool (the organ's far field has none)
+    solver = Solver(model, liver_default(), SolverConfig(mode='local', far_field=0.0), instruments=2)
     a, b = _over(model, (-0.025, 0.0)), _over(model, (0.025, 0.0))
     for k in range(30):
         solver.step_tools([(a - [0.0, 0.0, 1e-4 * k], None), (b - [0.0, 0.0, 1e-4 * k], None)], 1e-3)

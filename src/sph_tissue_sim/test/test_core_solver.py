@@ -110,7 +110,7 @@ def test_internal_forces_conserve_linear_momentum():
 def test_local_mode_releases_particles_after_they_relax():
     solver = Solver(_block(n=(10, 10, 5)), LIVER, SolverConfig(mode='local'))
     res = press(solver, 0.004, frames=200)
-    assert res.n_interaction > 0 and res.n_layer.sum() > 0
+    assert res.n_interaction > 0 and res.n_layer.sum() == 0     # the organ's far field: no layers
     assert res.n_active < solver.n_particles // 2      # the area, not the model
     region = solver.region
     assert set(np.unique(region)) <= {0, 1, 2, 3}

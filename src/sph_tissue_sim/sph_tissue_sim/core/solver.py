@@ -120,7 +120,8 @@ class SolverConfig:
                              (0.0, 100.0))
     k1_min: float = setting(1.75, '[-] lower clamp of k1: keeps the area non-empty without force', (0.01, 100.0))
     k1_max: float = setting(6.0, '[-] upper clamp of k1', (0.01, 100.0))
-    n_layers: int = setting(1, 'transmission layers N (paper eqs. 20-21)', (0, 8))
+    n_layers: int = setting(1, 'transmission layers N (paper eqs. 20-21); none under the organ\'s far field, '
+                            'which places that band itself', (0, 8))
     hourglass: float = setting(1.0, '[-] tlsph: Ganzenmueller hourglass coefficient alpha', (0.0, 100.0),
                                node=False)
     # -- tool and contact -------------------------------------------------------------------------
@@ -492,6 +493,9 @@ class Solver:
                                      self.background)
         #: local mode's far field (:mod:`.far_field`; None in global mode or with ``far_field`` 0)
         self.far = make_far_field(cfg.mode == 'local', cfg.far_field, material, self.organ)
+        # the organ's far field places the band the transmission layers would move, at the organ's
+        # response to every instrument's load: no layers then (docs/decisions/local-area-far-field.md)
+        self.area.n_layers = 0 if self.organ is not None else cfg.n_layers
         self.backward.set_material(material)
         self.dt_bounds = frame_bounds(cfg, self.h, self.scheme.wave_speed(material, self.mass), material)
         dashpots = self.scheme.dashpots_only() if isinstance(self.scheme, TlsphScheme) else None
