@@ -133,6 +133,7 @@ class Case:
     # None: SolverConfig's default (what the product runs), else that choice
     integrator: str | None = None        # SolverConfig.integrator
     frame_dt: float = FRAME_DT           # [s] simulated time per frame (the implicit integrator: 16 ms)
+    far_field: float | None = None       # SolverConfig.far_field (Tables 4/5: 0, the paper's still region)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -199,6 +200,8 @@ class PressScript:
 def case_config(case: Case) -> SolverConfig:
     """The solver settings a case times: SolverConfig's defaults with the case's choices."""
     chosen = {'integrator': case.integrator} if case.integrator is not None else {}
+    if case.far_field is not None:
+        chosen['far_field'] = case.far_field
     return SolverConfig(scheme=case.scheme, mode=case.mode, n_layers=case.n_layers, k1_gain=case.k1_gain,
                         parallel_min_particles=case.parallel_min, **chosen)
 
@@ -398,13 +401,13 @@ def build_cases(tables: tuple, st: Settings, models: Models) -> list[Case]:
         for gain, paper in PAPER_T4.items():
             for sch in SCHEMES_SPH:
                 cases.append(Case('4', f'T4 k1={gain}*f {sch}', sch, 'local', n4, 0.6, hr, k1_gain=gain,
-                                  k1_pinned=gain * TABLE4_FEXT, n_layers=2, paper_s=paper))
+                                  k1_pinned=gain * TABLE4_FEXT, n_layers=2, paper_s=paper, far_field=0.0))
     if '5' in tables:
         hr = h_ratio_for(models, n4, 0.6)
         for nl, paper in PAPER_T5.items():
             for sch in SCHEMES_SPH:
                 cases.append(Case('5', f'T5 N={nl} {sch}', sch, 'local', n4, 0.6, hr, k1_gain=0.5,
-                                  k1_pinned=0.5 * TABLE4_FEXT, n_layers=nl, paper_s=paper))
+                                  k1_pinned=0.5 * TABLE4_FEXT, n_layers=nl, paper_s=paper, far_field=0.0))
     if 'scaling' in tables:
         for n in st.scaling_sizes:
             cases.append(Case('scaling', f'scaling N={n} local', 'tlsph', 'local', n))

@@ -276,8 +276,9 @@ def test_a_cloud_that_fails_to_publish_is_logged_and_the_next_one_goes_out(multi
 
 
 @pytest.mark.parametrize('chosen, topics', [
-    ({}, []),                   # the bundled sessions press button 1 as a marker: by default nothing grasps
+    ({}, ['/left/omni/state', '/right/omni/state']),        # by default the stylus's button 1
     ({'grasp_input': 'button2'}, ['/left/omni/state', '/right/omni/state']),
+    ({'grasp_input': ''}, []),
     ({'grasp_input': 'jaw'}, ['/left/omni/jaw/measured_js', '/right/omni/jaw/measured_js']),
 ])
 def test_each_instrument_grasps_from_the_input_grasp_input_names(ros_domain, chosen, topics):
