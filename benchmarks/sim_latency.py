@@ -188,7 +188,8 @@ def run(args) -> dict:
             for i, name in enumerate(names)]
     msub = None
     if args.metrics:  # another 1 kHz stream into this process: it delays the wrench callbacks
-        msub = node.create_subscription(SimMetrics, 'tissue/metrics', on_metrics,
+        # one step serves every instrument: the first one's metrics carry its wall time
+        msub = node.create_subscription(SimMetrics, topic_within(names[0], 'tissue/metrics'), on_metrics,
                                         QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                                                    reliability=ReliabilityPolicy.RELIABLE))
     launched_ns = time.monotonic_ns()

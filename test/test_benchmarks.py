@@ -181,15 +181,18 @@ def test_the_latency_probe_times_the_echo_peer_that_answers_every_pose():
 
 def test_the_latency_probe_drives_two_instruments_and_reports_each():
     """``sim_latency.py --instruments left,right``: one pose stream per namespace, each answered on
-    its own topic and reported on its own lines."""
+    its own topic and reported on its own lines; ``--metrics`` reads the step times from the first
+    instrument's metrics (there is no root ``tissue/metrics`` then: the probe once waited for it)."""
     proc = subprocess.run([sys.executable, str(ROOT / 'benchmarks' / 'sim_latency.py'), '--instruments', 'left,right',
                            '--model', 'block', '--n-particles', '256', '--duration', '2', '--skip', '0.5',
-                           '--csv', ''], capture_output=True, text=True, timeout=300, cwd=ROOT)
+                           '--metrics', '--csv', ''], capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
     for name in ('left', 'right'):
         sent, replies = (int(v) for v in
                          proc.stdout.split(f'{name}: poses sent / replies')[1].split('\n')[0].split('/'))
         assert sent == 1500 and replies > 0
+    steps = proc.stdout.split('step wall time median / p99')[1].split('\n')[0]
+    assert 'ms' in steps and 'nan' not in steps
 
 
 def test_the_latency_probe_takes_the_stylus_orientation_as_a_unit_quaternion():
