@@ -150,10 +150,7 @@ class BladeContact(BallContact):
         self.aim_reach = self.bond_reach + self.margin
         self.arrays = (start, np.arange(0, 2 * len(lower) + 1, 2, dtype=np.int64), self.w_idx, self.w_val,
                        self.offset, X, read_start, read, own_reach)
-        self.contact_reach = max(self.ball_reach, self.bond_reach)
-        # the bonds it presses hold their particles beyond its reach: the local area is centred on
-        # the particles whose bonds may be pressed (a bond's half-way point within the reach)
-        self.detect_reach = max(self.ball_reach, self.bond_reach + 0.5 * float(own_reach.max()))
+        self.contact_reach = self.detect_reach = max(self.ball_reach, self.bond_reach)
         self.cand_reach = self.samples_reach = max(self.ball_reach, self.bond_reach + float(own_reach.max()))
 
     @property
