@@ -22,8 +22,11 @@ MS = 1_000_000
 def make_runner(**over) -> tuple[Runner, list]:
     """A runner on the 256-particle block; what it sends lands in the returned list as
     ('force', stamp, frame, force, instrument), ('metrics', stamp, haptic status, instrument),
-    ('cloud', stamp) or ('log', level, text)."""
-    p = {name: spec[0] for name, spec in SIM_PARAMS.items()} | BLOCK | {'force_limit': LIMIT, **over}
+    ('cloud', stamp) or ('log', level, text). A live solver thread runs at the caller's priority
+    here: a thread niced below a busy machine's other loads steps too rarely for these tests' waits
+    (its priority is tested with the node, test_sim_node_errors.py)."""
+    p = {name: spec[0] for name, spec in SIM_PARAMS.items()} | BLOCK | {'force_limit': LIMIT, 'solver_nice': 0,
+                                                                          **over}
     model = build_model(p)
     solver = make_solver(model, build_material(p), build_config(p), p['nominal_dt'],
                          instruments=len(p['instruments']), tools=instrument_tools(p))
@@ -305,9 +308,7 @@ def test_a_button_closed_over_nothing_grasps_nothing_and_says_so():
 
 
 def test_two_instruments_live_are_answered_at_once_and_the_solver_thread_steps_both():
-    # at the main thread's priority: this test is about answering and stepping both, and a solver
-    # thread niced below a busy machine's other loads may step too rarely to reach the tissue
-    runner, out = make_runner(**TWO, timing_mode='live', solver_nice=0)
+    runner, out = make_runner(**TWO, timing_mode='live')
     runner.start()
     t0 = time.monotonic()
     path = press_path(200, depth=0.005)
