@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from sph_tissue_sim.core.grasp import GRIP_LAG_CUTOFF, trail_after
 from sph_tissue_sim.core.material import liver_default
 from sph_tissue_sim.core.models import make_block
 from sph_tissue_sim.core.solver import InvalidInput, Solver, SolverConfig
@@ -138,3 +139,41 @@ def test_a_twist_faster_than_the_shaft_may_sweep_turns_what_it_holds_only_as_far
     np.testing.assert_allclose(hand.rotation[:, 2], shaft, atol=1e-12)
     np.testing.assert_allclose(hand.rotation.T @ hand.rotation, np.eye(3), atol=1e-12)
     assert res.tools[0].grasped == 9                 # nothing torn off
+
+
+def test_the_anchors_trail_a_moved_tip_by_a_first_order_lag():
+    """The tip steps by d in one frame and stays: the anchors' base trails it by -(1 - a) d after
+    that frame and -(1 - a)^n d after n, a = 1 - exp(-2 pi f_c dt); a tip moving at a steady v
+    is trailed by v dt (1 - a) / a."""
+    dt, d = 1e-3, np.array([0.0, 5.5e-5, 0.0])
+    a = 1.0 - np.exp(-2.0 * np.pi * GRIP_LAG_CUTOFF * dt)
+    trail = trail_after(np.zeros(3), np.zeros(3), d, dt)
+    for n in range(1, 6):
+        np.testing.assert_allclose(trail, -(1.0 - a) ** n * d, rtol=1e-12)
+        trail = trail_after(trail, d, d, dt)
+    v, trail = np.array([0.0, 0.0, 0.026]), np.zeros(3)
+    for k in range(200):
+        trail = trail_after(trail, k * v * dt, (k + 1) * v * dt, dt)
+    np.testing.assert_allclose(trail, -v * dt * (1.0 - a) / a, rtol=1e-9)
+
+
+def test_a_one_tick_move_of_a_grasping_tool_reaches_the_hand_over_several_frames():
+    """Held still until the column settles, then moved up by one encoder tick (55 um): the nine
+    grip springs (k_c each) would change the pull by 9 k_c tick at once. The anchors follow the
+    tip through the lag, so the first frame takes about a (0.31 at 60 Hz) of that (measured 33 of
+    149 mN; without the lag 90 mN, then 35, 21 and 9 mN back), and the pull settles lower."""
+    model = _column()
+    solver = Solver(model, liver_default(), SolverConfig(mode='global'))
+    tip = _touching(solver)
+    solver.step(tip, 1e-3)
+    assert solver.grasp() == 9
+    for _ in range(300):
+        before = solver.step(tip, 1e-3).force_raw[2]
+    moved = tip + np.array([0.0, 0.0, 5.5e-5])
+    pull = [solver.step(moved, 1e-3).force_raw[2] - before for _ in range(60)]
+    print(' '.join(f'{p * 1e3:.2f}' for p in pull[:12]), f'... {pull[-1] * 1e3:.2f} mN')
+    jump = 9 * solver.config.contact_stiffness * 5.5e-5
+    assert abs(pull[0]) < 0.4 * jump
+    assert max(abs(p) for p in pull[1:]) < abs(pull[0])
+    assert np.mean(pull[-10:]) < 0.0                    # pulled back down
+    assert np.abs(solver.instruments[0].grip_trail).max() < 1e-7

@@ -3,8 +3,9 @@
 When an instrument closes (:meth:`~.solver.Solver.grasp`) the free particles whose centres lie
 within ``GRASP_REGION`` times the tool's contact reach of its segment are attached to it: each
 keeps an anchor ``a``, where it sat relative to the tool's tip in the tool's own frame, and is
-pulled towards the anchor's place ``p = tip + R a`` by a spring and a dashpot of the contact's
-stiffness ``k_c`` and damping ``c_c``:
+pulled towards the anchor's place ``p = b + R a`` by a spring and a dashpot of the contact's
+stiffness ``k_c`` and damping ``c_c``, where ``b`` follows the tip through a first-order lag
+(:data:`GRIP_LAG_CUTOFF`, :func:`trail_after`):
 
     f = k_c (p - x) - c_c ((v - v_p) . n) n,        n = (p - x) / |p - x|.
 
@@ -30,6 +31,19 @@ from .state import TOUCH_BALL, Grip
 #: particles whose centres lie within this times the tool's contact reach of its segment are grasped
 #: (a region a little larger than the tool, as grasping in iMSTK advises)
 GRASP_REGION = 1.2
+#: [Hz] the anchors' base follows the tool's tip through a first-order lag of this cut-off. An
+#: encoder tick moves the tip in one frame, and the grip springs, far stiffer than the tissue,
+#: answered that jump at once: the grasping hand felt it (docs/decisions/grasp-retract-smoothness.md).
+#: At 60 Hz the base trails a 26 mm/s retract by 0.07 mm.
+GRIP_LAG_CUTOFF = 60.0
+
+
+def trail_after(trail: np.ndarray, tip0: np.ndarray, tip1: np.ndarray, dt: float) -> np.ndarray:
+    """Where the anchors' base ``b`` is from the tip [m] at the end of a frame of ``dt`` [s] in
+    which the tip moved from ``tip0`` to ``tip1``, ``b`` having been at ``tip0 + trail``:
+    ``b1 = b0 + alpha (tip1 - b0)``, ``alpha = 1 - exp(-2 pi f_c dt)``."""
+    alpha = 1.0 - math.exp(-2.0 * math.pi * GRIP_LAG_CUTOFF * dt)
+    return (1.0 - alpha) * (tip0 + trail - tip1)
 
 
 def no_grip() -> Grip:

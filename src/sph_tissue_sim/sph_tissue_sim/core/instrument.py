@@ -62,6 +62,7 @@ class Instrument:
         self.grip_idx = np.ascontiguousarray(idx, dtype=np.int32)
         self.grip_local = np.ascontiguousarray(local, dtype=np.float64).reshape(-1, 3)
         self.grip_held = np.ones(len(self.grip_idx), dtype=np.bool_)
+        self.grip_trail = np.zeros(3)     # [m] the anchors' base from the tip (grasp.trail_after)
 
     def let_go(self) -> int:
         """Release everything held; returns how many particles were."""

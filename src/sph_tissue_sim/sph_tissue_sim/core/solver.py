@@ -32,7 +32,7 @@ from .surface_contact import nearest_sample_gap, no_samples
 from .errors import ConfigError, ModelError, SimError
 from .far_field import make_far_field
 from .gradients import reverse_pairs
-from .grasp import GRASP_REGION, grasp_region, no_grip
+from .grasp import GRASP_REGION, grasp_region, no_grip, trail_after
 from .implicit_contact import contact_terms, make_touches
 from .instrument import Instrument, ToolResult
 from .backward_euler import BackwardSolve
@@ -719,14 +719,13 @@ class Solver:
         a release without a grasp)."""
         return self._hand(k).let_go()
 
-    def _grip(self, hand: Instrument, rot: np.ndarray) -> Grip:
+    def _grip(self, hand: Instrument, rot: np.ndarray, trail: np.ndarray) -> Grip:
         """What ``hand`` holds across this frame, its anchors turned from the last frame's
-        orientation to ``rot``."""
-        if not len(hand.grip_idx):
-            return self._no_grip
+        orientation to ``rot`` and trailing the tip by ``hand.grip_trail`` at its start and ``trail``
+        at its end."""
         prev = hand.rotation if hand.rotation is not None else rot
-        return Grip(hand.grip_idx, len(hand.grip_idx), hand.grip_local @ prev.T, hand.grip_local @ rot.T,
-                    hand.grip_held, self.config.grasp_limit)
+        return Grip(hand.grip_idx, len(hand.grip_idx), hand.grip_local @ prev.T + hand.grip_trail,
+                    hand.grip_local @ rot.T + trail, hand.grip_held, self.config.grasp_limit)
 
     def step(self, tool_pos, dt: float, tool_rot=None) -> StepResult:
         """Advance the tissue by ``dt`` seconds with the tool's tip at ``tool_pos`` (tissue frame, m)
@@ -757,11 +756,12 @@ class Solver:
             m = self.material
             dt_max = min(dt_max, cfg.cfl * self.h / math.sqrt((m.K + 4.0 * m.G * growth / 3.0) / m.rho))
         n_sub, sub_dt, capped = substeps_for(dt, dt_max, cfg.max_substeps)
-        paths, tips, rots, lags = [], [], [], []
+        paths, tips, rots, lags, trails = [], [], [], [], []
         for k, (hand, pose) in enumerate(zip(self.instruments, poses)):
             lag = 0.0
             grip = self._no_grip
             rot = None
+            trail = None
             if pose is not None:
                 tip, rot = pose
                 if hand.tip is not None:
@@ -773,7 +773,9 @@ class Solver:
                         rot = _turned_to(rot, seg1)     # what it holds turns as far as the shaft did
                     lag = max(lag, sweep)
                 seg0 = hand.segment if hand.segment is not None else seg1
-                grip = self._grip(hand, rot)
+                if len(hand.grip_idx):
+                    trail = trail_after(hand.grip_trail, seg0[0], seg1[0], dt)
+                    grip = self._grip(hand, rot, trail)
             else:
                 tip = None
                 seg0 = seg1 = np.stack([self.centre, self.centre])
@@ -782,6 +784,7 @@ class Solver:
             tips.append(tip)
             rots.append(rot)
             lags.append(lag)
+            trails.append(trail)
             needle = self.needles.get(k)
             shaft = (needle.shaft(self.material.toughness, self.material.needle_hold) if needle is not None
                      else self._no_shaft)
@@ -824,6 +827,8 @@ class Solver:
             hand.segment = paths[k].seg1 if on else None
             hand.rotation = rots[k]
             hand.contact = int(contacts[k])
+            if trails[k] is not None:
+                hand.grip_trail = trails[k]
         for k, tool in enumerate(tools):
             f0, f1, f2 = tool.force.tolist()
             self.f_prev[k] = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)

@@ -65,7 +65,7 @@ reaction turns, and then it turns with the offset, over about ``B_p / K_c``, whe
 each answer. A grasp's reaction is a bilateral pull: near its onset and where the jaw's press turns
 into a lift the pull is a few tens of mN, and each lateral encoder tick drags the held particles and
 tilts the solver's reaction by 20-60 degrees for one answer; a damper along ``n`` swung with it, by
-7-15 mN a frame (``bags/grasp``: |dF| p99 7.8 mN; 4.5 mN along ``u``).
+7-15 mN a frame (``bags/grasp``, anchors not yet lagged: |dF| p99 7.8 mN; 4.5 mN along ``u``).
 
 With zero-order hold, a rendered stiffness ``K`` is passive when the damping exceeds ``K T / 2``
 (Colgate and Brown); the default ``K_c`` 700 N/m (what a PHANTOM Omni renders, about 0.7 N/mm) needs
