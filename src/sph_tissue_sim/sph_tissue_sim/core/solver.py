@@ -47,7 +47,7 @@ from .paper import PaperScheme
 from .protocols import STATUS_OK
 from .springs import MassSpringScheme
 from .stability import DASHPOT_RATE_EVERY, DashpotRate
-from .state import Body, Grip, Loads, Motion, Sets, ToolPath, Topology
+from .state import TOUCH_BOND, Body, Grip, Loads, Motion, Sets, ToolPath, Topology
 from .tlsph import TlsphScheme
 from .tools import NO_ROTATION, TOOLS, make_tool
 
@@ -935,6 +935,15 @@ class Solver:
                 return prev
         return -1
 
+    def _pressed_bond_ends(self, k: int) -> np.ndarray:
+        """The particles at either end of the bonds instrument ``k``'s edge pressed in the last
+        sub-step (sorted, unique): its load's place while it touches no particle."""
+        t = self.touches
+        c = int(t.count[0])
+        s = t.idx[:c][(t.kind[:c] == TOUCH_BOND) & (t.tool[:c] == k)]
+        w_idx = self.instruments[k].kind.w_idx
+        return np.unique(np.concatenate([w_idx[2 * s], w_idx[2 * s + 1]]))
+
     def substep_integrator(self, sub_dt: float):
         """The integrator of a sub-step of ``sub_dt`` [s]: symplectic Euler with the pushing contacts
         (and with ``integrator: implicit`` everything) backward in time (:mod:`.backward_euler`)."""
@@ -1012,6 +1021,10 @@ class Solver:
                 held = self.needles[k].holding()  # a dent, or a shaft between the particles
                 if len(held):
                     centre = area.hold(held, k)
+            if centre < 0 and k in self.cutters and path.on:
+                pressed = self._pressed_bond_ends(k)
+                if len(pressed):
+                    area.hold(pressed, k)         # where the far field loads the organ; still no area
             k1 = min(max(cfg.k1_gain * self.f_prev[k], cfg.k1_min), cfg.k1_max)
             reach, Dr = hand.kind.area(hand.samples_push, self.organ is not None, k1 * self.h, self.h)
             if path.grip.n:
