@@ -191,7 +191,7 @@ def cantilever_frequency(n_across: int, slenderness: float, n_wide: int | None =
     tip amplitude of 1 % of L from its straight shape; the period is twice the time from the
     release to the tip displacement's first zero crossing (half a period: measuring to the next
     crossing too cost the run again and moved the 10-tall beam's f1 by under 0.07 %, -6.27 % from
-    Euler-Bernoulli either way explicit, -6.10 / -6.16 % from Timoshenko implicit). No tool, so the
+    Euler-Bernoulli either way explicit, -6.1 / -6.16 % from Timoshenko implicit). No tool, so the
     sub-steps follow the material's CFL bound only. ``config``: further :class:`SolverConfig` fields (e.g.
     ``integrator``).
     """
